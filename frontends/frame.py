@@ -1,0 +1,58 @@
+"""The typed contract between data sources, odometry and the rest of the pipeline."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of a depth/colour image, in pixels.
+
+    ``fy`` may be negative for datasets that store images with a flipped y axis (ICL-NUIM's
+    original convention); the sources normalise this so that ``fy > 0`` downstream.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 float64 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class Frame:
+    """One sensor reading.
+
+    Attributes:
+        index: position in the source (0-based, after any frame slicing).
+        timestamp: seconds.
+        points: (N, 3) float64 points in the sensor frame S, metres.
+        normals: (N, 3) float64 unit normals pointing towards the sensor, or None when the source
+            does not compute them (LiDAR sources leave this to the pipeline).
+        colors: (N, 3) uint8 RGB per point, or None.
+        point_times: (N,) float64 per-point relative times in [0, 1] for deskewing, or None.
+        depth: (H, W) float32 depth in metres (0 = invalid), RGB-D only.
+        rgb: (H, W, 3) uint8 colour image registered to ``depth``, RGB-D only.
+        intrinsics: intrinsics of ``depth``/``rgb``.
+        T_W_S_gt: 4x4 float64 ground-truth sensor pose, or None.
+    """
+
+    index: int
+    timestamp: float
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    point_times: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    rgb: np.ndarray | None = None
+    intrinsics: Intrinsics | None = None
+    T_W_S_gt: np.ndarray | None = None

@@ -1,0 +1,48 @@
+"""Odometry interface and registry: frames in, sensor poses ``T_W_S`` out."""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+
+import numpy as np
+
+from frontends.errors import DatasetError
+from frontends.frame import Frame
+
+ODOMETRIES: dict[str, Callable[..., Odometry]] = {}
+
+_ODOMETRY_MODULES: dict[str, str] = {
+    "gt": "frontends.odometry.ground_truth",
+    "kiss-icp": "frontends.odometry.kiss",
+    "rgbd": "frontends.odometry.rgbd",
+}
+
+
+class Odometry(ABC):
+    """Estimates the pose of each new frame relative to the first one (``T_W_S`` with W = S_0)."""
+
+    @abstractmethod
+    def register(self, frame: Frame) -> np.ndarray:
+        """Consume the next frame and return its 4x4 float64 pose ``T_W_S``."""
+
+
+def register_odometry(name: str) -> Callable[[type[Odometry]], type[Odometry]]:
+    """Class decorator adding an odometry to :data:`ODOMETRIES` under ``name``."""
+
+    def wrap(cls: type[Odometry]) -> type[Odometry]:
+        ODOMETRIES[name] = cls
+        return cls
+
+    return wrap
+
+
+def make_odometry(name: str, **kwargs) -> Odometry:
+    """Build the odometry registered as ``name`` (keyword arguments go to its constructor)."""
+    module = _ODOMETRY_MODULES.get(name)
+    if module is None:
+        known = ", ".join(sorted(_ODOMETRY_MODULES))
+        raise DatasetError(f"unknown odometry '{name}'; choose one of: {known}")
+    importlib.import_module(module)
+    return ODOMETRIES[name](**kwargs)

@@ -1,0 +1,117 @@
+"""Source interface and registry.
+
+A source is a random-access sequence of :class:`~frontends.frame.Frame`. Concrete sources live in
+one module each and register themselves with :func:`register_source`; ``make_source`` imports the
+modules lazily so that an unused dataset family costs nothing.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import ClassVar, Literal
+
+import numpy as np
+
+from frontends.errors import DatasetError
+from frontends.frame import Frame
+
+SensorKind = Literal["lidar", "rgbd"]
+
+SOURCES: dict[str, Callable[..., Source]] = {}
+
+# name -> module that registers it (imported on first use).
+_SOURCE_MODULES: dict[str, str] = {
+    "kitti": "frontends.sources.kitti",
+    "tum": "frontends.sources.tum",
+    "icl": "frontends.sources.tum",
+    "replica": "frontends.sources.replica",
+    "7scenes": "frontends.sources.sevenscenes",
+    "generated": "frontends.sources.generated",
+}
+
+
+class Source(ABC):
+    """A recorded sequence.
+
+    Subclasses set ``sensor`` and implement ``__len__`` and ``_load`` (frame ``i`` of the
+    selected range). Frame slicing (``frames=slice(a, b, step)``) is handled here.
+    """
+
+    sensor: ClassVar[SensorKind]
+
+    def __init__(self, name: str, frames: slice | None = None) -> None:
+        self.name = name
+        self._frames = frames or slice(None)
+        self._indices: np.ndarray | None = None
+
+    @abstractmethod
+    def _num_raw_frames(self) -> int:
+        """Number of frames on disk, before slicing."""
+
+    @abstractmethod
+    def _load(self, raw_index: int) -> Frame:
+        """Load frame ``raw_index`` (index into the unsliced sequence)."""
+
+    def _raw_gt_poses(self) -> np.ndarray | None:
+        """(N_raw, 4, 4) ground-truth T_W_S of every frame on disk, or None."""
+        return None
+
+    @property
+    def indices(self) -> np.ndarray:
+        """Raw indices of the selected frames."""
+        if self._indices is None:
+            self._indices = np.arange(self._num_raw_frames())[self._frames]
+            if len(self._indices) == 0:
+                raise DatasetError(
+                    f"{self.name}: frame range {self._frames} selects no frames out of "
+                    f"{self._num_raw_frames()}; pass a range inside the sequence"
+                )
+        return self._indices
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> Frame:
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        frame = self._load(int(self.indices[i]))
+        frame.index = i
+        return frame
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ground-truth T_W_S of the selected frames, or None."""
+        raw = self._raw_gt_poses()
+        return None if raw is None else raw[self.indices]
+
+    @property
+    def gt_mesh_path(self) -> Path | None:
+        """Ground-truth surface mesh in the world frame of ``gt_poses``, when the dataset has one."""
+        return None
+
+
+def register_source(name: str) -> Callable[[type[Source]], type[Source]]:
+    """Class decorator adding a source to :data:`SOURCES` under ``name``."""
+
+    def wrap(cls: type[Source]) -> type[Source]:
+        SOURCES[name] = cls
+        return cls
+
+    return wrap
+
+
+def make_source(name: str, **kwargs) -> Source:
+    """Build the source registered as ``name`` (keyword arguments go to its constructor)."""
+    module = _SOURCE_MODULES.get(name)
+    if module is None:
+        known = ", ".join(sorted(_SOURCE_MODULES))
+        raise DatasetError(f"unknown source '{name}'; choose one of: {known}")
+    importlib.import_module(module)
+    return SOURCES[name](**kwargs)

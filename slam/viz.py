@@ -1,0 +1,91 @@
+"""The logging interface the pipeline reports to, and its null implementation.
+
+The pipeline calls a :class:`Logger` unconditionally; whether anything is recorded depends only on
+which implementation was constructed (Rerun, or :class:`NullLogger`). Algorithm objects never log
+themselves: the runner hands their results to the logger.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+
+import numpy as np
+import trimesh
+
+from frontends.frame import Intrinsics
+
+
+class Logger(ABC):
+    """What a run reports. All poses are 4x4 float64 ``T_W_*``, all points in the world frame."""
+
+    @abstractmethod
+    def set_time(self, frame_index: int, timestamp_s: float) -> None:
+        """Set the current time on the ``frame`` and ``sensor_time`` timelines."""
+
+    @abstractmethod
+    def log_scan(self, points_W: np.ndarray, colors: np.ndarray | None = None) -> None:
+        """The current (downsampled) scan, already in the world frame."""
+
+    @abstractmethod
+    def log_sensor(
+        self,
+        T_W_S: np.ndarray,
+        intrinsics: Intrinsics | None = None,
+        rgb: np.ndarray | None = None,
+        depth_m: np.ndarray | None = None,
+    ) -> None:
+        """The sensor pose; for RGB-D also a pinhole with its colour and depth images."""
+
+    @abstractmethod
+    def log_trajectory(self, name: str, positions_W: np.ndarray) -> None:
+        """A whole trajectory polyline; ``name`` is ``odometry``, ``optimized`` or ``gt``."""
+
+    @abstractmethod
+    def log_loop_closures(
+        self,
+        accepted: Sequence[tuple[np.ndarray, np.ndarray]],
+        rejected: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    ) -> None:
+        """Loop edges as pairs of world positions (accepted and rejected candidates)."""
+
+    @abstractmethod
+    def log_map(
+        self,
+        voxel_centers_W: np.ndarray,
+        voxel_values: np.ndarray,
+        mesh: trimesh.Trimesh | None = None,
+    ) -> None:
+        """The neural map: voxel centres with a scalar per voxel (weight), and optionally its mesh."""
+
+    @abstractmethod
+    def log_metrics(self, **scalars: float) -> None:
+        """Scalar time series under ``metrics/<name>``."""
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Flush and close the recording."""
+
+
+class NullLogger(Logger):
+    """Records nothing."""
+
+    def set_time(self, frame_index, timestamp_s):
+        pass
+
+    def log_scan(self, points_W, colors=None):
+        pass
+
+    def log_sensor(self, T_W_S, intrinsics=None, rgb=None, depth_m=None):
+        pass
+
+    def log_trajectory(self, name, positions_W):
+        pass
+
+    def log_loop_closures(self, accepted, rejected=()):
+        pass
+
+    def log_map(self, voxel_centers_W, voxel_values, mesh=None):
+        pass
+
+    def log_metrics(self, **scalars):
+        pass
