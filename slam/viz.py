@@ -56,7 +56,7 @@ class Logger(ABC):
         voxel_values: np.ndarray,
         mesh: trimesh.Trimesh | None = None,
     ) -> None:
-        """The neural map: voxel centres with a scalar per voxel (weight), and optionally its mesh."""
+        """The neural map: voxel centres with a scalar each (weight), optionally its mesh."""
 
     @abstractmethod
     def log_metrics(self, **scalars: float) -> None:

@@ -93,7 +93,7 @@ class Source(ABC):
 
     @property
     def gt_mesh_path(self) -> Path | None:
-        """Ground-truth surface mesh in the world frame of ``gt_poses``, when the dataset has one."""
+        """Ground-truth mesh in the world frame of ``gt_poses``, when the dataset has one."""
         return None
 
 

@@ -1,0 +1,399 @@
+"""TUM RGB-D sequences ("tum") and ICL-NUIM in its TUM-compatible release ("icl").
+
+TUM layout (one folder per sequence)::
+
+    rgb.txt, depth.txt          'timestamp rgb/<t>.png' lines
+    associations.txt            optional, 'time path time path' (rgb and depth in either order)
+    groundtruth.txt             optional, 't tx ty tz qx qy qz qw' (camera-to-world)
+    rgb/*.png, depth/*.png      depth uint16 / 5000 = metres
+
+Colour and depth are paired as TUM's ``associate.py`` pairs them (nearest within
+``max_difference`` seconds, greedily unique) unless ``associations.txt`` exists; frames are then
+paired with ground truth the same way. When a ground-truth file exists, frames without a pose
+within ``max_difference`` are left out (as TUM's evaluation leaves them out) unless
+``drop_frames_without_gt=False``, in which case the source reports no ground truth at all.
+
+ICL-NUIM ("icl"): sequences ``lr-kt0..3`` (living room) and ``of-kt0..3`` (office), with a
+trailing ``n`` for the noisy variant, are looked up as the folder names of the public releases
+(``living_room_traj3n_frei_png``, ``traj0_frei_png``, ``lr_kt3n``, ...) or as a literal folder
+name. The TUM-compatible folders hold ``rgb/``, ``depth/`` and ``associations.txt`` (depth first,
+stamps are frame numbers) and the trajectory ``livingRoomN.gt.freiburg`` / ``trajN.gt.freiburg``
+(or ``groundtruth.txt``), next to the images or in the root. A small layout with ``color/N.png``,
+``depth/N.png`` and ``pose.txt`` (``tx ty tz qx qy qz qw`` a row, camera-to-world) is read too.
+
+ICL-NUIM sign convention: the data was rendered by POV-Ray (left-handed), and the published
+intrinsics are fx=481.2, fy=-480. Back-projecting with fy=-480 and applying the published poses
+makes overlapping frames agree (checked on real frames, see tests/test_sources.py), i.e. the
+published poses belong to camera coordinates with y pointing up. We normalise to the usual
+right-handed camera (fy=+480, y down): points become ``F p`` with ``F = diag(1, -1, 1)`` and the
+ground truth becomes ``F T F``. This is the same rigid geometry seen in a world frame mirrored in
+y; the world is therefore the mirror image of ICL-NUIM's, which matters only when comparing with
+the ICL-NUIM surface model (mirror it with ``F`` too).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from frontends.frame import Intrinsics
+from frontends.sources._io import (
+    DepthOptions,
+    RgbdFiles,
+    RgbdSource,
+    associate,
+    fail,
+    frame_number,
+    load_table,
+    pose_from_translation_quaternion,
+    read_stamped_paths,
+    read_tum_trajectory,
+    require_dir,
+    require_file,
+)
+from frontends.sources.base import register_source
+
+log = logging.getLogger(__name__)
+
+TUM_INTRINSICS = Intrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
+"""TUM's recommended default intrinsics for the ROS-registered 640x480 images."""
+
+ICL_INTRINSICS_RAW = Intrinsics(fx=481.2, fy=-480.0, cx=319.5, cy=239.5, width=640, height=480)
+"""ICL-NUIM's published intrinsics (POV-Ray convention, negative fy)."""
+
+FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class _Pairing:
+    stamps: np.ndarray  # (N,) frame timestamps (colour stamps)
+    rgb: list[Path]
+    depth: list[Path]
+
+
+def read_tum_pairs(folder: Path, max_difference: float) -> _Pairing:
+    """Colour/depth pairs of a TUM-layout folder (associations.txt, else rgb.txt + depth.txt,
+    else rgb/ and depth/ images whose numeric names are their timestamps)."""
+    assoc = folder / "associations.txt"
+    if assoc.is_file():
+        return _read_associations(assoc)
+    rgb_list, depth_list = folder / "rgb.txt", folder / "depth.txt"
+    if rgb_list.is_file() or depth_list.is_file():
+        rgb_stamps, rgb_names = read_stamped_paths(require_file(rgb_list, "TUM rgb.txt"))
+        depth_stamps, depth_names = read_stamped_paths(require_file(depth_list, "TUM depth.txt"))
+    else:
+        rgb_stamps, rgb_names = _list_numbered(folder, "rgb")
+        depth_stamps, depth_names = _list_numbered(folder, "depth")
+    matches = associate(rgb_stamps, depth_stamps, max_difference)
+    if not matches:
+        raise fail(
+            folder,
+            f"no colour image has a depth image within {max_difference} s",
+            "check rgb.txt/depth.txt or raise max_difference",
+        )
+    return _Pairing(
+        stamps=np.asarray([rgb_stamps[i] for i, _ in matches]),
+        rgb=[folder / rgb_names[i] for i, _ in matches],
+        depth=[folder / depth_names[j] for _, j in matches],
+    )
+
+
+def _read_associations(path: Path) -> _Pairing:
+    stamps: list[float] = []
+    rgb: list[Path] = []
+    depth: list[Path] = []
+    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        tokens = text.split()
+        try:
+            t1, p1, t2, p2 = float(tokens[0]), tokens[1], float(tokens[2]), tokens[3]
+        except (ValueError, IndexError):
+            raise fail(
+                path, f"line {line_no} is not 'time path time path'", "regenerate associations.txt"
+            ) from None
+        if "depth" in p1 and "depth" not in p2:  # ICL-NUIM writes depth first
+            t1, p1, t2, p2 = t2, p2, t1, p1
+        stamps.append(t1)
+        rgb.append(path.parent / p1)
+        depth.append(path.parent / p2)
+    if not stamps:
+        raise fail(path, "associations file is empty", "regenerate associations.txt")
+    return _Pairing(np.asarray(stamps), rgb, depth)
+
+
+def _list_numbered(folder: Path, sub: str) -> tuple[np.ndarray, list[str]]:
+    image_dir = require_dir(folder / sub, f"{sub}/ images (or {sub}.txt / associations.txt)")
+    files = sorted(
+        image_dir.glob("*.png"), key=lambda p: float(p.stem) if _is_number(p.stem) else 0
+    )
+    files = [p for p in files if _is_number(p.stem)]
+    if not files:
+        raise fail(image_dir, "no numbered .png images", "add rgb.txt and depth.txt")
+    return np.asarray([float(p.stem) for p in files]), [f"{sub}/{p.name}" for p in files]
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def pair_with_ground_truth(
+    name: str,
+    pairs: _Pairing,
+    gt_file: Path | None,
+    max_difference: float,
+    drop_frames_without_gt: bool,
+    gt_transform: np.ndarray | None = None,
+) -> tuple[_Pairing, np.ndarray | None]:
+    """Attach ground truth to frames by timestamp (see module doc); returns (pairs, poses)."""
+    if gt_file is None:
+        return pairs, None
+    gt_stamps, gt_poses = read_tum_trajectory(gt_file)
+    if gt_transform is not None:
+        gt_poses = gt_transform @ gt_poses @ gt_transform
+    matches = associate(pairs.stamps, gt_stamps, max_difference)
+    if not matches:
+        raise fail(
+            gt_file,
+            f"no frame has a ground-truth pose within {max_difference} s",
+            "use the ground truth of this sequence",
+        )
+    missing = len(pairs.stamps) - len(matches)
+    if missing and not drop_frames_without_gt:
+        log.warning("%s: %d frames lack ground truth; reporting none", name, missing)
+        return pairs, None
+    if missing:
+        log.warning(
+            "%s: %d of %d frames have no ground-truth pose within %g; left out",
+            name,
+            missing,
+            len(pairs.stamps),
+            max_difference,
+        )
+    keep = [i for i, _ in matches]
+    kept = _Pairing(
+        pairs.stamps[keep], [pairs.rgb[i] for i in keep], [pairs.depth[i] for i in keep]
+    )
+    return kept, gt_poses[[j for _, j in matches]]
+
+
+class _PairedSource(RgbdSource):
+    """An RGB-D source over a list of colour/depth pairs with optional ground truth."""
+
+    def _set_pairs(self, pairs: _Pairing, gt: np.ndarray | None) -> None:
+        for path in (*pairs.depth, *pairs.rgb):
+            if not path.is_file():
+                raise fail(path, "listed image not found", "restore it or regenerate the lists")
+        self._pairs = pairs
+        self._gt = gt
+
+    def _num_raw_frames(self) -> int:
+        return len(self._pairs.stamps)
+
+    def _files(self, raw_index: int) -> RgbdFiles:
+        return RgbdFiles(
+            depth=self._pairs.depth[raw_index],
+            rgb=self._pairs.rgb[raw_index],
+            timestamp=float(self._pairs.stamps[raw_index]),
+        )
+
+    def _raw_gt_poses(self) -> np.ndarray | None:
+        return self._gt
+
+
+def _find_sequence_folder(root: Path, candidates: list[str], what: str) -> Path:
+    require_dir(root, f"the dataset root holding {what}")
+    for name in candidates:
+        folder = root / name
+        if folder.is_dir():
+            return folder
+    raise fail(
+        root,
+        f"no sequence folder among {', '.join(dict.fromkeys(candidates))}",
+        f"pass the root that holds {what}",
+    )
+
+
+@register_source("tum")
+class TumSource(_PairedSource):
+    """A TUM RGB-D sequence.
+
+    Args:
+        root: folder holding the sequence folders.
+        sequence: folder name, e.g. ``rgbd_dataset_freiburg1_desk`` or ``freiburg1_desk``.
+        frames: optional slice of frames.
+        intrinsics: camera intrinsics (default: TUM's 525/525/319.5/239.5 for 640x480).
+        depth_scale: depth PNG units per metre (TUM: 5000).
+        max_difference: association window in seconds (TUM's associate.py default 0.02).
+        drop_frames_without_gt: leave out frames without a ground-truth pose (see module doc).
+        depth_options: how depth is lifted to points.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        sequence: str,
+        frames: slice | None = None,
+        *,
+        intrinsics: Intrinsics | dict = TUM_INTRINSICS,
+        depth_scale: float = 5000.0,
+        max_difference: float = 0.02,
+        drop_frames_without_gt: bool = True,
+        depth_options: DepthOptions | dict | None = None,
+    ) -> None:
+        root = Path(root).expanduser()
+        folder = _find_sequence_folder(
+            root, [sequence, f"rgbd_dataset_{sequence}"], "TUM sequence folders (rgb.txt, depth/)"
+        )
+        if isinstance(intrinsics, dict):
+            intrinsics = Intrinsics(**intrinsics)
+        if intrinsics.fy <= 0 or intrinsics.fx <= 0:
+            raise fail(folder, "intrinsics fx and fy must be positive", "pass fx, fy > 0")
+        self.intrinsics = intrinsics
+        self.depth_scale = depth_scale
+        super().__init__(f"tum-{sequence}", frames, depth_options)
+        self.folder = folder
+        gt_file = folder / "groundtruth.txt"
+        self._set_pairs(
+            *pair_with_ground_truth(
+                self.name,
+                read_tum_pairs(folder, max_difference),
+                gt_file if gt_file.is_file() else None,
+                max_difference,
+                drop_frames_without_gt,
+            )
+        )
+
+
+_ICL_NAME = re.compile(r"(lr|of)[-_]?kt([0-3])(n?)")
+
+
+def icl_folder_candidates(sequence: str) -> list[str]:
+    """Folder names under which ICL-NUIM sequence ``sequence`` (e.g. ``lr-kt3n``) is published."""
+    match = _ICL_NAME.fullmatch(sequence.lower())
+    if match is None:
+        return [sequence]
+    room, k, noisy = match.groups()
+    names = [f"{room}-kt{k}{noisy}", f"{room}_kt{k}{noisy}", f"{room}kt{k}{noisy}"]
+    if room == "lr":
+        names += [f"living_room_traj{k}{noisy}_frei_png", f"living_room_traj{k}{noisy}"]
+    else:
+        names += [
+            f"traj{k}{noisy}_frei_png",
+            f"office_room_traj{k}{noisy}_frei_png",
+            f"office_room_traj{k}{noisy}",
+        ]
+    return [sequence, *names]
+
+
+def icl_gt_candidates(sequence: str) -> list[str]:
+    """Ground-truth file names of an ICL-NUIM sequence (the noisy variant shares the clean one)."""
+    match = _ICL_NAME.fullmatch(sequence.lower())
+    names = ["groundtruth.txt"]
+    if match is not None:
+        room, k, _ = match.groups()
+        names.append(f"livingRoom{k}.gt.freiburg" if room == "lr" else f"traj{k}.gt.freiburg")
+    return names
+
+
+@register_source("icl")
+class IclSource(_PairedSource):
+    """An ICL-NUIM sequence (TUM-compatible release, or the small color/depth/pose.txt layout).
+
+    Args:
+        root: folder holding the sequence folders (and optionally the ``*.gt.freiburg`` files).
+        sequence: ``lr-kt0``..``lr-kt3``, ``of-kt0``..``of-kt3`` (+ ``n`` for noisy), or a folder
+            name.
+        frames: optional slice of frames.
+        max_difference: association window in (file) timestamp units.
+        drop_frames_without_gt: leave out frames without a ground-truth pose.
+        depth_options: how depth is lifted to points.
+
+    Timestamps are the release's (frame numbers), not seconds; ground truth follows the sign
+    normalisation described in the module docstring.
+    """
+
+    depth_scale = 5000.0
+    intrinsics = Intrinsics(
+        fx=ICL_INTRINSICS_RAW.fx,
+        fy=-ICL_INTRINSICS_RAW.fy,
+        cx=ICL_INTRINSICS_RAW.cx,
+        cy=ICL_INTRINSICS_RAW.cy,
+        width=ICL_INTRINSICS_RAW.width,
+        height=ICL_INTRINSICS_RAW.height,
+    )
+
+    def __init__(
+        self,
+        root: str | Path,
+        sequence: str,
+        frames: slice | None = None,
+        *,
+        max_difference: float = 0.02,
+        drop_frames_without_gt: bool = True,
+        depth_options: DepthOptions | dict | None = None,
+    ) -> None:
+        root = Path(root).expanduser()
+        folder = _find_sequence_folder(
+            root, icl_folder_candidates(sequence), "ICL-NUIM sequence folders"
+        )
+        super().__init__(f"icl-{sequence}", frames, depth_options)
+        self.folder = folder
+        if (folder / "pose.txt").is_file() and (folder / "color").is_dir():
+            self._set_pairs(*_read_small_icl(folder))
+            return
+        gt_file = _find_icl_gt(root, folder, sequence)
+        self._set_pairs(
+            *pair_with_ground_truth(
+                self.name,
+                read_tum_pairs(folder, max_difference),
+                gt_file,
+                max_difference,
+                drop_frames_without_gt,
+                gt_transform=FLIP_Y,
+            )
+        )
+
+
+def _find_icl_gt(root: Path, folder: Path, sequence: str) -> Path | None:
+    for name in icl_gt_candidates(sequence):
+        for place in (folder, root):
+            if (place / name).is_file():
+                return place / name
+    found = sorted(folder.glob("*.gt.freiburg"))
+    return found[0] if len(found) == 1 else None
+
+
+def _read_small_icl(folder: Path) -> tuple[_Pairing, np.ndarray]:
+    """color/N.png, depth/N.png and pose.txt rows (image order) -> pairs and F T F poses."""
+    color_dir = require_dir(folder / "color", "color/N.png images")
+    depth_dir = require_dir(folder / "depth", "depth/N.png images")
+    depth = sorted(depth_dir.glob("*.png"), key=lambda p: frame_number(p, r"(\d+)\.png"))
+    if not depth:
+        raise fail(depth_dir, "no depth/N.png images", "check the folder")
+    color = [require_file(color_dir / p.name, "a colour image per depth image") for p in depth]
+    color_count = len(list(color_dir.glob("*.png")))
+    if color_count != len(depth):
+        raise fail(
+            color_dir, f"{color_count} colour images for {len(depth)} depth images", "pair them up"
+        )
+    pose_file = folder / "pose.txt"
+    table = load_table(pose_file, 7, "rows 'tx ty tz qx qy qz qw', camera-to-world")
+    if len(table) != len(depth):
+        raise fail(
+            pose_file,
+            f"{len(table)} poses for {len(depth)} depth images",
+            "give one pose per image, in image order",
+        )
+    stamps = np.asarray([float(frame_number(p, r"(\d+)\.png")) for p in depth])
+    poses = FLIP_Y @ pose_from_translation_quaternion(table) @ FLIP_Y
+    return _Pairing(stamps, color, depth), poses
