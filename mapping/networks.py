@@ -111,7 +111,7 @@ class PointEncoder(nn.Module):
             raise ValueError(f"unknown encoder_kind '{self.kind}' (joint or two_branch)")
 
     def forward(self, r: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
-        """``r``, ``n``: ``(..., 3)`` position (vu, relative to the voxel centre) and unit normal."""
+        """``r``, ``n``: ``(..., 3)`` position (vu, relative to the voxel centre), unit normal."""
         if self.kind == "joint":
             return self.branch(torch.stack([r, n], dim=-2))
         return torch.cat([self.position(r.unsqueeze(-2)), self.normal(n.unsqueeze(-2))], dim=-2)
@@ -184,7 +184,7 @@ class PriorModel(nn.Module):
         return self.cfg.latent_channels
 
     def identity(self) -> str:
-        """Short hash of architecture and weights; stored in map files to detect a model mismatch."""
+        """Short hash of architecture and weights; map files store it to detect a mismatch."""
         digest = hashlib.sha256(repr(sorted(asdict(self.cfg).items())).encode())
         for name, tensor in sorted(self.state_dict().items()):
             digest.update(name.encode())
@@ -192,7 +192,7 @@ class PriorModel(nn.Module):
         return digest.hexdigest()[:16]
 
     def save(self, path: str | Path, metadata: dict | None = None) -> None:
-        """Write ``{config, state_dict, metadata}``; readable with ``torch.load(weights_only=True)``."""
+        """Write ``{config, state_dict, metadata}``; loadable with ``weights_only=True``."""
         payload = {
             "format": "neural-remap-slam/prior",
             "version": 1,
@@ -212,7 +212,9 @@ class PriorModel(nn.Module):
         """Load weights written by :meth:`save`. Never unpickles arbitrary objects."""
         path = Path(path)
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: prior weights not found; run `python -m mapping.train`")
+            raise FileNotFoundError(
+                f"{path}: prior weights not found; run `python -m mapping.train`"
+            )
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
             if payload.get("format") != "neural-remap-slam/prior":
