@@ -1,1 +1,1 @@
-"""Data sources and odometry: a sequence on disk becomes Frames, Frames become sensor poses T_W_S."""
+"""Data sources and odometry: a sequence on disk becomes Frames, Frames become poses T_W_S."""

@@ -223,6 +223,14 @@ def _find_sequence_folder(root: Path, candidates: list[str], what: str) -> Path:
     )
 
 
+def _folder_intrinsics(folder: Path) -> Intrinsics:
+    """Intrinsics stored beside the images by the sequence generator, else TUM's defaults."""
+    from frontends.generate.writers import INTRINSICS_FILE, read_intrinsics
+
+    path = folder / INTRINSICS_FILE
+    return read_intrinsics(path)[0] if path.is_file() else TUM_INTRINSICS
+
+
 @register_source("tum")
 class TumSource(_PairedSource):
     """A TUM RGB-D sequence.
@@ -231,7 +239,8 @@ class TumSource(_PairedSource):
         root: folder holding the sequence folders.
         sequence: folder name, e.g. ``rgbd_dataset_freiburg1_desk`` or ``freiburg1_desk``.
         frames: optional slice of frames.
-        intrinsics: camera intrinsics (default: TUM's 525/525/319.5/239.5 for 640x480).
+        intrinsics: camera intrinsics. Default: the folder's ``intrinsics.txt`` when present (as
+            written by ``python -m frontends.generate``), else TUM's 525/525/319.5/239.5.
         depth_scale: depth PNG units per metre (TUM: 5000).
         max_difference: association window in seconds (TUM's associate.py default 0.02).
         drop_frames_without_gt: leave out frames without a ground-truth pose (see module doc).
@@ -244,7 +253,7 @@ class TumSource(_PairedSource):
         sequence: str,
         frames: slice | None = None,
         *,
-        intrinsics: Intrinsics | dict = TUM_INTRINSICS,
+        intrinsics: Intrinsics | dict | None = None,
         depth_scale: float = 5000.0,
         max_difference: float = 0.02,
         drop_frames_without_gt: bool = True,
@@ -254,7 +263,9 @@ class TumSource(_PairedSource):
         folder = _find_sequence_folder(
             root, [sequence, f"rgbd_dataset_{sequence}"], "TUM sequence folders (rgb.txt, depth/)"
         )
-        if isinstance(intrinsics, dict):
+        if intrinsics is None:
+            intrinsics = _folder_intrinsics(folder)
+        elif isinstance(intrinsics, dict):
             intrinsics = Intrinsics(**intrinsics)
         if intrinsics.fy <= 0 or intrinsics.fx <= 0:
             raise fail(folder, "intrinsics fx and fy must be positive", "pass fx, fy > 0")
