@@ -8,11 +8,12 @@ Direction convention (verified by ``tests/test_odometry.py`` with a rendered kno
 OpenCV 5 offers no initial guess to ``compute`` (it always starts from identity), so each new
 frame is registered to a *keyframe* that is replaced once the camera has moved
 ``keyframe_translation_m`` / ``keyframe_rotation_deg`` away from it. Keyframes must stay close:
-starting from identity, OpenCV's estimate degrades quickly with the baseline (on 7-Scenes
-redkitchen frames 0-399, ATE 3.5 cm with 3 cm / 2 deg keyframes, 4.9 cm frame-to-frame and
-11 cm with 10 cm / 5 deg keyframes over the first 100 frames). If registration to the
-keyframe fails, the previous frame is tried; if that fails too, the pose is extrapolated with
-constant velocity, a warning is logged and ``num_failures`` is incremented.
+starting from identity, OpenCV's estimate degrades quickly with the baseline. Measured on 7-Scenes
+redkitchen frames 0-399 (``benchmarks/results/odometry.md``): ATE 3.5 cm with 3 cm / 2 deg
+keyframes (the default), 6.2 cm frame-to-frame, 24 cm with 10 cm / 5 deg keyframes.
+
+If registration to the keyframe fails, the previous frame is tried; if that fails too, the pose
+is extrapolated with constant velocity, a warning is logged and ``num_failures`` is incremented.
 """
 
 from __future__ import annotations
@@ -149,7 +150,6 @@ class RgbdOdometry(Odometry):
             raise ValueError("RgbdOdometryConfig: max_depth_m must exceed min_depth_m")
         self._odometry = None
         self._downscale = 1
-        self._K: np.ndarray | None = None
         self._shape: tuple[int, int] | None = None
         self._keyframe = None
         self._T_W_key = np.eye(4)
@@ -193,7 +193,6 @@ class RgbdOdometry(Odometry):
             c.algorithm
         ]
         self._odometry = cv2.Odometry(otype, settings, algtype)
-        self._K = K
         self._shape = frame.depth.shape
 
     def _choose_downscale(self, frame: Frame) -> int:
@@ -216,6 +215,11 @@ class RgbdOdometry(Odometry):
             raise DatasetError(
                 f"frame {frame.index}: RGB-D odometry needs a colour image; use an RGB-D source "
                 "or odometry_type='depth'"
+            )
+        if frame.rgb is not None and frame.rgb.shape[:2] != frame.depth.shape:
+            raise DatasetError(
+                f"frame {frame.index}: colour image is {frame.rgb.shape[:2]} but depth is "
+                f"{frame.depth.shape}; register colour to depth in the source"
             )
         if self._shape is not None and frame.depth.shape != self._shape:
             raise DatasetError(

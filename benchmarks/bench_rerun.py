@@ -1,0 +1,326 @@
+"""Rerun recording size and logging overhead of whole runs -> ``benchmarks/results/rerun.md``.
+
+    python -m benchmarks.bench_rerun [--quick] [--frames A:B]
+
+Each case is run twice in this process with ``slam.run``'s own ``execute``: once with ``--no-viz``
+(:class:`~slam.viz.NullLogger`) and once writing an ``.rrd`` file, after the sequence has been
+generated/cached so that neither run pays for generation. Measured:
+
+- wall time of both runs and their difference (the end-to-end overhead, noisy on a shared machine);
+- time spent inside the logger's methods (the logger is wrapped by a timer; this is the part of
+  the overhead that Rerun logging itself costs, and it is much less noisy);
+- time of the pipeline's ``map_logging`` stage, which also extracts meshes for the viewer at
+  submap boundaries (only when a recording is made);
+- the recording's size, its largest entities, and whether both runs wrote identical poses.
+
+Quick mode: the first 60 frames of the demo. Full mode: the whole demo and, when
+``../shared/data/kitti`` is present, a 1,500-frame LiDAR sequence generated along the real KITTI 00
+trajectory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import os
+import platform
+import shutil
+import sys
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+RESULTS = REPO_ROOT / "benchmarks" / "results" / "rerun.md"
+WORK_DIR = REPO_ROOT / "benchmarks" / "out" / "rerun"
+SHARED_KITTI = REPO_ROOT.parent / "shared" / "data" / "kitti"
+
+
+@dataclass
+class Case:
+    """One ``slam.run`` command line (without viz flags)."""
+
+    name: str
+    argv: list[str]
+
+
+@dataclass
+class TimedCalls:
+    """Seconds spent per logger method."""
+
+    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    calls: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+
+    @property
+    def total_s(self) -> float:
+        return float(sum(self.seconds.values()))
+
+
+def timed_logger(inner, timings: TimedCalls):
+    """A :class:`~slam.viz.Logger` forwarding to ``inner`` and timing every call."""
+    from slam.viz import Logger
+
+    class TimedLogger(Logger):
+        def _call(self, name: str, *args: Any, **kwargs: Any) -> None:
+            start = time.perf_counter()
+            getattr(inner, name)(*args, **kwargs)
+            timings.seconds[name] += time.perf_counter() - start
+            timings.calls[name] += 1
+
+        def set_time(self, frame_index, timestamp_s):
+            self._call("set_time", frame_index, timestamp_s)
+
+        def log_scan(self, points_W, colors=None):
+            self._call("log_scan", points_W, colors)
+
+        def log_sensor(self, T_W_S, intrinsics=None, rgb=None, depth_m=None):
+            self._call("log_sensor", T_W_S, intrinsics, rgb, depth_m)
+
+        def log_trajectory(self, name, positions_W):
+            self._call("log_trajectory", name, positions_W)
+
+        def log_loop_closures(self, accepted, rejected=()):
+            self._call("log_loop_closures", accepted, rejected)
+
+        def log_map(self, voxel_centers_W, voxel_values, mesh=None):
+            self._call("log_map", voxel_centers_W, voxel_values, mesh)
+
+        def log_metrics(self, **scalars):
+            self._call("log_metrics", **scalars)
+
+        def close(self):
+            self._call("close")
+
+    return TimedLogger()
+
+
+def run_case(argv: list[str], folder: Path, timings: TimedCalls | None) -> dict[str, Any]:
+    """``slam.run.execute`` in this process; with ``timings``, the logger is wrapped by a timer."""
+    import slam.builders as builders
+    from slam.run import build_parser, execute, resolve_config
+
+    args = build_parser().parse_args(argv)
+    entry, cfg = resolve_config(args)
+    original = builders.build_logger
+    if timings is not None:
+        builders.build_logger = lambda *a, **k: timed_logger(original(*a, **k), timings)
+    try:
+        return execute(entry, cfg, folder, progress=False)
+    finally:
+        builders.build_logger = original
+
+
+def prepare(argv: list[str]) -> int:
+    """Generate/cache the case's sequence; returns its number of frames."""
+    from slam.builders import build_source
+    from slam.run import build_parser, resolve_config
+
+    _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
+    return len(build_source(cfg))
+
+
+def logger_alone(argv: list[str], submap_frames: int = 20) -> dict[str, Any]:
+    """Drive :class:`RerunLogger` with a case's real frames at their ground-truth poses, without
+    the pipeline: the logger's own cost and recording size, independent of the SLAM code. Every
+    ``submap_frames`` frames, a map is logged: voxel centres of the ground-truth surface seen so
+    far and the ground-truth mesh cropped to them (a stand-in of the same size class)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from slam.builders import build_source
+    from slam.rerun_logger import RerunLogger
+    from slam.run import build_parser, resolve_config
+
+    _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
+    source = build_source(cfg)
+    voxel = cfg.mapping.voxel_size_m
+    gt_mesh = trimesh.load(source.gt_mesh_path, force="mesh") if source.gt_mesh_path else None
+    path = WORK_DIR / "logger_alone.rrd"
+    path.unlink(missing_ok=True)
+    timings = TimedCalls()
+    logger = timed_logger(RerunLogger(rrd_path=path, voxel_size_m=voxel, up_axis="+z"), timings)
+    positions: list[np.ndarray] = []
+    seen: set[tuple[int, int, int]] = set()
+    load_s = 0.0
+    for i in range(len(source)):
+        start = time.perf_counter()
+        frame = source[i]
+        load_s += time.perf_counter() - start
+        T = np.asarray(frame.T_W_S_gt)
+        points_W = frame.points @ T[:3, :3].T + T[:3, 3]
+        positions.append(T[:3, 3])
+        seen.update(map(tuple, np.floor(points_W[::10] / voxel).astype(int)))
+        logger.set_time(i, frame.timestamp)
+        logger.log_scan(points_W, frame.colors)
+        logger.log_sensor(T, frame.intrinsics, frame.rgb, frame.depth)
+        for name in ("odometry", "optimized", "gt"):
+            logger.log_trajectory(name, np.asarray(positions))
+        logger.log_metrics(frame_ms=1.0, odometry_ms=1.0, submaps=i // submap_frames, loops=0)
+        if (i + 1) % submap_frames == 0 and gt_mesh is not None:
+            centers = (np.array(sorted(seen)) + 0.5) * voxel
+            near = cKDTree(centers).query(gt_mesh.triangles_center, distance_upper_bound=voxel)[0]
+            mesh = gt_mesh.submesh([np.flatnonzero(np.isfinite(near))], append=True)
+            logger.log_map(centers, np.ones(len(centers)), mesh)
+    logger.close()
+    return {
+        "frames": len(source),
+        "logger_s": timings.total_s,
+        "logger_by_method": dict(timings.seconds),
+        "calls_by_method": dict(timings.calls),
+        "load_s": load_s,
+        "rrd_bytes": path.stat().st_size,
+    }
+
+
+def same_poses(a: Path, b: Path) -> bool:
+    names = ("poses_odometry.kitti.txt", "poses_slam.kitti.txt")
+    return all((a / n).read_bytes() == (b / n).read_bytes() for n in names)
+
+
+def measure(case: Case) -> dict[str, Any]:
+    from slam.rerun_logger import summarize_recording
+
+    folder = WORK_DIR / case.name
+    shutil.rmtree(folder, ignore_errors=True)
+    frames = prepare(case.argv)
+    plain = run_case([*case.argv, "--no-viz", "--no-progress"], folder / "no-viz", None)
+    timings = TimedCalls()
+    rrd = folder / "rrd" / "recording.rrd"
+    logged = run_case([*case.argv, "--rrd", str(rrd), "--no-progress"], folder / "rrd", timings)
+    summary = summarize_recording(rrd)
+    stages_plain = plain["timing"]["stages"]
+    stages_logged = logged["timing"]["stages"]
+    map_logging_s = stages_logged.get("map_logging", {}).get("total_s", 0.0)
+    return {
+        "name": case.name,
+        "command": "python -m slam.run " + " ".join(case.argv) + " [--no-viz | --rrd FILE]",
+        "frames": frames,
+        "wall_plain_s": plain["timing"]["wall_s"],
+        "wall_logged_s": logged["timing"]["wall_s"],
+        "map_logging_plain_s": stages_plain.get("map_logging", {}).get("total_s", 0.0),
+        "map_logging_logged_s": map_logging_s,
+        "logger_s": timings.total_s,
+        "logger_by_method": dict(timings.seconds),
+        "calls_by_method": dict(timings.calls),
+        "rrd_bytes": summary.size_bytes,
+        "entities": summary.entities,
+        "same_poses": same_poses(folder / "no-viz", folder / "rrd"),
+    }
+
+
+def machine() -> str:
+    import torch
+
+    return (
+        f"{platform.platform()}; {platform.processor() or platform.machine()}; "
+        f"os.cpu_count() = {os.cpu_count()}; torch threads {torch.get_num_threads()}; "
+        f"python {platform.python_version()}"
+    )
+
+
+def markdown(results: list[dict[str, Any]], command: str, started: str) -> str:
+    lines = [
+        "## rerun",
+        "",
+        "Rerun recording size and logging overhead of whole runs (`benchmarks/bench_rerun.py`).",
+        "",
+        f"- Command: `{command}`",
+        f"- Date: {started}",
+        f"- Machine: {machine()}",
+        "- Each case ran twice in one process (slam.run's `execute`): `--no-viz` (NullLogger) "
+        "first, then `--rrd`; the sequence was generated beforehand. Wall times on a shared "
+        "machine are noisy; the time inside the logger is measured directly.",
+        "",
+        "| case | frames | wall no-viz [s] | wall rrd [s] | wall diff | time in logger [s] "
+        "| logger / wall rrd | map_logging stage no-viz / rrd [s] | recording [MB] "
+        "| MB / 100 frames | identical poses |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in results:
+        diff = r["wall_logged_s"] - r["wall_plain_s"]
+        lines.append(
+            f"| {r['name']} | {r['frames']} | {r['wall_plain_s']:.1f} | {r['wall_logged_s']:.1f} "
+            f"| {diff:+.1f} s ({100 * diff / r['wall_plain_s']:+.1f} %) | {r['logger_s']:.2f} "
+            f"| {100 * r['logger_s'] / r['wall_logged_s']:.1f} % "
+            f"| {r['map_logging_plain_s']:.1f} / {r['map_logging_logged_s']:.1f} "
+            f"| {r['rrd_bytes'] / 1e6:.1f} | {100 * r['rrd_bytes'] / 1e6 / r['frames']:.1f} "
+            f"| {'yes' if r['same_poses'] else 'NO'} |"
+        )
+    for r in results:
+        lines += [
+            "",
+            f"### {r['name']}: time inside the logger per method",
+            "",
+            f"Command: `{r['command']}`",
+            "",
+            "| method | calls | total [s] | per call [ms] |",
+            "|---|---:|---:|---:|",
+        ]
+        for method, seconds in sorted(r["logger_by_method"].items(), key=lambda kv: -kv[1]):
+            calls = r["calls_by_method"][method]
+            lines.append(f"| {method} | {calls} | {seconds:.3f} | {1e3 * seconds / calls:.2f} |")
+        lines += [
+            "",
+            f"Largest entities of the recording (uncompressed Arrow bytes; the file is "
+            f"{r['rrd_bytes'] / 1e6:.1f} MB):",
+            "",
+            "| entity | rows | MB |",
+            "|---|---:|---:|",
+        ]
+        top = sorted(r["entities"].items(), key=lambda kv: -kv[1].arrow_bytes)[:8]
+        for entity, stats in top:
+            rows = stats.rows + stats.static_rows
+            lines.append(f"| {entity} | {rows} | {stats.arrow_bytes / 1e6:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="first 60 demo frames only")
+    parser.add_argument("--frames", help="frame range of the demo case (overrides the mode)")
+    args = parser.parse_args(argv)
+    argv_shown = list(sys.argv[1:] if argv is None else argv)
+    command = " ".join(["python -m benchmarks.bench_rerun", *argv_shown])
+    started = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+    frames = args.frames or ("0:60" if args.quick else None)
+    demo = ["demo", *(["--frames", frames] if frames else [])]
+    cases = [Case("demo" + (f" [{frames}]" if frames else ""), demo)]
+    if not args.quick:
+        if SHARED_KITTI.is_dir():
+            cases.append(
+                Case(
+                    "generated LiDAR, KITTI 00 trajectory",
+                    [
+                        "generated-lidar",
+                        "--set",
+                        "generated.trajectory=kitti",
+                        "--set",
+                        f"generated.kitti_poses={SHARED_KITTI / 'poses' / '00.txt'}",
+                        "--set",
+                        f"generated.kitti_calib={SHARED_KITTI / 'sequences' / '00' / 'calib.txt'}",
+                        "--set",
+                        "generated.num_frames=1500",
+                    ],
+                )
+            )
+        else:
+            print(f"skipping the KITTI-trajectory case: {SHARED_KITTI} is absent", file=sys.stderr)
+    results = []
+    for case in cases:
+        print(f"bench_rerun: {case.name}", file=sys.stderr)
+        results.append(measure(case))
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    tmp = RESULTS.with_name(f".{RESULTS.name}.tmp")
+    tmp.write_text(markdown(results, command, started))
+    os.replace(tmp, RESULTS)
+    print(RESULTS.read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

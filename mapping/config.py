@@ -1,0 +1,91 @@
+"""Configuration of the neural implicit map (grid, encoding, transform, meshing, device)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class MapConfig(BaseModel):
+    """Everything the neural implicit map needs besides the prior network's weights."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    voxel_size_m: float = Field(
+        0.1, gt=0.0, description="edge length V of a voxel in metres (0.1 indoors, metres outdoors)"
+    )
+    min_points_per_voxel: int = Field(
+        8,
+        ge=1,
+        description=(
+            "encoding-time pruning: a point is encoded only if its own voxel (the one containing "
+            "it) holds at least this many of the submap's points; 1 keeps every point (the paper "
+            "keeps a point when its voxel has more than 16, i.e. 17 here)"
+        ),
+    )
+    min_weight_to_decode: float = Field(
+        8.0,
+        ge=0.0,
+        description=(
+            "voxels whose weight (number of fused point-voxel associations) is below this are kept "
+            "in the map but neither decoded by query_sdf nor meshed"
+        ),
+    )
+    transform_neighbors: int = Field(
+        8, ge=1, description="K: number of nearest moved source voxels blended per target voxel"
+    )
+    transform_use_jacobian: bool = Field(
+        True,
+        description=(
+            "apply the first-order correction h = F' - J' v when moving latents off-grid "
+            "(False gives the zeroth-order hypothesis h = F')"
+        ),
+    )
+    transform_weighting: Literal["gaussian", "uniform"] = Field(
+        "gaussian",
+        description=(
+            "blending of the K hypotheses: 'gaussian' = exp(-|v|^2 / 2 s^2) (1 - |v|^2)^2 with |v| "
+            "in voxel units, support 1 vu, so a source on a target is reproduced exactly; "
+            "'uniform' = the paper's (near-)uniform average of the K nearest sources"
+        ),
+    )
+    transform_sigma_vu: float = Field(
+        0.35,
+        gt=0.0,
+        description="width s (voxel units) of the 'gaussian' transform weighting (measured)",
+    )
+    mesh_subdivisions: int = Field(
+        4,
+        ge=1,
+        description="lattice cells per voxel edge for meshing (4 gives 2.5 cm at V = 0.1 m)",
+    )
+    mesh_max_sigma_vu: float = Field(
+        0.15,
+        gt=0.0,
+        description="triangles with a vertex whose predicted SDF std. dev. (vu) is above are cut",
+    )
+    mesh_chunk_voxels: int = Field(
+        8,
+        ge=2,
+        description="meshing chunk edge in voxels; chunk meshes are cached, re-meshed when dirty",
+    )
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="torch device of the map and networks; auto = cuda when available"
+    )
+    weights_path: str | None = Field(
+        None,
+        description="prior weights file; None = the shipped prior (networks.load_default_prior)",
+    )
+
+
+def resolve_device(device: str) -> torch.device:
+    """Map ``auto``/``cpu``/``cuda`` to a torch device; asking for CUDA without one is an error."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ValueError(
+            "mapping.device is 'cuda' but no CUDA device is available; use 'auto' or 'cpu'"
+        )
+    return torch.device(device)

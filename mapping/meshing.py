@@ -1,0 +1,374 @@
+"""Incremental meshing of the neural map (DESIGN 5.6).
+
+The SDF is sampled on a global lattice of spacing ``h = V / s`` (``s`` = subdivisions) with the
+blend of :mod:`mapping.field`: every decodable voxel is decoded at the lattice nodes strictly
+inside its ``2V`` cube (``(2s - 1)^3`` nodes for even ``s``; the nodes on the cube's boundary have
+zero trilinear weight), and the contributions ``tent / sigma`` are accumulated per node. So a
+node's value equals :func:`mapping.field.query_field` at that node.
+
+The lattice is cut into cubic chunks of ``chunk_voxels`` voxels per edge; each chunk holds its own
+dense ``(chunk_voxels s + 1)^3`` node array (faces shared with neighbours), runs scikit-image
+marching cubes on the cells whose 8 corners are all observed, drops triangles with a vertex sigma
+above the threshold and caches the result. Changed voxels mark the chunks their cube reaches as
+dirty; only those are re-meshed. The chunk meshes are concatenated and welded.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+import trimesh
+
+from mapping.field import decode_indexed, decode_lattice, voxel_query_terms
+from mapping.networks import Decoder
+from mapping.voxel_block import pack_keys, unpack_keys
+from mapping.voxel_store import VoxelStore
+
+log = logging.getLogger(__name__)
+
+CHUNKS_PER_BATCH = 32
+NEAR_SURFACE_VU = 0.25  # coarse nodes closer than this to the surface mark their cells active
+_NEIGHBOUR_SHIFTS = torch.stack(
+    torch.meshgrid(*(torch.arange(-1, 2),) * 3, indexing="ij"), dim=-1
+).reshape(-1, 3)
+
+
+def lattice_offsets(subdivisions: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Nodes strictly inside a voxel's ``2V`` cube.
+
+    Returns ``(first, q, tent)``: ``first`` is the node index of the first node relative to
+    ``g * s`` along each axis (int), ``q (Q, 3)`` the node offsets from the voxel centre in voxel
+    units and ``tent (Q,)`` their trilinear weights; node ``j`` of voxel ``g`` is
+    ``g * s + first + idx_j``.
+    """
+    s = subdivisions
+    first = -(s // 2) + (0 if s % 2 else 1)  # smallest m - g s with |m - (g + 1/2) s| < s
+    count = 2 * s - 1 if s % 2 == 0 else 2 * s
+    axis = (torch.arange(count, dtype=torch.float64) + first - 0.5 * s) / s
+    qa = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
+    idx = torch.arange(count)
+    ia = torch.stack(torch.meshgrid(idx, idx, idx, indexing="ij"), dim=-1).reshape(-1, 3)
+    tent = (1.0 - qa.abs()).prod(-1)
+    return torch.tensor(first) + ia, qa.to(torch.float32), tent.to(torch.float32)
+
+
+def _normalise(
+    num: torch.Tensor, den: torch.Tensor, sig: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    valid = den > 0
+    safe = torch.where(valid, den, torch.ones_like(den))
+    return num / safe, sig / safe, valid
+
+
+def _needed_fine_nodes(
+    c_sdf: torch.Tensor, c_valid: torch.Tensor, factor: int, n_fine: int
+) -> torch.Tensor:
+    """Fine nodes of the coarse cells that may hold surface (bool, ``(B, n, n, n)``).
+
+    A coarse cell (half a voxel) is active when its observed corners change sign or one of them
+    is closer than a quarter voxel to the surface. The coarse arrays carry one halo node on each
+    side, so a chunk also knows the activity of its neighbours' cells along its faces and both
+    chunks sharing a face agree on which face nodes are decoded exactly.
+    """
+    corners = [
+        (
+            slice(None),
+            slice(i, i + c_sdf.shape[1] - 1),
+            slice(j, j + c_sdf.shape[2] - 1),
+            slice(k, k + c_sdf.shape[3] - 1),
+        )
+        for i in (0, 1)
+        for j in (0, 1)
+        for k in (0, 1)
+    ]
+    pos = torch.zeros_like(c_valid[corners[0]])
+    neg = torch.zeros_like(pos)
+    near = torch.zeros_like(pos)
+    for idx in corners:
+        v, ok = c_sdf[idx], c_valid[idx]
+        pos |= ok & (v > 0)
+        neg |= ok & (v < 0)
+        near |= ok & (v.abs() < NEAR_SURFACE_VU)
+    active = ((pos & neg) | near).to(torch.float32)  # (B, m, m, m) cells incl. the halo cells
+    for dim in (1, 2, 3):
+        active = active.repeat_interleave(factor, dim=dim)
+    nodes = torch.nn.functional.max_pool3d(active.unsqueeze(1), 2, stride=1, padding=1)[:, 0]
+    inner = slice(factor, factor + n_fine)
+    return nodes[:, inner, inner, inner] > 0
+
+
+def _upsample(
+    sdf: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, n_fine: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Trilinear interpolation of coarse node arrays onto the fine nodes (corners aligned)."""
+
+    def up(t: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.interpolate(
+            t.unsqueeze(1), size=(n_fine,) * 3, mode="trilinear", align_corners=True
+        )[:, 0]
+
+    ok = up(valid.to(sdf.dtype)) > 1.0 - 1e-4
+    fill_sdf = torch.where(valid, sdf, torch.zeros_like(sdf))
+    fill_sigma = torch.where(valid, sigma, torch.zeros_like(sigma))
+    return up(fill_sdf), up(fill_sigma), ok
+
+
+class ChunkMesher:
+    """Caches one triangle mesh per chunk and re-meshes dirty chunks on request."""
+
+    def __init__(
+        self,
+        voxel_size_m: float,
+        subdivisions: int,
+        chunk_voxels: int,
+        max_sigma_vu: float,
+        min_weight: float,
+        coarse_to_fine: bool = True,
+    ) -> None:
+        self.voxel_size_m = voxel_size_m
+        self.subdivisions = subdivisions
+        self.chunk_voxels = chunk_voxels
+        self.max_sigma_vu = max_sigma_vu
+        self.min_weight = min_weight
+        self._chunks: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.last_remeshed = torch.zeros(0, dtype=torch.int64)  # packed chunk keys, last update
+        self._fine = lattice_offsets(subdivisions)
+        # coarse-to-fine: a half-voxel lattice decides where the fine lattice is decoded
+        even = subdivisions % 2 == 0 and subdivisions >= 4
+        self._coarse_factor = subdivisions // 2 if coarse_to_fine and even else 1
+        self._coarse = lattice_offsets(2) if self._coarse_factor > 1 else None
+
+    @property
+    def num_chunks(self) -> int:
+        return len(self._chunks)
+
+    def clear(self) -> None:
+        self._chunks.clear()
+
+    def dirty_chunks(self, dirty_voxel_keys: torch.Tensor) -> torch.Tensor:
+        """Packed chunk keys whose node range a changed voxel's ``2V`` cube reaches."""
+        if dirty_voxel_keys.numel() == 0:
+            return dirty_voxel_keys
+        grid = unpack_keys(dirty_voxel_keys)
+        shifts = _NEIGHBOUR_SHIFTS.to(grid.device)
+        chunk = torch.div(grid.unsqueeze(1) + shifts, self.chunk_voxels, rounding_mode="floor")
+        return torch.unique(pack_keys(chunk.reshape(-1, 3)))
+
+    @torch.no_grad()
+    def update(self, store: VoxelStore, decoder: Decoder, dirty_voxel_keys: torch.Tensor) -> None:
+        """Re-mesh every chunk touched by ``dirty_voxel_keys`` (packed)."""
+        chunks = self.dirty_chunks(dirty_voxel_keys)
+        self.last_remeshed = chunks
+        if chunks.numel() == 0:
+            return
+        keys = store.sorted_keys()
+        rows = store.rows()
+        decodable = store.weights64() >= self.min_weight
+        grid = unpack_keys(keys[decodable])
+        rows = rows[decodable]
+        pair_voxel, pair_chunk = self._voxel_chunk_pairs(grid, chunks)
+        for start in range(0, chunks.shape[0], CHUNKS_PER_BATCH):
+            batch = chunks[start : start + CHUNKS_PER_BATCH]
+            lo = torch.searchsorted(pair_chunk, batch[0])
+            hi = torch.searchsorted(pair_chunk, batch[-1], right=True)
+            meshes = self._mesh_batch(
+                store, decoder, batch, grid, rows, pair_voxel[lo:hi], pair_chunk[lo:hi]
+            )
+            for key, mesh in zip(batch.tolist(), meshes, strict=True):
+                if mesh is None:
+                    self._chunks.pop(key, None)
+                else:
+                    self._chunks[key] = mesh
+
+    def _voxel_chunk_pairs(
+        self, grid: torch.Tensor, chunks: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(voxel index, packed chunk) pairs for the dirty chunks, sorted by (chunk, voxel)."""
+        cs = self.chunk_voxels
+        own = torch.div(grid, cs, rounding_mode="floor")
+        local = grid - own * cs
+        shifts = _NEIGHBOUR_SHIFTS.to(grid.device)
+        # shift -1 along an axis only for local == 0, +1 only for local == cs - 1
+        ok = (
+            (shifts == 0)
+            | ((shifts == -1) & (local.unsqueeze(1) == 0))
+            | ((shifts == 1) & (local.unsqueeze(1) == cs - 1))
+        ).all(-1)  # (D, 27)
+        voxel = torch.arange(grid.shape[0], device=grid.device).unsqueeze(1).expand_as(ok)[ok]
+        chunk = pack_keys((own.unsqueeze(1) + shifts)[ok])
+        pos = torch.searchsorted(chunks, chunk).clamp_(max=chunks.shape[0] - 1)
+        wanted = chunks[pos] == chunk
+        voxel, chunk = voxel[wanted], chunk[wanted]
+        order = torch.argsort(voxel)
+        order = order[torch.argsort(chunk[order], stable=True)]
+        return voxel[order], chunk[order]
+
+    def _accumulate(
+        self,
+        level: int,
+        halo: int,
+        lattice: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        terms: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        decoder: Decoder,
+        n_chunks: int,
+        voxel_grid: torch.Tensor,
+        pair_inv: torch.Tensor,
+        pair_slot: torch.Tensor,
+        pair_origin: torch.Tensor,
+        needed: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Blend the decodes of all (voxel, node) pairs into dense per-chunk node arrays.
+
+        ``level`` lattice cells per voxel edge, ``halo`` extra nodes on each side of a chunk;
+        ``needed`` (flat bool over the arrays) restricts decoding to those nodes. Returns the
+        flat sums ``num = sum b mean``, ``den = sum b``, ``sig = sum b sigma`` with
+        ``b = tent / sigma``.
+        """
+        node_idx, q, tent = (t.to(voxel_grid.device) for t in lattice)
+        n_side = self.chunk_voxels * level + 1 + 2 * halo
+        n_nodes = n_side**3
+        base = voxel_grid[pair_inv] * level - pair_origin * (self.chunk_voxels * level) + halo
+        local = base.unsqueeze(1) + node_idx  # (P, Q, 3)
+        inside = ((local >= 0) & (local < n_side)).all(-1)
+        flat = pair_slot.unsqueeze(1) * n_nodes + (
+            (local[..., 0] * n_side + local[..., 1]) * n_side + local[..., 2]
+        )
+        if needed is not None:
+            inside &= needed[flat.clamp(0, needed.numel() - 1)]
+        entry_pair, entry_k = inside.nonzero(as_tuple=True)
+        flat = flat[entry_pair, entry_k]
+        voxel = pair_inv[entry_pair]
+        code, A, latents = terms
+        if needed is None:
+            mean_u, sigma_u = decode_lattice(decoder, latents, q)
+            mean, sigma = mean_u[voxel, entry_k], sigma_u[voxel, entry_k]
+        else:
+            key = voxel * q.shape[0] + entry_k
+            uniq, inv = torch.unique(key, return_inverse=True)
+            m, sg = decode_indexed(
+                decoder,
+                code,
+                A,
+                q,
+                torch.div(uniq, q.shape[0], rounding_mode="floor"),
+                uniq % q.shape[0],
+            )
+            mean, sigma = m[inv], sg[inv]
+        b = tent[entry_k] / sigma
+        size = n_chunks * n_nodes
+        num = torch.zeros(size, device=b.device).index_add_(0, flat, b * mean)
+        den = torch.zeros(size, device=b.device).index_add_(0, flat, b)
+        sig = torch.zeros(size, device=b.device).index_add_(0, flat, b * sigma)
+        return num, den, sig
+
+    def _mesh_batch(
+        self,
+        store: VoxelStore,
+        decoder: Decoder,
+        batch: torch.Tensor,
+        grid: torch.Tensor,
+        rows: torch.Tensor,
+        pair_voxel: torch.Tensor,
+        pair_chunk: torch.Tensor,
+    ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        n_chunks = batch.shape[0]
+        if pair_voxel.numel() == 0:
+            return [None] * n_chunks
+        s = self.subdivisions
+        cs = self.chunk_voxels
+        n_fine = cs * s + 1
+        voxels, inv = torch.unique(pair_voxel, return_inverse=True)
+        latents = store.latents_at(rows[voxels])
+        terms = (*voxel_query_terms(decoder, latents), latents)
+        voxel_grid = grid[voxels]
+        slot = torch.searchsorted(batch, pair_chunk)
+        origin = unpack_keys(pair_chunk)
+        common = (decoder, n_chunks, voxel_grid, inv, slot, origin)
+        shape = (n_chunks, n_fine, n_fine, n_fine)
+        if self._coarse is None:
+            num, den, sig = self._accumulate(s, 0, self._fine, terms, *common, None)
+            sdf, sigma, valid = _normalise(num.view(shape), den.view(shape), sig.view(shape))
+        else:
+            n_coarse = cs * 2 + 3  # half-voxel lattice with one halo node on each side
+            cshape = (n_chunks, n_coarse, n_coarse, n_coarse)
+            c_num, c_den, c_sig = self._accumulate(2, 1, self._coarse, terms, *common, None)
+            c_sdf, c_sigma, c_valid = _normalise(
+                c_num.view(cshape), c_den.view(cshape), c_sig.view(cshape)
+            )
+            needed = _needed_fine_nodes(c_sdf, c_valid, self._coarse_factor, n_fine)
+            num, den, sig = self._accumulate(s, 0, self._fine, terms, *common, needed.reshape(-1))
+            f_sdf, f_sigma, f_valid = _normalise(num.view(shape), den.view(shape), sig.view(shape))
+            inner = (slice(None), slice(1, -1), slice(1, -1), slice(1, -1))
+            i_sdf, i_sigma, i_valid = _upsample(
+                c_sdf[inner], c_sigma[inner], c_valid[inner], n_fine
+            )
+            sdf = torch.where(needed, f_sdf, i_sdf)
+            sigma = torch.where(needed, f_sigma, i_sigma)
+            valid = torch.where(needed, f_valid, i_valid)
+        sdf, sigma, valid = (t.cpu().numpy() for t in (sdf, sigma, valid))
+        corners = unpack_keys(batch).cpu().numpy() * (cs * s)
+        return [self._march(sdf[i], sigma[i], valid[i], corners[i]) for i in range(n_chunks)]
+
+    def _march(
+        self, sdf: np.ndarray, sigma: np.ndarray, valid: np.ndarray, corner: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        from scipy.ndimage import map_coordinates
+        from skimage.measure import marching_cubes
+
+        if not valid.any() or sdf[valid].min() > 0 or sdf[valid].max() < 0:
+            return None
+        sdf = np.where(valid, sdf, 1.0)
+        sigma = np.where(valid, sigma, 1e9)
+        cell_ok = (
+            valid[:-1, :-1, :-1]
+            & valid[1:, :-1, :-1]
+            & valid[:-1, 1:, :-1]
+            & valid[:-1, :-1, 1:]
+            & valid[1:, 1:, :-1]
+            & valid[1:, :-1, 1:]
+            & valid[:-1, 1:, 1:]
+            & valid[1:, 1:, 1:]
+        )
+        if not cell_ok.any():
+            return None
+        # scikit-image tests the mask at a cell's upper corner (checked by tests/test_meshing.py)
+        mask = np.zeros_like(valid)
+        mask[1:, 1:, 1:] = cell_ok
+        try:
+            verts, faces, _, _ = marching_cubes(
+                sdf.astype(np.float32), level=0.0, mask=mask, allow_degenerate=False
+            )
+        except (RuntimeError, ValueError):
+            return None
+        if faces.shape[0] == 0:
+            return None
+        vert_sigma = map_coordinates(sigma, verts.T, order=1)
+        keep = (vert_sigma[faces] <= self.max_sigma_vu).all(1)
+        faces = faces[keep]
+        if faces.shape[0] == 0:
+            return None
+        used, faces = np.unique(faces, return_inverse=True)
+        h = self.voxel_size_m / self.subdivisions
+        verts_W = (verts[used].astype(np.float64) + corner) * h
+        return verts_W, faces.reshape(-1, 3).astype(np.int64)
+
+    def mesh(self) -> trimesh.Trimesh:
+        """All cached chunk meshes, concatenated and welded."""
+        if not self._chunks:
+            return trimesh.Trimesh(
+                np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False
+            )
+        verts, faces, offset = [], [], 0
+        for key in sorted(self._chunks):
+            v, f = self._chunks[key]
+            verts.append(v)
+            faces.append(f + offset)
+            offset += v.shape[0]
+        mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
+        digits = int(np.ceil(-np.log10(self.voxel_size_m / self.subdivisions * 1e-4)))
+        mesh.merge_vertices(digits_vertex=digits)
+        mesh.update_faces(mesh.nondegenerate_faces())
+        mesh.remove_unreferenced_vertices()
+        return mesh

@@ -1,0 +1,227 @@
+"""The global neural implicit map and its submaps: encode, fuse, remove, move, query, mesh, save.
+
+A :class:`Submap` keeps its *original* encoding (on the world grid at the pose it was encoded at)
+for life. Moving it never re-encodes points: the original is transformed by
+``D = T_W_A_new inv(T_W_A_encoded)`` (:func:`mapping.transform.transform_block`) into its
+``placed`` block, which is what the global map holds while the submap is fused. Fusion and removal
+are exact weighted averages, so ``remove(fuse(map, s), s) == map`` up to float rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from mapping.config import MapConfig, resolve_device
+from mapping.encoding import encode_points
+from mapping.field import query_field
+from mapping.meshing import ChunkMesher
+from mapping.networks import PriorModel, load_default_prior
+from mapping.transform import check_rigid, transform_block
+from mapping.voxel_block import VoxelBlock
+from mapping.voxel_store import VoxelStore
+
+
+@dataclass
+class Submap:
+    """One unit of remapping.
+
+    Attributes:
+        submap_id: caller's identifier (unique within a map).
+        T_W_A_encoded: 4x4 pose at which ``original`` was encoded (kept for life).
+        original: the encoding on the world grid at ``T_W_A_encoded``; never modified.
+        T_W_A: 4x4 pose the submap currently sits at.
+        placed: what is (or would be) fused into the global map at ``T_W_A``.
+        fused: whether ``placed`` is currently fused into the map.
+    """
+
+    submap_id: int
+    T_W_A_encoded: np.ndarray
+    original: VoxelBlock
+    T_W_A: np.ndarray
+    placed: VoxelBlock
+    fused: bool = False
+
+    def nbytes(self) -> int:
+        """Bytes of the stored blocks (``placed`` counted once when it is ``original``)."""
+        extra = 0 if self.placed is self.original else self.placed.nbytes()
+        return self.original.nbytes() + extra + 2 * 16 * 8
+
+
+def _model_from_config(cfg: MapConfig) -> PriorModel:
+    if cfg.weights_path is None:
+        return load_default_prior()
+    return PriorModel.load(cfg.weights_path)
+
+
+class NeuralMap:
+    """Sparse global map of voxel latents (see :mod:`mapping` and DESIGN section 5)."""
+
+    def __init__(self, cfg: MapConfig, model: PriorModel | None = None) -> None:
+        self.cfg = cfg
+        self.device = resolve_device(cfg.device)
+        model = model if model is not None else _model_from_config(cfg)
+        self.model = model.to(self.device).float().eval().requires_grad_(False)
+        self.voxel_size_m = cfg.voxel_size_m
+        self._store = VoxelStore(self.model.latent_channels, self.device)
+        self._fused_ids: set[int] = set()
+        self._mesher = ChunkMesher(
+            voxel_size_m=cfg.voxel_size_m,
+            subdivisions=cfg.mesh_subdivisions,
+            chunk_voxels=cfg.mesh_chunk_voxels,
+            max_sigma_vu=cfg.mesh_max_sigma_vu,
+            min_weight=cfg.min_weight_to_decode,
+        )
+
+    # ------------------------------------------------------------------ submaps
+    def encode(
+        self, submap_id: int, points_A: np.ndarray, normals_A: np.ndarray, T_W_A: np.ndarray
+    ) -> Submap:
+        """Encode points (anchor frame ``A``) at pose ``T_W_A`` onto the world grid; no fusing."""
+        T = check_rigid(T_W_A, "T_W_A")
+        points_A = np.asarray(points_A, dtype=np.float64)
+        normals_A = np.asarray(normals_A, dtype=np.float64)
+        if points_A.ndim != 2 or points_A.shape[1] != 3 or normals_A.shape != points_A.shape:
+            raise ValueError(
+                f"encode: points {points_A.shape} and normals {normals_A.shape} must both be (N, 3)"
+            )
+        finite = np.isfinite(points_A).all(1) & np.isfinite(normals_A).all(1)
+        points_W = points_A[finite] @ T[:3, :3].T + T[:3, 3]
+        normals_W = normals_A[finite] @ T[:3, :3].T
+        norm = np.linalg.norm(normals_W, axis=1, keepdims=True)
+        good = norm[:, 0] > 1e-9
+        block = encode_points(
+            self.model,
+            torch.from_numpy(points_W[good]),
+            torch.from_numpy(normals_W[good] / norm[good]),
+            self.voxel_size_m,
+            min_points_per_voxel=self.cfg.min_points_per_voxel,
+        )
+        return Submap(
+            submap_id=int(submap_id),
+            T_W_A_encoded=T.copy(),
+            original=block,
+            T_W_A=T.copy(),
+            placed=block,
+            fused=False,
+        )
+
+    def fuse(self, submap: Submap) -> None:
+        """Add the submap's ``placed`` block to the global map."""
+        if submap.fused or submap.submap_id in self._fused_ids:
+            raise ValueError(f"submap {submap.submap_id} is already fused; remove it first")
+        self._store.add(submap.placed)
+        submap.fused = True
+        self._fused_ids.add(submap.submap_id)
+
+    def remove(self, submap: Submap) -> None:
+        """Subtract the submap's ``placed`` block; refuses a submap that is not fused."""
+        if not submap.fused or submap.submap_id not in self._fused_ids:
+            raise ValueError(
+                f"submap {submap.submap_id} is not fused in this map; cannot remove it"
+            )
+        self._store.subtract(submap.placed)
+        submap.fused = False
+        self._fused_ids.discard(submap.submap_id)
+
+    def move(self, submap: Submap, T_W_A_new: np.ndarray) -> None:
+        """Re-place a submap at ``T_W_A_new`` from its original encoding.
+
+        Removes it if fused, transforms ``original`` by ``T_W_A_new inv(T_W_A_encoded)`` and fuses
+        the result back if it was fused (an unfused submap stays unfused, with ``placed`` updated).
+        """
+        T_new = check_rigid(T_W_A_new, "T_W_A_new")
+        was_fused = submap.fused
+        if was_fused:
+            self.remove(submap)
+        D = T_new @ np.linalg.inv(submap.T_W_A_encoded)
+        if np.array_equal(T_new, submap.T_W_A_encoded):
+            placed = submap.original
+        else:
+            placed = transform_block(
+                submap.original,
+                D,
+                self.voxel_size_m,
+                neighbors=self.cfg.transform_neighbors,
+                use_jacobian=self.cfg.transform_use_jacobian,
+                weighting=self.cfg.transform_weighting,
+                sigma_vu=self.cfg.transform_sigma_vu,
+            )
+        submap.placed = placed
+        submap.T_W_A = T_new.copy()
+        if was_fused:
+            self.fuse(submap)
+
+    # ------------------------------------------------------------------ field
+    def query_sdf(self, points_W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """SDF mean and std. dev. in metres and validity at world points ``(N, 3)``."""
+        pts = torch.from_numpy(np.asarray(points_W, dtype=np.float64).reshape(-1, 3))
+        sdf, sigma, valid = query_field(
+            self._store,
+            self.model.decoder,
+            pts,
+            self.voxel_size_m,
+            self.cfg.min_weight_to_decode,
+        )
+        v = self.voxel_size_m
+        return (
+            sdf.cpu().numpy().astype(np.float64) * v,
+            sigma.cpu().numpy().astype(np.float64) * v,
+            valid.cpu().numpy(),
+        )
+
+    def extract_mesh(self) -> trimesh.Trimesh:
+        """The map's mesh; only chunks touched since the last call are re-meshed."""
+        self._mesher.update(self._store, self.model.decoder, self._store.take_dirty())
+        return self._mesher.mesh()
+
+    # ------------------------------------------------------------------ inspection
+    def voxel_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """World centres ``(M, 3)`` float64 and weights ``(M,)`` float32 of all voxels."""
+        block = self._store.block()
+        return block.centers(self.voxel_size_m), block.weights.cpu().numpy()
+
+    def voxel_block(self) -> VoxelBlock:
+        """All voxels of the global map as a block (a copy)."""
+        return self._store.block()
+
+    @property
+    def num_voxels(self) -> int:
+        return self._store.num_voxels
+
+    @property
+    def fused_ids(self) -> frozenset[int]:
+        return frozenset(self._fused_ids)
+
+    def memory_bytes(self) -> int:
+        """Bytes of the global voxel storage (allocated capacity included; submaps not counted)."""
+        return self._store.memory_bytes()
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | Path, submaps: list[Submap]) -> None:
+        """Write the map and its submaps (see :mod:`mapping.map_io`); atomic."""
+        from mapping.map_io import save_map
+
+        save_map(self, path, submaps)
+
+    @classmethod
+    def load(
+        cls, path: str | Path, model: PriorModel | None = None
+    ) -> tuple[NeuralMap, list[Submap]]:
+        """Read a file written by :meth:`save`; a bad file raises :class:`MapFileError`."""
+        from mapping.map_io import load_map
+
+        return load_map(cls, path, model)
+
+    # used by map_io
+    def _restore(self, block: VoxelBlock, weights64: torch.Tensor, fused_ids: set[int]) -> None:
+        self._store.load_arrays(block, weights64)
+        self._fused_ids = set(fused_ids)
+        self._mesher.clear()
+
+    def _weights64(self) -> torch.Tensor:
+        return self._store.weights64()

@@ -1,0 +1,235 @@
+"""The global sparse voxel storage with exact weighted-average fusion and removal (DESIGN 5.2).
+
+Rows of data (latent, Jacobian, weight) live in growable arrays and never move; a sorted array of
+packed int64 keys with their row numbers is the index (look-up by ``searchsorted``). Inserting
+``k`` keys merges them into the index in ``O(N log k)`` without moving any voxel data; freed rows
+are reused. Weights are kept in float64 so that fusing and removing many submaps does not leave
+float residue; a voxel whose weight falls to ``<= WEIGHT_TOLERANCE * previous weight`` is deleted.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+
+from mapping.voxel_block import VoxelBlock, unpack_keys
+
+log = logging.getLogger(__name__)
+
+WEIGHT_TOLERANCE = 1e-6
+
+
+def _canonical(block: VoxelBlock) -> VoxelBlock:
+    """The block with sorted keys; duplicate keys are an error."""
+    keys = block.packed_keys()
+    if keys.shape[0] < 2 or bool((keys[1:] > keys[:-1]).all()):
+        return block
+    order = torch.argsort(keys)
+    if bool((keys[order][1:] == keys[order][:-1]).any()):
+        raise ValueError("VoxelBlock has duplicate voxel keys; a block holds each voxel once")
+    return block.select(order)
+
+
+class VoxelStore:
+    """Sparse voxels keyed by packed int64 grid keys."""
+
+    def __init__(self, channels: int, device: torch.device, capacity: int = 1024) -> None:
+        self.channels = channels
+        self.device = device
+        self._reset(capacity)
+
+    def _reset(self, capacity: int) -> None:
+        device = self.device
+        channels = self.channels
+        self._keys = torch.zeros(0, dtype=torch.int64, device=device)
+        self._rows = torch.zeros(0, dtype=torch.int64, device=device)
+        self._latents = torch.zeros(capacity, channels, 3, device=device)
+        self._jacobians = torch.zeros(capacity, channels, 3, 3, device=device)
+        self._weights = torch.zeros(capacity, dtype=torch.float64, device=device)
+        self._free = torch.arange(capacity - 1, -1, -1, device=device)  # stack, top at the end
+        self._dirty: list[torch.Tensor] = []
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def num_voxels(self) -> int:
+        return int(self._keys.shape[0])
+
+    def lookup(self, keys: torch.Tensor) -> torch.Tensor:
+        """Rows of packed ``keys`` (any order), ``-1`` where absent."""
+        if self._keys.numel() == 0:
+            return torch.full_like(keys, -1)
+        pos = torch.searchsorted(self._keys, keys).clamp_(max=self._keys.shape[0] - 1)
+        found = self._keys[pos] == keys
+        return torch.where(found, self._rows[pos], torch.full_like(pos, -1))
+
+    def block(self) -> VoxelBlock:
+        """All voxels as a block (sorted keys), weights cast to float32."""
+        rows = self._rows
+        return VoxelBlock(
+            keys=unpack_keys(self._keys),
+            latents=self._latents[rows],
+            weights=self._weights[rows].to(torch.float32),
+            jacobians=self._jacobians[rows],
+        )
+
+    def sorted_keys(self) -> torch.Tensor:
+        return self._keys
+
+    def rows(self) -> torch.Tensor:
+        """Row numbers aligned with :meth:`sorted_keys`."""
+        return self._rows
+
+    def latents_at(self, rows: torch.Tensor) -> torch.Tensor:
+        return self._latents[rows]
+
+    def weights_at(self, rows: torch.Tensor) -> torch.Tensor:
+        return self._weights[rows]
+
+    def weights64(self) -> torch.Tensor:
+        """Float64 weights aligned with :meth:`sorted_keys`."""
+        return self._weights[self._rows]
+
+    def memory_bytes(self) -> int:
+        """Bytes of all allocated arrays (capacity included)."""
+        tensors = (
+            self._keys,
+            self._rows,
+            self._latents,
+            self._jacobians,
+            self._weights,
+            self._free,
+        )
+        return sum(t.element_size() * t.numel() for t in tensors)
+
+    def take_dirty(self) -> torch.Tensor:
+        """Packed keys changed since the last call (unique, sorted)."""
+        if not self._dirty:
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
+        dirty = torch.unique(torch.cat(self._dirty))
+        self._dirty = []
+        return dirty
+
+    # ------------------------------------------------------------------ updates
+    def add(self, block: VoxelBlock) -> None:
+        """Fuse: ``F <- (F w + F_k w_k) / (w + w_k)``, ``w <- w + w_k`` (same for Jacobians)."""
+        if block.num_voxels == 0:
+            return
+        block = _canonical(block.to(self.device))
+        keys = block.packed_keys()
+        rows = self.lookup(keys)
+        found = rows >= 0
+        w_new = block.weights.to(torch.float64)
+        if bool(found.any()):
+            r = rows[found]
+            w_old = self._weights[r]
+            total = w_old + w_new[found]
+            a = (w_old / total).to(torch.float32)
+            self._latents[r] = self._latents[r] * a.view(-1, 1, 1) + block.latents[found] * (
+                1.0 - a
+            ).view(-1, 1, 1)
+            self._jacobians[r] = self._jacobians[r] * a.view(-1, 1, 1, 1) + block.jacobians[
+                found
+            ] * (1.0 - a).view(-1, 1, 1, 1)
+            self._weights[r] = total
+        missing = ~found
+        if bool(missing.any()):
+            new_keys = keys[missing]
+            r = self._allocate(new_keys.shape[0])
+            self._latents[r] = block.latents[missing]
+            self._jacobians[r] = block.jacobians[missing]
+            self._weights[r] = w_new[missing]
+            self._insert(new_keys, r)
+        self._dirty.append(keys)
+
+    def subtract(self, block: VoxelBlock) -> None:
+        """Remove: ``F <- (F w - F_k w_k) / (w - w_k)``, ``w <- w - w_k``; drop emptied voxels."""
+        if block.num_voxels == 0:
+            return
+        block = _canonical(block.to(self.device))
+        keys = block.packed_keys()
+        rows = self.lookup(keys)
+        found = rows >= 0
+        if not bool(found.all()):
+            log.debug("remove: %d voxels of the block are not in the map", int((~found).sum()))
+        r = rows[found]
+        w_old = self._weights[r]
+        w_k = block.weights[found].to(torch.float64)
+        remaining = w_old - w_k
+        alive = remaining > WEIGHT_TOLERANCE * torch.clamp(w_old, min=1.0)
+        ra = r[alive]
+        w_rem = remaining[alive]
+        scale_old = (w_old[alive] / w_rem).to(torch.float32)
+        scale_k = (w_k[alive] / w_rem).to(torch.float32)
+        self._latents[ra] = self._latents[ra] * scale_old.view(-1, 1, 1) - block.latents[found][
+            alive
+        ] * scale_k.view(-1, 1, 1)
+        self._jacobians[ra] = self._jacobians[ra] * scale_old.view(-1, 1, 1, 1) - block.jacobians[
+            found
+        ][alive] * scale_k.view(-1, 1, 1, 1)
+        self._weights[ra] = w_rem
+        dead_keys = keys[found][~alive]
+        if dead_keys.numel():
+            self._delete(dead_keys, r[~alive])
+        self._dirty.append(keys)
+
+    def load_arrays(self, block: VoxelBlock, weights64: torch.Tensor) -> None:
+        """Replace the whole content (used by loading); ``block`` must have sorted unique keys."""
+        m = block.num_voxels
+        self._reset(max(m, 1024))
+        rows = self._allocate(m)
+        block = block.to(self.device)
+        self._latents[rows] = block.latents
+        self._jacobians[rows] = block.jacobians
+        self._weights[rows] = weights64.to(self.device, torch.float64)
+        self._keys = block.packed_keys()
+        self._rows = rows
+        self._dirty.append(self._keys)
+
+    # ------------------------------------------------------------------ internals
+    def _allocate(self, n: int) -> torch.Tensor:
+        if n > self._free.shape[0]:
+            self._grow(n - self._free.shape[0])
+        rows = self._free[-n:].flip(0)
+        self._free = self._free[:-n] if n else self._free
+        return rows
+
+    def _grow(self, extra: int) -> None:
+        old = self._weights.shape[0]
+        new = max(2 * old, old + extra)
+
+        def grow(t: torch.Tensor) -> torch.Tensor:
+            out = torch.zeros((new, *t.shape[1:]), dtype=t.dtype, device=t.device)
+            out[:old] = t
+            return out
+
+        self._latents = grow(self._latents)
+        self._jacobians = grow(self._jacobians)
+        self._weights = grow(self._weights)
+        fresh = torch.arange(new - 1, old - 1, -1, device=self.device)
+        self._free = torch.cat([fresh, self._free])
+
+    def _insert(self, new_keys: torch.Tensor, new_rows: torch.Tensor) -> None:
+        """Merge sorted, absent ``new_keys`` into the sorted index."""
+        n_old = self._keys.shape[0]
+        n_new = new_keys.shape[0]
+        pos_new = torch.searchsorted(self._keys, new_keys) + torch.arange(n_new, device=self.device)
+        pos_old = torch.arange(n_old, device=self.device) + torch.searchsorted(new_keys, self._keys)
+        keys = torch.empty(n_old + n_new, dtype=torch.int64, device=self.device)
+        rows = torch.empty_like(keys)
+        keys[pos_old] = self._keys
+        rows[pos_old] = self._rows
+        keys[pos_new] = new_keys
+        rows[pos_new] = new_rows
+        self._keys, self._rows = keys, rows
+
+    def _delete(self, dead_keys: torch.Tensor, dead_rows: torch.Tensor) -> None:
+        pos = torch.searchsorted(self._keys, dead_keys)
+        keep = torch.ones(self._keys.shape[0], dtype=torch.bool, device=self.device)
+        keep[pos] = False
+        self._keys = self._keys[keep]
+        self._rows = self._rows[keep]
+        self._latents[dead_rows] = 0.0
+        self._jacobians[dead_rows] = 0.0
+        self._weights[dead_rows] = 0.0
+        self._free = torch.cat([self._free, dead_rows])

@@ -1,0 +1,116 @@
+"""Construct the parts of a run (source, odometry, neural map, logger) from a :class:`RunConfig`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from frontends.odometry.base import Odometry, make_odometry
+from frontends.sources.base import Source, make_source
+from slam.config import RunConfig
+from slam.viz import Logger, NullLogger
+
+
+def frame_slice(text: str | None) -> slice | None:
+    """``"A:B[:STEP]"`` as a slice (validated by the runner), None for all frames."""
+    if text is None:
+        return None
+    parts = [int(p) if p.strip() else None for p in text.split(":")]
+    return slice(*parts)
+
+
+def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
+    """Keyword arguments of ``make_source`` for the configured dataset."""
+    src = cfg.source
+    frames = frame_slice(src.frames)
+    depth = src.depth.model_dump()
+    if src.dataset == "generated":
+        g = cfg.generated
+        kwargs: dict[str, Any] = {
+            "kind": g.kind,
+            "root": src.root,
+            "num_frames": g.num_frames,
+            "seed": g.seed,
+            "frames": frames,
+        }
+        if g.kind == "lidar":
+            kwargs.update(
+                trajectory=g.trajectory,
+                kitti_poses=g.kitti_poses,
+                kitti_calib=g.kitti_calib,
+                start=g.start,
+                step=g.step,
+                azimuth_steps=g.azimuth_steps,
+                loader_options={"max_range_m": src.kitti.max_range_m},
+            )
+        else:
+            kwargs.update(
+                width=g.width, height=g.height, loader_options={"depth_options": depth}
+            )
+        return kwargs
+    kwargs = {"root": src.root, "sequence": src.sequence, "frames": frames}
+    if src.dataset == "kitti":
+        kwargs.update(
+            correct_vertical_angle=src.kitti.correct_vertical_angle,
+            max_range_m=src.kitti.max_range_m,
+        )
+    elif src.dataset in ("tum", "icl"):
+        kwargs.update(
+            max_difference=src.tum.max_time_difference_s,
+            drop_frames_without_gt=src.tum.drop_frames_without_gt,
+            depth_options=depth,
+        )
+    else:
+        kwargs["depth_options"] = depth
+    return kwargs
+
+
+def build_source(cfg: RunConfig) -> Source:
+    """The configured source (generates a generated sequence on first use)."""
+    return make_source(cfg.source.dataset, **source_kwargs(cfg))
+
+
+def odometry_method(cfg: RunConfig, sensor: str) -> str:
+    """The odometry name, resolving ``auto`` by the sensor."""
+    method = cfg.odometry.method
+    if method == "auto":
+        return "kiss-icp" if sensor == "lidar" else "rgbd"
+    return method
+
+
+def build_odometry(cfg: RunConfig, sensor: str) -> Odometry:
+    method = odometry_method(cfg, sensor)
+    if method == "kiss-icp":
+        return make_odometry(method, config=cfg.odometry.kiss_icp)
+    if method == "rgbd":
+        return make_odometry(method, config=cfg.odometry.rgbd)
+    return make_odometry(method)
+
+
+def build_map(cfg: RunConfig):
+    """An empty neural map with the shipped prior."""
+    from mapping.neural_map import NeuralMap
+
+    return NeuralMap(cfg.mapping)
+
+
+def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
+    """Rerun logger for the configured sink, or :class:`NullLogger`."""
+    viz = cfg.viz
+    if viz.mode == "none":
+        return NullLogger()
+    from slam.rerun_logger import RerunLogger
+
+    options: dict[str, Any] = {
+        "voxel_size_m": cfg.mapping.voxel_size_m,
+        "up_axis": "+z" if sensor == "lidar" else "-y",
+    }
+    if viz.mode == "rrd":
+        options["rrd_path"] = viz.rrd_path or default_rrd
+    elif viz.mode == "spawn":
+        options["spawn"] = True
+    else:
+        if not viz.connect_url:
+            raise ValueError("viz.mode 'connect' needs viz.connect_url")
+        options["connect_url"] = viz.connect_url
+    return RerunLogger(**options)

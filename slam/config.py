@@ -1,0 +1,436 @@
+"""Configuration of a run: one pydantic model per part, composed into :class:`RunConfig`.
+
+Every model forbids unknown keys, so a typo in a YAML file is an error that names the key rather
+than a silently ignored setting. :func:`load_run_config` reads a YAML file and turns validation
+errors into a one-line :class:`ConfigError`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from frontends.odometry.kiss import KissIcpConfig
+from frontends.odometry.rgbd import RgbdOdometryConfig
+from frontends.sources._io import DepthOptions
+from mapping.config import MapConfig
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the message is one line naming the key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class KittiOptions(_Strict):
+    """Options of the KITTI source."""
+
+    correct_vertical_angle: bool = Field(
+        True, description="apply KISS-ICP's 0.22 deg vertical-angle correction of KITTI scans"
+    )
+    max_range_m: float | None = Field(
+        None, description="drop points farther than this when loading (None: keep all)"
+    )
+
+
+class TumOptions(_Strict):
+    """Options of the TUM and ICL-NUIM sources."""
+
+    max_time_difference_s: float = Field(
+        0.02, gt=0, description="largest colour/depth/ground-truth timestamp gap when pairing"
+    )
+    drop_frames_without_gt: bool = Field(
+        True, description="leave out frames without a ground-truth pose (as TUM's evaluation)"
+    )
+
+
+class SourceConfig(_Strict):
+    """Which recorded sequence to read and how."""
+
+    dataset: str = Field(
+        "generated",
+        description="source registry name: kitti, tum, icl, replica, 7scenes or generated",
+    )
+    sequence: str | None = Field(
+        None, description="sequence name inside the dataset root (e.g. '00', 'lr-kt3', 'seq-01')"
+    )
+    root: Path | None = Field(
+        None, description="dataset root folder; for generated data, the cache folder"
+    )
+    frames: str | None = Field(
+        None, description="frame range 'A:B[:STEP]' (Python slice syntax; empty parts allowed)"
+    )
+    depth: DepthOptions = Field(
+        default_factory=DepthOptions, description="how RGB-D depth images are lifted to points"
+    )
+    kitti: KittiOptions = Field(default_factory=KittiOptions, description="KITTI options")
+    tum: TumOptions = Field(default_factory=TumOptions, description="TUM / ICL-NUIM options")
+
+
+class GeneratedConfig(_Strict):
+    """A generated sequence (used when ``source.dataset`` is ``generated``)."""
+
+    kind: Literal["lidar", "rgbd"] = Field("rgbd", description="sensor of the generated sequence")
+    num_frames: int = Field(240, ge=2, description="number of frames to generate")
+    seed: int = Field(0, description="random seed of the scene and the sensor noise")
+    trajectory: Literal["loop", "kitti"] = Field(
+        "loop",
+        description="LiDAR: one lap around a block, or a window of a real KITTI trajectory",
+    )
+    kitti_poses: Path | None = Field(
+        None, description="LiDAR 'kitti' trajectory: the KITTI poses/NN.txt file"
+    )
+    kitti_calib: Path | None = Field(
+        None, description="LiDAR 'kitti' trajectory: its sequences/NN/calib.txt"
+    )
+    start: int = Field(0, ge=0, description="LiDAR 'kitti' trajectory: first frame")
+    step: int = Field(1, ge=1, description="LiDAR 'kitti' trajectory: frame step")
+    azimuth_steps: int = Field(
+        2048, ge=64, description="LiDAR firings per revolution (2048 ~ HDL-64E)"
+    )
+    width: int = Field(640, ge=32, description="RGB-D image width")
+    height: int = Field(480, ge=32, description="RGB-D image height")
+
+
+class OdometryConfig(_Strict):
+    """The odometry front-end."""
+
+    method: Literal["auto", "gt", "kiss-icp", "rgbd"] = Field(
+        "auto", description="'auto' picks kiss-icp for LiDAR and rgbd for RGB-D sources"
+    )
+    kiss_icp: KissIcpConfig = Field(
+        default_factory=KissIcpConfig, description="KISS-ICP options (method kiss-icp)"
+    )
+    rgbd: RgbdOdometryConfig = Field(
+        default_factory=RgbdOdometryConfig, description="OpenCV RGB-D options (method rgbd)"
+    )
+
+
+class SubmapConfig(_Strict):
+    """Keyframing: when a submap closes and how its points are kept."""
+
+    max_distance_m: float = Field(
+        2.0, gt=0, description="close the submap when the sensor is this far from the anchor"
+    )
+    max_rotation_deg: float = Field(
+        30.0, gt=0, description="close the submap when the sensor turned this much from the anchor"
+    )
+    max_frames: int = Field(30, ge=1, description="close the submap after this many frames")
+    min_range_m: float = Field(0.1, ge=0, description="points nearer to the sensor are dropped")
+    max_range_m: float = Field(8.0, gt=0, description="points farther from the sensor are dropped")
+    map_voxel_m: float = Field(
+        0.02,
+        gt=0,
+        description="points of a submap are averaged on a grid of this size before encoding",
+    )
+    loop_voxel_m: float = Field(
+        0.05, gt=0, description="grid size of the coarse submap cloud used for loop closure"
+    )
+    compact_every_points: int = Field(
+        400_000,
+        ge=1000,
+        description="re-average the accumulated points once this many are buffered",
+    )
+    normal_neighbours: int = Field(
+        12, ge=4, description="neighbours of the PCA normal fit (sources without normals)"
+    )
+    normal_radius_m: float | None = Field(
+        None, description="ignore normal-fit neighbours farther than this (None: no limit)"
+    )
+    keep_keyframe_images: bool = Field(
+        True, description="keep the anchor frame's RGB-D images (needed by RGB-D loop closure)"
+    )
+
+
+class LidarLoopConfig(_Strict):
+    """LiDAR loop closure: map_closures candidates verified by ICP and voxel overlap."""
+
+    density_map_resolution_m: float = Field(
+        0.5, gt=0, description="map_closures BEV density image resolution"
+    )
+    density_threshold: float = Field(
+        0.05, ge=0, description="map_closures density threshold of an occupied BEV cell"
+    )
+    hamming_distance_threshold: int = Field(
+        50, ge=1, description="map_closures ORB descriptor matching threshold"
+    )
+    inliers_threshold: int = Field(
+        5, ge=3, description="minimum 2D RANSAC inliers of a map_closures candidate"
+    )
+    top_k: int = Field(3, ge=1, description="candidates per query submap that are verified")
+    icp_max_correspondence_m: float = Field(
+        2.0, gt=0, description="ICP correspondence distance"
+    )
+    icp_kernel_m: float = Field(0.5, gt=0, description="ICP robust kernel scale")
+    icp_max_iterations: int = Field(200, ge=1, description="ICP iterations")
+    overlap_voxel_m: float = Field(
+        1.0, gt=0, description="grid of the overlap test between the aligned submap clouds"
+    )
+    min_overlap: float = Field(
+        0.3, gt=0, le=1, description="accept when shared voxels / smaller cloud is at least this"
+    )
+    inlier_distance_m: float = Field(
+        0.5, gt=0, description="a query point is an ICP inlier within this distance"
+    )
+    min_inlier_ratio: float = Field(
+        0.3, gt=0, le=1, description="accept when this fraction of the query cloud are inliers"
+    )
+    max_icp_correction_m: float = Field(
+        5.0, gt=0, description="reject when ICP moves the candidate pose by more than this"
+    )
+    max_icp_correction_deg: float = Field(
+        15.0, gt=0, description="reject when ICP rotates the candidate pose by more than this"
+    )
+
+
+class RgbdLoopConfig(_Strict):
+    """RGB-D loop closure: pose proximity + ORB, PnP-RANSAC, refined by cv2.Odometry."""
+
+    candidate_radius_m: float = Field(
+        2.0, gt=0, description="reference anchors within this distance of the query are candidates"
+    )
+    max_candidates: int = Field(3, ge=1, description="best-matching candidates verified")
+    orb_features: int = Field(1000, ge=100, description="ORB features per keyframe")
+    ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio test of ORB matches")
+    min_matches: int = Field(30, ge=6, description="minimum ORB matches of a candidate")
+    pnp_reprojection_px: float = Field(
+        3.0, gt=0, description="PnP-RANSAC inlier reprojection threshold"
+    )
+    min_pnp_inliers: int = Field(25, ge=6, description="minimum PnP-RANSAC inliers")
+    min_inlier_ratio: float = Field(
+        0.3, gt=0, le=1, description="minimum PnP inliers / matches with depth"
+    )
+    max_3d_residual_m: float = Field(
+        0.05, gt=0, description="3D-3D check: median inlier residual with both depths"
+    )
+    max_refine_disagreement_m: float = Field(
+        0.1, gt=0, description="reject when cv2.Odometry moves the PnP pose more than this"
+    )
+    max_refine_disagreement_deg: float = Field(
+        5.0, gt=0, description="reject when cv2.Odometry rotates the PnP pose more than this"
+    )
+    min_depth_m: float = Field(0.1, ge=0, description="valid depth range, lower bound")
+    max_depth_m: float = Field(8.0, gt=0, description="valid depth range, upper bound")
+
+
+class LoopClosureConfig(_Strict):
+    """Loop detection and verification."""
+
+    enabled: bool = Field(True, description="detect loop closures at all")
+    method: Literal["auto", "lidar", "rgbd"] = Field(
+        "auto", description="'auto' follows the sensor of the source"
+    )
+    min_submap_separation: int = Field(
+        3, ge=1, description="a reference submap must be at least this many submaps older"
+    )
+    min_travel_m: float = Field(
+        3.0, ge=0, description="path length between query and reference anchors must exceed this"
+    )
+    lidar: LidarLoopConfig = Field(default_factory=LidarLoopConfig, description="LiDAR loops")
+    rgbd: RgbdLoopConfig = Field(default_factory=RgbdLoopConfig, description="RGB-D loops")
+
+
+class PoseGraphConfig(_Strict):
+    """The GTSAM pose graph over submap anchors."""
+
+    odometry_translation_sigma_m: float = Field(
+        0.02, gt=0, description="odometry edge translation sigma, constant part"
+    )
+    odometry_translation_sigma_per_m: float = Field(
+        0.02, ge=0, description="odometry edge translation sigma per metre travelled"
+    )
+    odometry_rotation_sigma_rad: float = Field(
+        0.005, gt=0, description="odometry edge rotation sigma, constant part"
+    )
+    odometry_rotation_sigma_rad_per_m: float = Field(
+        0.005, ge=0, description="odometry edge rotation sigma per metre travelled"
+    )
+    odometry_rotation_sigma_per_rad: float = Field(
+        0.02, ge=0, description="odometry edge rotation sigma per radian turned"
+    )
+    loop_translation_sigma_m: float = Field(
+        0.05, gt=0, description="loop edge translation sigma"
+    )
+    loop_rotation_sigma_rad: float = Field(0.01, gt=0, description="loop edge rotation sigma")
+    loop_kernel: Literal["cauchy", "none"] = Field(
+        "cauchy", description="robust kernel of loop edges"
+    )
+    cauchy_k: float = Field(
+        1.0, gt=0, description="Cauchy kernel scale in units of the whitened loop residual"
+    )
+    isam2_relinearize_threshold: float = Field(
+        0.01, gt=0, description="iSAM2 relinearisation threshold"
+    )
+    online_gnc: bool = Field(
+        True,
+        description="solve the whole graph by GNC at every loop event and re-seed iSAM2 with "
+        "the inlier loops (otherwise: iSAM2 with the Cauchy kernel only)",
+    )
+    isam2_extra_iterations: int = Field(
+        5, ge=0, description="extra iSAM2 updates after a loop edge (converges the robust kernel)"
+    )
+    final_optimizer: Literal["lm", "gnc", "none"] = Field(
+        "gnc",
+        description="final batch optimisation: Levenberg-Marquardt on the robust graph, "
+        "GNC (truncated least squares, odometry known inliers), or none",
+    )
+    gnc_inlier_probability: float = Field(
+        0.99, gt=0, lt=1, description="GNC inlier threshold as a chi-square probability"
+    )
+    batch_max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iterations")
+
+
+class RemapConfig(_Strict):
+    """Remapping of submaps whose anchor moved after an optimisation."""
+
+    enabled: bool = Field(True, description="move submaps in the neural map after optimisation")
+    translation_threshold_m: float = Field(
+        0.01, ge=0, description="remap a submap whose anchor moved more than this"
+    )
+    rotation_threshold_deg: float = Field(
+        0.5, ge=0, description="remap a submap whose anchor turned more than this"
+    )
+
+
+class VizConfig(_Strict):
+    """Where the Rerun recording goes and how much it holds."""
+
+    mode: Literal["rrd", "spawn", "connect", "none"] = Field(
+        "rrd", description="write an .rrd file, spawn a viewer, connect to one, or log nothing"
+    )
+    rrd_path: Path | None = Field(
+        None, description="recording file (default: recording.rrd in the run folder)"
+    )
+    connect_url: str | None = Field(None, description="viewer URL for mode 'connect'")
+    scan_every: int = Field(1, ge=1, description="log every n-th scan")
+    mesh_every_submaps: int = Field(
+        1, ge=1, description="extract and log the mesh every n-th closed submap"
+    )
+
+
+class OutputConfig(_Strict):
+    """The run folder."""
+
+    root: Path = Field(Path("outputs"), description="parent folder of run folders")
+    run_name: str | None = Field(
+        None, description="run folder name (default: <dataset>-<sequence>-<time>)"
+    )
+    write_mesh: bool = Field(True, description="write mesh.ply at the end")
+    write_map: bool = Field(True, description="write the neural map file at the end")
+    mesh_samples: int = Field(
+        200_000, ge=1000, description="surface samples per mesh for mesh accuracy/completion"
+    )
+
+
+class RunConfig(_Strict):
+    """Everything a run needs."""
+
+    source: SourceConfig = Field(default_factory=SourceConfig, description="input sequence")
+    generated: GeneratedConfig = Field(
+        default_factory=GeneratedConfig, description="generated sequence (dataset 'generated')"
+    )
+    odometry: OdometryConfig = Field(default_factory=OdometryConfig, description="odometry")
+    submaps: SubmapConfig = Field(default_factory=SubmapConfig, description="keyframing")
+    loop_closure: LoopClosureConfig = Field(
+        default_factory=LoopClosureConfig, description="loop closure"
+    )
+    pose_graph: PoseGraphConfig = Field(
+        default_factory=PoseGraphConfig, description="pose graph"
+    )
+    remap: RemapConfig = Field(default_factory=RemapConfig, description="remapping")
+    mapping: MapConfig = Field(default_factory=MapConfig, description="the neural implicit map")
+    viz: VizConfig = Field(default_factory=VizConfig, description="Rerun logging")
+    output: OutputConfig = Field(default_factory=OutputConfig, description="run folder")
+    torch_threads: int = Field(
+        2, ge=1, description="torch CPU threads (the pipeline is otherwise single-threaded)"
+    )
+
+
+def _location(loc: tuple[Any, ...]) -> str:
+    return ".".join(str(part) for part in loc) or "<root>"
+
+
+def describe_validation_error(error: ValidationError, origin: str) -> str:
+    """One line naming the first offending key of a pydantic error."""
+    first = error.errors()[0]
+    key = _location(first["loc"])
+    if first["type"] == "extra_forbidden":
+        return f"{origin}: unknown key '{key}'; check the spelling against slam/config.py"
+    if first["type"] == "missing":
+        return f"{origin}: missing key '{key}'"
+    value = first.get("input")
+    shown = repr(value)
+    if len(shown) > 60:
+        shown = shown[:57] + "..."
+    return f"{origin}: invalid value {shown} for '{key}': {first['msg']}"
+
+
+def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def read_yaml(path: Path) -> dict[str, Any]:
+    """A YAML mapping from a file (empty file: empty mapping)."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found; pass an existing YAML file")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}:{where} is not valid YAML; fix the syntax") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping of config sections")
+    return data
+
+
+def build_run_config(data: dict[str, Any], origin: str) -> RunConfig:
+    """Validate a nested mapping into a :class:`RunConfig` (one-line :class:`ConfigError`)."""
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, origin)) from None
+
+
+def load_run_config(
+    path: Path | None = None, overrides: dict[str, Any] | None = None
+) -> RunConfig:
+    """Read ``path`` (YAML), apply nested ``overrides`` on top, validate.
+
+    Raises:
+        ConfigError: one line naming the file and the offending key.
+    """
+    data = read_yaml(path) if path is not None else {}
+    origin = str(path) if path is not None else "config"
+    if overrides:
+        data = _merge(data, overrides)
+    return build_run_config(data, origin)
+
+
+def default_config_path(name: str) -> Path:
+    """``configs/<name>.yaml`` of the repository."""
+    return CONFIG_DIR / f"{name}.yaml"
+
+
+def dump_run_config(cfg: RunConfig) -> str:
+    """The resolved config as YAML text (paths as strings)."""
+    import yaml
+
+    return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)

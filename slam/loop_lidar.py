@@ -1,0 +1,153 @@
+"""LiDAR loop closure: map_closures candidates on submap clouds, verified by ICP and overlap.
+
+map_closures (Gupta et al., ICRA 2024) turns each submap cloud into a ground-aligned bird's-eye
+density image, matches ORB features against every earlier submap and aligns the matches by 2D
+RANSAC. Its ``pose`` maps the reference submap into the query submap (``T_Aj_Ai``). Each candidate
+is then refined by point-to-point ICP (KISS-ICP's registration against a voxel hash map of the
+reference cloud) and accepted only when
+
+* ICP did not have to move the candidate far (a large correction means the 2D match was wrong),
+* enough query points lie close to the reference cloud after alignment (inlier ratio), and
+* the aligned clouds share enough voxels (overlap = shared voxels / voxels of the smaller cloud).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from slam.config import LidarLoopConfig, LoopClosureConfig
+from slam.loops import LoopCandidate, LoopDetector, relative_motion
+from slam.submaps import SubmapRecord, transform_points, voxel_keys
+
+logger = logging.getLogger(__name__)
+
+
+def voxel_overlap(points_a: np.ndarray, points_b: np.ndarray, voxel_size_m: float) -> float:
+    """Shared voxels of two clouds (same frame) over the voxels of the smaller one."""
+    keys_a = np.unique(voxel_keys(points_a, voxel_size_m))
+    keys_b = np.unique(voxel_keys(points_b, voxel_size_m))
+    if len(keys_a) == 0 or len(keys_b) == 0:
+        return 0.0
+    shared = len(np.intersect1d(keys_a, keys_b, assume_unique=True))
+    return shared / min(len(keys_a), len(keys_b))
+
+
+class IcpVerifier:
+    """Point-to-point ICP of a query cloud onto a reference cloud and the acceptance tests."""
+
+    def __init__(self, cfg: LidarLoopConfig) -> None:
+        self.cfg = cfg
+
+    def align(
+        self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
+    ) -> np.ndarray:
+        """Refine ``T_ref_query`` with KISS-ICP's robust point-to-point registration."""
+        from kiss_icp.mapping import VoxelHashMap
+        from kiss_icp.registration import Registration
+
+        c = self.cfg
+        voxel_map = VoxelHashMap(
+            voxel_size=c.overlap_voxel_m,
+            max_distance=1e9,
+            max_points_per_voxel=20,
+        )
+        voxel_map.add_points(np.asarray(reference, dtype=np.float64))
+        registration = Registration(
+            max_num_iterations=c.icp_max_iterations, convergence_criterion=1e-4, max_num_threads=1
+        )
+        return np.asarray(
+            registration.align_points_to_map(
+                points=np.asarray(query, dtype=np.float64),
+                voxel_map=voxel_map,
+                initial_guess=np.asarray(T_ref_query_guess, dtype=np.float64),
+                max_correspondance_distance=c.icp_max_correspondence_m,
+                kernel=c.icp_kernel_m,
+            ),
+            dtype=np.float64,
+        )
+
+    def verify(
+        self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
+    ) -> tuple[bool, str, np.ndarray, dict[str, float]]:
+        """ICP plus the acceptance tests: ``(accepted, reason, T_ref_query, scores)``."""
+        c = self.cfg
+        T = self.align(reference, query, T_ref_query_guess)
+        correction_m, correction_deg = relative_motion(T_ref_query_guess, T)
+        query_in_ref = transform_points(T, np.asarray(query, dtype=np.float64))
+        distances, _ = cKDTree(reference).query(query_in_ref, k=1)
+        inlier_ratio = float(np.mean(distances < c.inlier_distance_m))
+        overlap = voxel_overlap(reference, query_in_ref, c.overlap_voxel_m)
+        scores = {
+            "icp_correction_m": correction_m,
+            "icp_correction_deg": correction_deg,
+            "inlier_ratio": inlier_ratio,
+            "overlap": overlap,
+        }
+        if not np.all(np.isfinite(T)):
+            return False, "icp diverged", T_ref_query_guess, scores
+        if correction_m > c.max_icp_correction_m or correction_deg > c.max_icp_correction_deg:
+            return (
+                False,
+                f"icp correction {correction_m:.2f} m / {correction_deg:.1f} deg too large",
+                T,
+                scores,
+            )
+        if inlier_ratio < c.min_inlier_ratio:
+            return False, f"inlier ratio {inlier_ratio:.2f} < {c.min_inlier_ratio:.2f}", T, scores
+        if overlap < c.min_overlap:
+            return False, f"overlap {overlap:.2f} < {c.min_overlap:.2f}", T, scores
+        return True, "accepted", T, scores
+
+
+class LidarLoopDetector(LoopDetector):
+    """map_closures on the coarse submap clouds, each candidate verified by :class:`IcpVerifier`."""
+
+    def __init__(self, cfg: LoopClosureConfig) -> None:
+        from map_closures.config import MapClosuresConfig
+        from map_closures.map_closures import MapClosures
+
+        self.cfg = cfg
+        lidar = cfg.lidar
+        self._closures = MapClosures(
+            MapClosuresConfig(
+                density_map_resolution=lidar.density_map_resolution_m,
+                density_threshold=lidar.density_threshold,
+                hamming_distance_threshold=lidar.hamming_distance_threshold,
+                inliers_threshold=lidar.inliers_threshold,
+            )
+        )
+        self._verifier = IcpVerifier(lidar)
+        self._clouds: dict[int, np.ndarray] = {}
+        self._travelled: dict[int, float] = {}
+
+    def process(
+        self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
+    ) -> list[LoopCandidate]:
+        cloud = np.asarray(submap.loop_points_A, dtype=np.float64)
+        j = submap.submap_id
+        self._clouds[j] = submap.loop_points_A
+        self._travelled[j] = submap.travelled_m
+        if len(cloud) < 100:
+            return []
+        raw = self._closures.get_top_k_closures(j, cloud, self.cfg.lidar.top_k)
+        candidates = []
+        for closure in raw:
+            i = int(closure.source_id)
+            inliers = int(closure.number_of_inliers)
+            if inliers < self.cfg.lidar.inliers_threshold or i not in self._clouds:
+                continue
+            if j - i < self.cfg.min_submap_separation:
+                continue
+            if submap.travelled_m - self._travelled[i] < self.cfg.min_travel_m:
+                continue
+            T_Aj_Ai = np.asarray(closure.pose, dtype=np.float64)
+            guess = np.linalg.inv(T_Aj_Ai)
+            reference = np.asarray(self._clouds[i], dtype=np.float64)
+            accepted, reason, T_Ai_Aj, scores = self._verifier.verify(reference, cloud, guess)
+            scores["map_closures_inliers"] = float(inliers)
+            logger.debug("loop %d-%d: %s %s", i, j, reason, scores)
+            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores))
+        return candidates

@@ -1,0 +1,271 @@
+"""RGB-D loop closure between submap keyframes (the anchor frame of each submap).
+
+Candidates: older keyframes whose estimated anchor lies within ``candidate_radius_m`` of the
+query anchor, ranked by the number of ORB matches that pass Lowe's ratio test. Verification:
+
+1. PnP-RANSAC (``cv2.solvePnPRansac``) of the reference keyframe's back-projected keypoints
+   against the query keypoints gives ``T_Sj_Si``; enough inliers, and a high enough inlier ratio;
+2. a 3D-3D check: inliers with depth in both frames must agree in 3D (median residual);
+3. refinement with ``cv2.Odometry`` (RGB + depth): the reference frame is warped into the query
+   view with the PnP pose and the dense odometry estimates the remaining correction, which must
+   succeed and stay small. The refined pose is the loop edge.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from frontends.frame import Frame
+from slam.config import LoopClosureConfig, RgbdLoopConfig
+from slam.loops import LoopCandidate, LoopDetector, relative_motion
+from slam.submaps import SubmapRecord, transform_points
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class KeyframeFeatures:
+    """ORB features of a keyframe with their back-projected 3D points.
+
+    Attributes:
+        pixels: (N, 2) float32 keypoint positions (x, y).
+        descriptors: (N, 32) uint8 ORB descriptors.
+        points_S: (N, 3) keypoints lifted with the depth image (NaN where depth is invalid).
+        gray: (H, W) uint8 image.
+        depth: (H, W) float32 depth in metres (0 = invalid).
+        K: 3x3 camera matrix.
+    """
+
+    pixels: np.ndarray
+    descriptors: np.ndarray
+    points_S: np.ndarray
+    gray: np.ndarray
+    depth: np.ndarray
+    K: np.ndarray
+
+
+def to_gray(rgb: np.ndarray | None, depth: np.ndarray) -> np.ndarray:
+    """A uint8 grey image (a depth rendering when there is no colour image)."""
+    import cv2
+
+    if rgb is None:
+        scaled = np.clip(depth / max(float(np.nanmax(depth)), 1e-6) * 255.0, 0, 255)
+        return np.nan_to_num(scaled).astype(np.uint8)
+    if rgb.ndim == 2:
+        return np.ascontiguousarray(rgb, dtype=np.uint8)
+    return cv2.cvtColor(np.ascontiguousarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def lift_pixels(
+    pixels: np.ndarray, depth: np.ndarray, K: np.ndarray, min_depth_m: float, max_depth_m: float
+) -> np.ndarray:
+    """Back-project pixel positions with the nearest depth value (NaN where invalid)."""
+    h, w = depth.shape
+    cols = np.clip(np.round(pixels[:, 0]).astype(int), 0, w - 1)
+    rows = np.clip(np.round(pixels[:, 1]).astype(int), 0, h - 1)
+    z = depth[rows, cols].astype(np.float64)
+    valid = np.isfinite(z) & (z >= min_depth_m) & (z <= max_depth_m)
+    points = np.full((len(pixels), 3), np.nan)
+    points[valid, 0] = (pixels[valid, 0] - K[0, 2]) * z[valid] / K[0, 0]
+    points[valid, 1] = (pixels[valid, 1] - K[1, 2]) * z[valid] / K[1, 1]
+    points[valid, 2] = z[valid]
+    return points
+
+
+class RgbdVerifier:
+    """PnP-RANSAC, 3D-3D check and cv2.Odometry refinement of a keyframe pair."""
+
+    def __init__(self, cfg: RgbdLoopConfig) -> None:
+        import cv2
+
+        self.cfg = cfg
+        self._orb = cv2.ORB.create(nfeatures=cfg.orb_features)
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def features(self, frame: Frame) -> KeyframeFeatures | None:
+        """ORB features of a keyframe (None when it has no depth or intrinsics)."""
+        if frame.depth is None or frame.intrinsics is None:
+            return None
+        depth = np.nan_to_num(np.asarray(frame.depth, dtype=np.float32), nan=0.0)
+        gray = to_gray(frame.rgb, depth)
+        keypoints, descriptors = self._orb.detectAndCompute(gray, None)
+        K = frame.intrinsics.K
+        if descriptors is None or len(keypoints) == 0:
+            pixels = np.zeros((0, 2), np.float32)
+            descriptors = np.zeros((0, 32), np.uint8)
+        else:
+            pixels = np.array([kp.pt for kp in keypoints], dtype=np.float32)
+        points = lift_pixels(pixels, depth, K, self.cfg.min_depth_m, self.cfg.max_depth_m)
+        return KeyframeFeatures(pixels, descriptors, points, gray, depth, K)
+
+    def match(self, reference: KeyframeFeatures, query: KeyframeFeatures) -> np.ndarray:
+        """(M, 2) index pairs (reference, query) passing the ratio test."""
+        if len(reference.descriptors) < 2 or len(query.descriptors) < 2:
+            return np.zeros((0, 2), dtype=int)
+        pairs = self._matcher.knnMatch(query.descriptors, reference.descriptors, k=2)
+        good = [
+            (m[0].trainIdx, m[0].queryIdx)
+            for m in pairs
+            if len(m) == 2 and m[0].distance < self.cfg.ratio_test * m[1].distance
+        ]
+        return np.array(good, dtype=int).reshape(-1, 2)
+
+    def verify(
+        self, reference: KeyframeFeatures, query: KeyframeFeatures, matches: np.ndarray
+    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
+        """``(accepted, reason, T_Si_Sj, scores)`` of a keyframe pair with its ORB matches."""
+        import cv2
+
+        c = self.cfg
+        scores: dict[str, float] = {"orb_matches": float(len(matches))}
+        object_points = reference.points_S[matches[:, 0]]
+        with_depth = np.isfinite(object_points[:, 0])
+        matches = matches[with_depth]
+        object_points = object_points[with_depth]
+        scores["matches_with_depth"] = float(len(matches))
+        if len(matches) < c.min_pnp_inliers:
+            return False, f"{len(matches)} matches with depth < {c.min_pnp_inliers}", None, scores
+        image_points = query.pixels[matches[:, 1]].astype(np.float64)
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            object_points,
+            image_points,
+            query.K,
+            None,
+            iterationsCount=500,
+            reprojectionError=c.pnp_reprojection_px,
+            confidence=0.999,
+        )
+        num_inliers = 0 if inliers is None else len(inliers)
+        scores["pnp_inliers"] = float(num_inliers)
+        ratio = num_inliers / len(matches)
+        scores["pnp_inlier_ratio"] = ratio
+        if not ok or num_inliers < c.min_pnp_inliers:
+            return False, f"pnp inliers {num_inliers} < {c.min_pnp_inliers}", None, scores
+        if ratio < c.min_inlier_ratio:
+            return False, f"pnp inlier ratio {ratio:.2f} < {c.min_inlier_ratio:.2f}", None, scores
+        T_Sj_Si = np.eye(4)
+        T_Sj_Si[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T_Sj_Si[:3, 3] = tvec.ravel()
+        inlier_matches = matches[inliers.ravel()]
+        residual = self._residual_3d(reference, query, inlier_matches, T_Sj_Si)
+        scores["residual_3d_m"] = residual
+        if not np.isfinite(residual):
+            return False, "no pnp inlier has depth in both frames", None, scores
+        if residual > c.max_3d_residual_m:
+            return (
+                False,
+                f"3d residual {residual:.3f} m > {c.max_3d_residual_m:.3f} m",
+                np.linalg.inv(T_Sj_Si),
+                scores,
+            )
+        refined, delta = self._refine(reference, query, T_Sj_Si)
+        if refined is None:
+            return False, "cv2.Odometry refinement failed", np.linalg.inv(T_Sj_Si), scores
+        delta_m, delta_deg = relative_motion(np.eye(4), delta)
+        scores["refine_correction_m"] = delta_m
+        scores["refine_correction_deg"] = delta_deg
+        if delta_m > c.max_refine_disagreement_m or delta_deg > c.max_refine_disagreement_deg:
+            return (
+                False,
+                f"cv2.Odometry disagrees with pnp by {delta_m:.3f} m / {delta_deg:.1f} deg",
+                np.linalg.inv(T_Sj_Si),
+                scores,
+            )
+        return True, "accepted", np.linalg.inv(refined), scores
+
+    def _residual_3d(
+        self,
+        reference: KeyframeFeatures,
+        query: KeyframeFeatures,
+        matches: np.ndarray,
+        T_Sj_Si: np.ndarray,
+    ) -> float:
+        p_i = reference.points_S[matches[:, 0]]
+        p_j = query.points_S[matches[:, 1]]
+        both = np.isfinite(p_i[:, 0]) & np.isfinite(p_j[:, 0])
+        if not both.any():
+            return float("nan")
+        moved = transform_points(T_Sj_Si, p_i[both])
+        return float(np.median(np.linalg.norm(moved - p_j[both], axis=1)))
+
+    def _refine(
+        self, reference: KeyframeFeatures, query: KeyframeFeatures, T_Sj_Si: np.ndarray
+    ) -> tuple[np.ndarray | None, np.ndarray]:
+        """Dense RGB-D odometry from the PnP pose: ``(refined T_Sj_Si or None, correction)``."""
+        import cv2
+
+        c = self.cfg
+        warped_depth, warped_gray, _ = cv2.warpFrame(
+            reference.depth, reference.gray, None, T_Sj_Si, reference.K
+        )
+        warped_depth = np.nan_to_num(np.asarray(warped_depth, dtype=np.float32), nan=0.0)
+        settings = cv2.OdometrySettings()
+        settings.setCameraMatrix(query.K.astype(np.float32))
+        settings.setMinDepth(c.min_depth_m)
+        settings.setMaxDepth(c.max_depth_m)
+        odometry = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
+        try:
+            ok, Rt = odometry.compute(
+                warped_depth, np.asarray(warped_gray, np.uint8), query.depth, query.gray
+            )
+        except cv2.error as exc:
+            logger.debug("cv2.Odometry failed: %s", exc)
+            return None, np.eye(4)
+        if not ok or Rt is None:
+            return None, np.eye(4)
+        delta = np.asarray(Rt, dtype=np.float64)
+        if delta.shape == (3, 4):
+            delta = np.vstack([delta, [0.0, 0.0, 0.0, 1.0]])
+        if not np.all(np.isfinite(delta)):
+            return None, np.eye(4)
+        return delta @ T_Sj_Si, delta
+
+
+class RgbdLoopDetector(LoopDetector):
+    """Pose-proximity + ORB candidates between keyframes, verified by :class:`RgbdVerifier`."""
+
+    def __init__(self, cfg: LoopClosureConfig) -> None:
+        self.cfg = cfg
+        self._verifier = RgbdVerifier(cfg.rgbd)
+        self._features: dict[int, KeyframeFeatures] = {}
+        self._travelled: dict[int, float] = {}
+
+    def process(
+        self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
+    ) -> list[LoopCandidate]:
+        if submap.keyframe is None:
+            return []
+        j = submap.submap_id
+        query = self._verifier.features(submap.keyframe)
+        if query is None:
+            return []
+        c = self.cfg
+        T_W_Aj = T_W_A_estimates.get(j)
+        ranked = []
+        for i, reference in self._features.items():
+            if j - i < c.min_submap_separation:
+                continue
+            if submap.travelled_m - self._travelled[i] < c.min_travel_m:
+                continue
+            T_W_Ai = T_W_A_estimates.get(i)
+            if T_W_Aj is not None and T_W_Ai is not None:
+                distance = float(np.linalg.norm(T_W_Aj[:3, 3] - T_W_Ai[:3, 3]))
+                if distance > c.rgbd.candidate_radius_m:
+                    continue
+            matches = self._verifier.match(reference, query)
+            if len(matches) >= c.rgbd.min_matches:
+                ranked.append((len(matches), i, matches))
+        ranked.sort(key=lambda item: -item[0])
+        candidates = []
+        for _, i, matches in ranked[: c.rgbd.max_candidates]:
+            accepted, reason, T_Ai_Aj, scores = self._verifier.verify(
+                self._features[i], query, matches
+            )
+            logger.debug("loop %d-%d: %s %s", i, j, reason, scores)
+            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores))
+        self._features[j] = query
+        self._travelled[j] = submap.travelled_m
+        return candidates

@@ -1,0 +1,51 @@
+"""What every loop detector reports, and the interface the pipeline calls."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.submaps import SubmapRecord
+
+
+@dataclass
+class LoopCandidate:
+    """One loop hypothesis between an older submap ``reference_id`` (i) and ``query_id`` (j).
+
+    Attributes:
+        accepted: passed geometric verification (the pose graph may still reject it).
+        reason: ``accepted`` or why it was rejected, e.g. ``overlap 0.12 < 0.30``.
+        T_Ai_Aj: the verified relative pose (or the last estimate before rejection), or None.
+        scores: diagnostics of detection and verification (inliers, overlap, residuals...).
+        graph_inlier: set by the pipeline after the pose graph solved with this edge.
+    """
+
+    reference_id: int
+    query_id: int
+    accepted: bool
+    reason: str
+    T_Ai_Aj: np.ndarray | None = None
+    scores: dict[str, float] = field(default_factory=dict)
+    graph_inlier: bool | None = None
+
+
+class LoopDetector(ABC):
+    """Finds and verifies loops of a newly closed submap against the older ones."""
+
+    @abstractmethod
+    def process(
+        self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
+    ) -> list[LoopCandidate]:
+        """Add ``submap`` to the database and return its verified and rejected candidates.
+
+        ``T_W_A_estimates`` holds the current estimate of every anchor in the pose graph.
+        """
+
+
+def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""
+    D = np.linalg.inv(T_a) @ T_b
+    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))

@@ -1,0 +1,239 @@
+"""Trajectory metrics: ATE after SE(3) alignment, RPE, and the KITTI relative error.
+
+All poses are (N, 4, 4) float64 ``T_W_S`` arrays with frame ``i`` of the estimate corresponding to
+frame ``i`` of the ground truth.
+
+- :func:`ate_rmse` follows KISS-ICP's ``absolute_trajectory_error`` and evo's ``evo_ape --align``:
+  positions are aligned with Umeyama's method without scale (rotation + translation), then the RMSE
+  of the position differences is taken.
+- :func:`kitti_relative_error` follows the KITTI odometry devkit (the same algorithm as
+  ``kiss_icp.metrics.sequence_error``): segments of 100, 200, ..., 800 m of ground-truth path
+  length starting every 10th frame; the error of each segment's relative motion is divided by
+  the segment length and averaged. It is reimplemented here (vectorised) because KISS-ICP's
+  binding converts degrees with ``180 / 3.14`` and divides by zero on short sequences. A
+  trajectory shorter than the shortest segment has no segment: the result is then ``nan`` (and a
+  warning is logged); pass shorter ``lengths_m`` for short indoor sequences and say so when
+  reporting the number.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+KITTI_LENGTHS_M: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+
+
+def _check_pair(est: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    est = np.asarray(est, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    if est.ndim != 3 or est.shape[1:] != (4, 4) or gt.shape != est.shape:
+        raise ValueError(
+            f"trajectory metrics need two (N, 4, 4) pose arrays of equal length; got "
+            f"{est.shape} and {gt.shape}"
+        )
+    if len(est) == 0:
+        raise ValueError("trajectory metrics need at least one pose")
+    return est, gt
+
+
+def _rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle (rad) of rotation matrices (..., 3, 3)."""
+    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def umeyama_alignment(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Rigid transform (4x4, no scale) minimising ``sum |T source_i - target_i|^2``.
+
+    ``source`` and ``target`` are (N, 3) corresponding points. Umeyama (1991), with the
+    reflection fix; degenerate inputs (N < 3 or collinear points) still give a proper rotation,
+    though not a unique one.
+    """
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    cov = (target - mu_t).T @ (source - mu_s) / len(source)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    T = np.eye(4)
+    T[:3, :3] = U @ S @ Vt
+    T[:3, 3] = mu_t - T[:3, :3] @ mu_s
+    return T
+
+
+def align_se3(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``T_gt_est`` (4x4): the rigid transform that best maps estimated positions onto the ground
+    truth (Umeyama, no scale). Apply it as ``T_gt_est @ est``."""
+    est, gt = _check_pair(est, gt)
+    return umeyama_alignment(est[:, :3, 3], gt[:, :3, 3])
+
+
+def ate_rmse(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
+    """Absolute trajectory error: RMSE (metres) of position differences after SE(3) alignment.
+
+    With ``align=False`` the trajectories are compared as given (both start at their own W).
+    """
+    est, gt = _check_pair(est, gt)
+    if align:
+        est = align_se3(est, gt) @ est
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def ate_rotation_rmse_deg(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
+    """RMSE (degrees) of the absolute orientation error after the same alignment as ATE."""
+    est, gt = _check_pair(est, gt)
+    if align:
+        est = align_se3(est, gt) @ est
+    delta = np.swapaxes(est[:, :3, :3], 1, 2) @ gt[:, :3, :3]
+    return float(np.degrees(np.sqrt(np.mean(_rotation_angle(delta) ** 2))))
+
+
+@dataclass(frozen=True)
+class RelativePoseError:
+    """RPE over frame pairs ``(i, i + delta)``.
+
+    Attributes:
+        trans_rmse_m: RMSE of the translation error of the relative motion (metres).
+        rot_rmse_deg: RMSE of its rotation angle error (degrees).
+        delta: frame offset.
+        num_pairs: number of pairs evaluated (0 gives nan errors).
+    """
+
+    trans_rmse_m: float
+    rot_rmse_deg: float
+    delta: int
+    num_pairs: int
+
+
+def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> RelativePoseError:
+    """Relative pose error between frames ``delta`` apart (evo's ``evo_rpe`` definition:
+    ``E_i = (gt_i^-1 gt_{i+d})^-1 (est_i^-1 est_{i+d})``). Alignment does not change it."""
+    est, gt = _check_pair(est, gt)
+    if delta < 1:
+        raise ValueError(f"rpe: delta must be >= 1, got {delta}")
+    n = len(est) - delta
+    if n <= 0:
+        return RelativePoseError(math.nan, math.nan, delta, 0)
+    rel_est = np.linalg.inv(est[:-delta]) @ est[delta:]
+    rel_gt = np.linalg.inv(gt[:-delta]) @ gt[delta:]
+    err = np.linalg.inv(rel_gt) @ rel_est
+    t = np.sqrt(np.mean(np.sum(err[:, :3, 3] ** 2, axis=1)))
+    r = np.degrees(np.sqrt(np.mean(_rotation_angle(err[:, :3, :3]) ** 2)))
+    return RelativePoseError(float(t), float(r), delta, n)
+
+
+def trajectory_length_m(poses: np.ndarray) -> float:
+    """Path length (metres) of the positions of ``poses`` (N, 4, 4)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if len(poses) < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+
+
+def kitti_relative_error(
+    est: np.ndarray,
+    gt: np.ndarray,
+    *,
+    lengths_m: Sequence[float] = KITTI_LENGTHS_M,
+    step_frames: int = 10,
+) -> tuple[float, float]:
+    """KITTI devkit relative error: (translation error %, rotation error deg / 100 m).
+
+    Averages over every segment that starts at a multiple of ``step_frames`` and spans a
+    ground-truth path length of ``lengths_m``: the segment ends at the first frame whose
+    distance from the start exceeds the length. Returns ``(nan, nan)`` with a warning when no
+    segment fits (trajectory shorter than ``min(lengths_m)``).
+    """
+    est, gt = _check_pair(est, gt)
+    dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    starts = np.arange(0, len(gt), step_frames)
+    t_errs: list[np.ndarray] = []
+    r_errs: list[np.ndarray] = []
+    for length in lengths_m:
+        # First frame j with dist[j] > dist[start] + length.
+        ends = np.searchsorted(dist, dist[starts] + length, side="right")
+        valid = ends < len(gt)
+        if not valid.any():
+            continue
+        first, last = starts[valid], ends[valid]
+        delta_gt = np.linalg.inv(gt[first]) @ gt[last]
+        delta_est = np.linalg.inv(est[first]) @ est[last]
+        err = np.linalg.inv(delta_est) @ delta_gt
+        t_errs.append(np.linalg.norm(err[:, :3, 3], axis=1) / length)
+        r_errs.append(_rotation_angle(err[:, :3, :3]) / length)
+    if not t_errs:
+        logger.warning(
+            "kitti_relative_error: trajectory of %.1f m is shorter than the shortest segment "
+            "(%.1f m); returning nan",
+            dist[-1],
+            min(lengths_m),
+        )
+        return math.nan, math.nan
+    t_err = float(np.mean(np.concatenate(t_errs)) * 100.0)
+    r_err = float(np.degrees(np.mean(np.concatenate(r_errs))) * 100.0)
+    return t_err, r_err
+
+
+@dataclass(frozen=True)
+class TrajectoryMetrics:
+    """The trajectory numbers a run reports (see the module docstring for definitions).
+
+    Attributes:
+        ate_rmse_m: ATE RMSE after SE(3) alignment.
+        ate_rot_rmse_deg: orientation RMSE after the same alignment.
+        rpe_trans_rmse_m: RPE translation RMSE for consecutive frames.
+        rpe_rot_rmse_deg: RPE rotation RMSE for consecutive frames.
+        kitti_t_err_percent: KITTI relative translation error (nan when too short).
+        kitti_r_err_deg_per_100m: KITTI relative rotation error (nan when too short).
+        kitti_lengths_m: segment lengths used for the KITTI error.
+        length_m: ground-truth path length.
+        num_poses: number of poses compared.
+    """
+
+    ate_rmse_m: float
+    ate_rot_rmse_deg: float
+    rpe_trans_rmse_m: float
+    rpe_rot_rmse_deg: float
+    kitti_t_err_percent: float
+    kitti_r_err_deg_per_100m: float
+    kitti_lengths_m: tuple[float, ...]
+    length_m: float
+    num_poses: int
+
+    def as_dict(self) -> dict[str, float | int | list[float]]:
+        """Plain dict (for ``metrics.json``)."""
+        d = asdict(self)
+        d["kitti_lengths_m"] = list(self.kitti_lengths_m)
+        return d
+
+
+def trajectory_metrics(
+    est: np.ndarray,
+    gt: np.ndarray,
+    *,
+    kitti_lengths_m: Sequence[float] = KITTI_LENGTHS_M,
+) -> TrajectoryMetrics:
+    """All of :func:`ate_rmse`, :func:`rpe` (delta 1) and :func:`kitti_relative_error` at once."""
+    est, gt = _check_pair(est, gt)
+    relative = rpe(est, gt, 1)
+    t_err, r_err = kitti_relative_error(est, gt, lengths_m=kitti_lengths_m)
+    return TrajectoryMetrics(
+        ate_rmse_m=ate_rmse(est, gt),
+        ate_rot_rmse_deg=ate_rotation_rmse_deg(est, gt),
+        rpe_trans_rmse_m=relative.trans_rmse_m,
+        rpe_rot_rmse_deg=relative.rot_rmse_deg,
+        kitti_t_err_percent=t_err,
+        kitti_r_err_deg_per_100m=r_err,
+        kitti_lengths_m=tuple(float(x) for x in kitti_lengths_m),
+        length_m=trajectory_length_m(gt),
+        num_poses=len(gt),
+    )

@@ -1,0 +1,162 @@
+"""The run folder: every file a run leaves behind, written atomically (temporary file, then
+``os.replace``) so that an interrupted run never leaves a half-written file.
+
+Layout (DESIGN.md section 7)::
+
+    config.yaml                       the resolved configuration
+    poses_odometry.{kitti,tum}.txt    odometry trajectory
+    poses_slam.{kitti,tum}.txt        loop-closed trajectory
+    loops.csv                         every loop candidate, accepted or rejected, with the reason
+    mesh.ply                          mesh of the final (remapped) neural map
+    map.npz (or the map's format)     the neural map with its submap records
+    metrics.json                      trajectory / mesh metrics, counts, timing, memory
+    recording.rrd                     the Rerun recording (written by the logger)
+    run.log                           the log of the run
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from slam.config import RunConfig, dump_run_config
+from slam.loops import LoopCandidate
+from slam.trajectory_io import write_kitti, write_tum
+
+logger = logging.getLogger(__name__)
+
+LOOP_COLUMNS = (
+    "reference_submap",
+    "query_submap",
+    "status",
+    "reason",
+    "graph_inlier",
+    "tx",
+    "ty",
+    "tz",
+    "rotation_deg",
+    "scores",
+)
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return _json_safe(value.tolist())
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
+    """The loop candidates as CSV text (one row each, header first)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(LOOP_COLUMNS)
+    for c in candidates:
+        if c.T_Ai_Aj is not None:
+            t = c.T_Ai_Aj[:3, 3]
+            cos = np.clip((np.trace(c.T_Ai_Aj[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+            pose = [f"{t[0]:.4f}", f"{t[1]:.4f}", f"{t[2]:.4f}", f"{np.degrees(np.arccos(cos)):.3f}"]
+        else:
+            pose = ["", "", "", ""]
+        inlier = "" if c.graph_inlier is None else str(bool(c.graph_inlier)).lower()
+        scores = json.dumps({k: round(float(v), 4) for k, v in c.scores.items()})
+        status = "accepted" if c.accepted else "rejected"
+        writer.writerow([c.reference_id, c.query_id, status, c.reason, inlier, *pose, scores])
+    return buffer.getvalue()
+
+
+class RunOutputs:
+    """Writes the files of one run folder."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    def path(self, name: str) -> Path:
+        return self.folder / name
+
+    @property
+    def recording_path(self) -> Path:
+        return self.path("recording.rrd")
+
+    @property
+    def log_path(self) -> Path:
+        return self.path("run.log")
+
+    def write_config(self, cfg: RunConfig) -> None:
+        write_text_atomic(self.path("config.yaml"), dump_run_config(cfg))
+
+    def write_poses(
+        self, odometry: np.ndarray, slam: np.ndarray, timestamps: np.ndarray
+    ) -> None:
+        """Both trajectories in KITTI and TUM format."""
+        if len(odometry) == 0:
+            return
+        write_kitti(self.path("poses_odometry.kitti.txt"), odometry)
+        write_tum(self.path("poses_odometry.tum.txt"), odometry, timestamps)
+        write_kitti(self.path("poses_slam.kitti.txt"), slam)
+        write_tum(self.path("poses_slam.tum.txt"), slam, timestamps)
+
+    def write_loops(self, candidates: Sequence[LoopCandidate]) -> None:
+        write_text_atomic(self.path("loops.csv"), loops_csv(candidates))
+
+    def write_mesh(self, mesh: trimesh.Trimesh) -> Path:
+        path = self.path("mesh.ply")
+        fd, tmp = tempfile.mkstemp(prefix=".mesh.", suffix=".ply", dir=self.folder)
+        os.close(fd)
+        try:
+            mesh.export(tmp, file_type="ply")
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    def write_map(self, neural_map, submaps: Sequence) -> Path:
+        """Save the neural map through a temporary name (the map picks its own format)."""
+        path = self.path("map.npz")
+        tmp = self.path(".map.tmp.npz")
+        saved = neural_map.save(tmp, list(submaps))
+        written = Path(saved) if isinstance(saved, (str, Path)) else tmp
+        final = path.with_suffix(written.suffix) if written.suffix else path
+        os.replace(written, final)
+        return final
+
+    def write_metrics(self, metrics: dict[str, Any]) -> None:
+        text = json.dumps(_json_safe(metrics), indent=2, sort_keys=False) + "\n"
+        write_text_atomic(self.path("metrics.json"), text)

@@ -1,0 +1,344 @@
+"""The SLAM algorithm object: frames in, poses, loops and a remapped neural map out.
+
+Per frame: odometry -> keyframer. When a submap closes: loop detection against older submaps ->
+verified edges into the pose graph -> the closed submap is encoded into the neural map at its
+optimised anchor pose -> submaps whose anchors moved are remapped. A frame's pose is always its
+anchor's current estimate composed with the frame's odometry pose relative to that anchor, so the
+whole trajectory follows every optimisation. The world frame is the first anchor (frame 0).
+
+Everything is reported to a :class:`~slam.viz.Logger`, unconditionally; what is recorded depends
+only on which logger the runner built.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from frontends.frame import Frame
+from frontends.odometry.base import Odometry
+from slam.config import RunConfig
+from slam.loops import LoopCandidate, LoopDetector
+from slam.pose_graph import PoseGraph
+from slam.remap import RemapEvent, Remapper
+from slam.submaps import Keyframer, SubmapRecord, transform_points
+from slam.viz import Logger
+
+logger = logging.getLogger(__name__)
+
+SCAN_LOG_MAX_POINTS = 30_000
+
+
+@dataclass
+class FrameResult:
+    """What happened at one frame.
+
+    Attributes:
+        index: frame index.
+        T_W_S_odometry: odometry pose.
+        T_W_S: the SLAM estimate at this time (anchor estimate composed with the relative pose).
+        submap_id: the submap the frame belongs to.
+        closed_submap_id: the submap this frame closed, or None.
+        loops: loop candidates examined at this frame.
+        remap: the remapping pass run at this frame, or None.
+    """
+
+    index: int
+    T_W_S_odometry: np.ndarray
+    T_W_S: np.ndarray
+    submap_id: int
+    closed_submap_id: int | None = None
+    loops: list[LoopCandidate] = field(default_factory=list)
+    remap: RemapEvent | None = None
+
+
+def make_loop_detector(cfg: RunConfig, sensor: str) -> LoopDetector | None:
+    """The loop detector for a sensor (None when loop closure is off)."""
+    lc = cfg.loop_closure
+    if not lc.enabled:
+        return None
+    method = sensor if lc.method == "auto" else lc.method
+    if method == "lidar":
+        from slam.loop_lidar import LidarLoopDetector
+
+        return LidarLoopDetector(lc)
+    from slam.loop_rgbd import RgbdLoopDetector
+
+    return RgbdLoopDetector(lc)
+
+
+class SlamPipeline:
+    """Odometry, keyframing, neural mapping, loop closure, pose graph and remapping."""
+
+    def __init__(
+        self,
+        cfg: RunConfig,
+        sensor: str,
+        odometry: Odometry,
+        neural_map,
+        viz: Logger,
+        loop_detector: LoopDetector | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.sensor = sensor
+        self.odometry = odometry
+        self.map = neural_map
+        self.viz = viz
+        self.keyframer = Keyframer(cfg.submaps)
+        self.graph = PoseGraph(cfg.pose_graph)
+        self.loop_detector = (
+            loop_detector if loop_detector is not None else make_loop_detector(cfg, sensor)
+        )
+        self.remapper = Remapper(cfg.remap, neural_map)
+        self.submaps: dict[int, object] = {}
+        self.loop_candidates: list[LoopCandidate] = []
+        self.timings_s: dict[str, list[float]] = defaultdict(list)
+        self._frame_submap: list[int] = []
+        self._frames_of: dict[int, list[int]] = {}
+        self._frame_T_A_S: list[np.ndarray] = []
+        self._odometry_poses: list[np.ndarray] = []
+        self._timestamps: list[float] = []
+        self._gt: list[np.ndarray | None] = []
+        self._T_W_Wgt: np.ndarray | None = None
+        self._closed_count = 0
+        self._finished = False
+
+    # --- per frame ----------------------------------------------------------------------------
+
+    def _timed(self, name: str, start: float) -> float:
+        now = time.perf_counter()
+        self.timings_s[name].append(now - start)
+        return now
+
+    def _map_frame(self, frame: Frame) -> Frame:
+        """The frame whose points go into the map: the odometry's deskewed scan when it has one."""
+        deskewed = getattr(self.odometry, "last_points", None)
+        if frame.normals is None and deskewed is not None and len(deskewed) > 0:
+            return Frame(
+                index=frame.index,
+                timestamp=frame.timestamp,
+                points=np.asarray(deskewed, dtype=np.float64),
+                T_W_S_gt=frame.T_W_S_gt,
+            )
+        return frame
+
+    def process(self, frame: Frame) -> FrameResult:
+        """Consume the next frame."""
+        if self._finished:
+            raise RuntimeError("process() after finish()")
+        start = time.perf_counter()
+        T_W_S_odometry = np.asarray(self.odometry.register(frame), dtype=np.float64)
+        t = self._timed("odometry", start)
+
+        closed, current, T_A_S = self.keyframer.add(self._map_frame(frame), T_W_S_odometry)
+        if current.submap_id not in self.graph:
+            self.graph.add_anchor(current.submap_id, current.T_W_A_odometry)
+        self._timed("keyframing", t)
+
+        self._frame_submap.append(current.submap_id)
+        self._frames_of.setdefault(current.submap_id, []).append(len(self._frame_submap) - 1)
+        self._frame_T_A_S.append(T_A_S)
+        self._odometry_poses.append(T_W_S_odometry)
+        self._timestamps.append(float(frame.timestamp))
+        self._record_gt(frame)
+
+        result = FrameResult(
+            index=frame.index,
+            T_W_S_odometry=T_W_S_odometry,
+            T_W_S=self.graph.pose(current.submap_id) @ T_A_S,
+            submap_id=current.submap_id,
+        )
+        if closed is not None:
+            result.closed_submap_id = closed.submap_id
+            result.loops, result.remap = self._on_submap_closed(closed, frame.index)
+            result.T_W_S = self.graph.pose(current.submap_id) @ T_A_S
+        self._log_frame(frame, result)
+        self.timings_s["frame"].append(time.perf_counter() - start)
+        return result
+
+    def _record_gt(self, frame: Frame) -> None:
+        gt = None if frame.T_W_S_gt is None else np.asarray(frame.T_W_S_gt, dtype=np.float64)
+        if gt is not None and self._T_W_Wgt is None and not self._gt:
+            self._T_W_Wgt = np.linalg.inv(gt)
+        self._gt.append(gt)
+
+    # --- submap boundaries --------------------------------------------------------------------
+
+    def _on_submap_closed(
+        self, record: SubmapRecord, frame_index: int
+    ) -> tuple[list[LoopCandidate], RemapEvent | None]:
+        self._closed_count += 1
+        start = time.perf_counter()
+        candidates: list[LoopCandidate] = []
+        if self.loop_detector is not None:
+            candidates = self.loop_detector.process(record, self.graph.poses())
+        t = self._timed("loop_detection", start)
+        added = False
+        for candidate in candidates:
+            if candidate.accepted and candidate.T_Ai_Aj is not None:
+                edge = self.graph.add_loop(
+                    candidate.reference_id, candidate.query_id, candidate.T_Ai_Aj
+                )
+                candidate.graph_inlier = edge.inlier
+                added = True
+        self.loop_candidates.extend(candidates)
+        t = self._timed("pose_graph", t)
+
+        self._encode(record)
+        t = self._timed("mapping", t)
+
+        remap = None
+        if added:
+            remap = self.remapper.apply(self.submaps, self.graph.poses(), frame_index)
+            self._timed("remap", t)
+            self._refresh_graph_inliers()
+            self._log_loops()
+        self._log_map(with_mesh=self._closed_count % max(self.cfg.viz.mesh_every_submaps, 1) == 0)
+        self._log_errors_so_far()
+        return candidates, remap
+
+    def _encode(self, record: SubmapRecord) -> None:
+        if len(record.points_A) == 0:
+            logger.warning("submap %d has no points; nothing to encode", record.submap_id)
+            return
+        T_W_A = self.graph.pose(record.submap_id)
+        submap = self.map.encode(record.submap_id, record.points_A, record.normals_A, T_W_A)
+        self.map.fuse(submap)
+        self.submaps[record.submap_id] = submap
+        # The map keeps the encoding; the raw points are not needed any more.
+        record.points_A = np.zeros((0, 3))
+        record.normals_A = np.zeros((0, 3))
+
+    def _refresh_graph_inliers(self) -> None:
+        """Copy the pose graph's current inlier decision onto the accepted candidates."""
+        by_pair = {(e.i, e.j): e.inlier for e in self.graph.loops}
+        for candidate in self.loop_candidates:
+            if candidate.accepted:
+                candidate.graph_inlier = by_pair.get(
+                    (candidate.reference_id, candidate.query_id), candidate.graph_inlier
+                )
+
+    # --- end of the sequence ------------------------------------------------------------------
+
+    def finish(self) -> RemapEvent | None:
+        """Close the last submap, run the final batch optimisation and remap."""
+        if self._finished:
+            return None
+        last_index = len(self._frame_submap) - 1
+        closed = self.keyframer.finish()
+        if closed is not None:
+            self._on_submap_closed(closed, last_index)
+        start = time.perf_counter()
+        self.graph.optimize_batch()
+        t = self._timed("pose_graph", start)
+        remap = self.remapper.apply(self.submaps, self.graph.poses(), -1)
+        self._timed("remap", t)
+        self._refresh_graph_inliers()
+        self._finished = True
+        self._log_loops()
+        self._log_trajectories()
+        self._log_map(with_mesh=True)
+        self._log_errors_so_far()
+        return remap
+
+    # --- results ------------------------------------------------------------------------------
+
+    @property
+    def num_frames(self) -> int:
+        return len(self._frame_submap)
+
+    def odometry_poses(self) -> np.ndarray:
+        """(N, 4, 4) odometry poses of the frames processed so far."""
+        return np.array(self._odometry_poses).reshape(-1, 4, 4)
+
+    def slam_poses(self) -> np.ndarray:
+        """(N, 4, 4) current SLAM estimates of the frames processed so far."""
+        if not self._frame_submap:
+            return np.zeros((0, 4, 4))
+        anchors = self.graph.poses()
+        T_W_A = np.array([anchors[s] for s in self._frame_submap])
+        return T_W_A @ np.array(self._frame_T_A_S)
+
+    def submap_frames(self, submap_id: int) -> list[int]:
+        """Indices (processing order) of the frames of a submap."""
+        return self._frames_of.get(submap_id, [])
+
+    def timestamps(self) -> np.ndarray:
+        return np.array(self._timestamps)
+
+    def gt_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ground truth in its own world frame, or None when any frame lacks it."""
+        if not self._gt or any(g is None for g in self._gt):
+            return None
+        return np.array(self._gt)
+
+    def accepted_loops(self) -> list[LoopCandidate]:
+        return [c for c in self.loop_candidates if c.accepted]
+
+    # --- logging ------------------------------------------------------------------------------
+
+    def _log_frame(self, frame: Frame, result: FrameResult) -> None:
+        viz = self.viz
+        viz.set_time(frame.index, float(frame.timestamp))
+        if frame.index % self.cfg.viz.scan_every == 0:
+            points = np.asarray(frame.points)
+            colors = frame.colors
+            step = max(1, len(points) // SCAN_LOG_MAX_POINTS)
+            points = points[::step]
+            colors = None if colors is None else np.asarray(colors)[::step]
+            viz.log_scan(transform_points(result.T_W_S, points), colors)
+            viz.log_sensor(result.T_W_S, frame.intrinsics, frame.rgb, frame.depth)
+        self._log_trajectories()
+        viz.log_metrics(
+            frame_ms=1e3 * self.timings_s["frame"][-1] if self.timings_s["frame"] else 0.0,
+            odometry_ms=1e3 * self.timings_s["odometry"][-1],
+            submaps=float(len(self.submaps)),
+            loops_accepted=float(len(self.accepted_loops())),
+            loop_candidates=float(len(self.loop_candidates)),
+            map_voxels=float(self.map.num_voxels),
+        )
+
+    def _log_trajectories(self) -> None:
+        self.viz.log_trajectory("odometry", self.odometry_poses()[:, :3, 3])
+        self.viz.log_trajectory("optimized", self.slam_poses()[:, :3, 3])
+        gt = self.gt_poses()
+        if gt is not None and self._T_W_Wgt is not None:
+            self.viz.log_trajectory("gt", (self._T_W_Wgt @ gt)[:, :3, 3])
+
+    def _log_loops(self) -> None:
+        anchors = self.graph.poses()
+
+        def segment(c: LoopCandidate) -> tuple[np.ndarray, np.ndarray] | None:
+            if c.reference_id not in anchors or c.query_id not in anchors:
+                return None
+            return anchors[c.reference_id][:3, 3], anchors[c.query_id][:3, 3]
+
+        accepted = [segment(c) for c in self.loop_candidates if c.accepted and c.graph_inlier]
+        rejected = [
+            segment(c) for c in self.loop_candidates if not (c.accepted and c.graph_inlier)
+        ]
+        self.viz.log_loop_closures(
+            [s for s in accepted if s is not None], [s for s in rejected if s is not None]
+        )
+
+    def _log_map(self, with_mesh: bool) -> None:
+        start = time.perf_counter()
+        centers, weights = self.map.voxel_centers()
+        mesh = self.map.extract_mesh() if with_mesh else None
+        self.viz.log_map(np.asarray(centers), np.asarray(weights, dtype=np.float64), mesh)
+        self._timed("map_logging", start)
+
+    def _log_errors_so_far(self) -> None:
+        gt = self.gt_poses()
+        if gt is None or len(gt) < 3:
+            return
+        from slam.metrics.trajectory import ate_rmse
+
+        self.viz.log_metrics(
+            ate_odometry_m=ate_rmse(self.odometry_poses(), gt),
+            ate_slam_m=ate_rmse(self.slam_poses(), gt),
+        )

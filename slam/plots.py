@@ -1,0 +1,203 @@
+"""PNG plots and an error-coloured mesh for evaluating a run.
+
+Figures are drawn with matplotlib's object API on an Agg canvas (no pyplot, no global backend
+switch), so they can be produced from any thread or a headless machine. Every writer saves to a
+temporary file first and renames it into place.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import trimesh
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+TRAJECTORY_STYLES: dict[str, dict[str, object]] = {
+    "gt": {"color": "0.35", "linestyle": "--", "linewidth": 1.5, "label": "ground truth"},
+    "odometry": {"color": "tab:orange", "linewidth": 1.2, "label": "odometry"},
+    "slam": {"color": "tab:blue", "linewidth": 1.4, "label": "SLAM (loop-closed)"},
+}
+
+
+def _new_figure(width_in: float = 7.0, height_in: float = 5.0) -> Figure:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(width_in, height_in), dpi=120, layout="constrained")
+    FigureCanvasAgg(figure)
+    return figure
+
+
+def _save(figure: Figure, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    figure.savefig(tmp, format="png")
+    os.replace(tmp, path)
+    return path
+
+
+def _positions(poses_or_positions: np.ndarray) -> np.ndarray:
+    array = np.asarray(poses_or_positions, dtype=np.float64)
+    return array[:, :3, 3] if array.ndim == 3 else array.reshape(-1, 3)
+
+
+def top_down_axes(positions: np.ndarray) -> tuple[int, int]:
+    """The two world axes with the largest spread of ``positions`` (the ground plane of a
+    ground vehicle or hand-held camera), in increasing index order."""
+    spread = np.ptp(np.asarray(positions, dtype=np.float64).reshape(-1, 3), axis=0)
+    first, second = sorted(np.argsort(spread)[-2:])
+    return int(first), int(second)
+
+
+def plot_trajectories_top_down(
+    path: Path,
+    trajectories: Mapping[str, np.ndarray],
+    *,
+    loop_edges: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
+    """Top-down view of trajectories (``gt``, ``odometry``, ``slam`` or any name) and accepted
+    loop edges, given as (M, 2, 3) world positions, drawn on the ``slam`` trajectory."""
+    named = {name: _positions(poses) for name, poses in trajectories.items() if len(poses)}
+    reference = named.get("gt", next(iter(named.values()), np.zeros((1, 3))))
+    a, b = top_down_axes(reference)
+    figure = _new_figure(7.0, 6.0)
+    axes = figure.add_subplot()
+    for name, positions in named.items():
+        style = dict(TRAJECTORY_STYLES.get(name, {"label": name, "linewidth": 1.2}))
+        axes.plot(positions[:, a], positions[:, b], **style)
+    if loop_edges is not None and len(loop_edges):
+        edges = np.asarray(loop_edges, dtype=np.float64).reshape(-1, 2, 3)
+        for index, (p, q) in enumerate(edges):
+            axes.plot(
+                [p[a], q[a]],
+                [p[b], q[b]],
+                color="tab:green",
+                linewidth=1.0,
+                label=f"loop closures ({len(edges)})" if index == 0 else None,
+            )
+    start = reference[0]
+    axes.plot(start[a], start[b], marker="o", color="black", linestyle="none", label="start")
+    axes.set_aspect("equal", adjustable="datalim")
+    axes.set_xlabel(f"{'xyz'[a]} [m]")
+    axes.set_ylabel(f"{'xyz'[b]} [m]")
+    axes.grid(True, alpha=0.3)
+    axes.legend(loc="best", fontsize=8)
+    axes.set_title(title or "Trajectories (top-down)")
+    return _save(figure, path)
+
+
+def plot_translation_error(
+    path: Path,
+    times: np.ndarray,
+    errors_m: Mapping[str, np.ndarray],
+    *,
+    time_label: str = "time [s]",
+    title: str = "",
+) -> Path:
+    """Per-frame position error (metres, after alignment) of each trajectory over time."""
+    figure = _new_figure(8.0, 4.0)
+    axes = figure.add_subplot()
+    for name, error in errors_m.items():
+        style = dict(TRAJECTORY_STYLES.get(name, {"label": name}))
+        style.pop("linestyle", None)
+        rmse = float(np.sqrt(np.mean(np.square(error)))) if len(error) else float("nan")
+        style["label"] = f"{style.get('label', name)} (RMSE {rmse:.3f} m)"
+        axes.plot(np.asarray(times)[: len(error)], error, **style)
+    axes.set_xlabel(time_label)
+    axes.set_ylabel("translation error [m]")
+    axes.grid(True, alpha=0.3)
+    axes.legend(loc="best", fontsize=8)
+    axes.set_title(title or "Absolute translation error (SE(3)-aligned)")
+    return _save(figure, path)
+
+
+def plot_error_histogram(
+    path: Path,
+    distances_m: Mapping[str, np.ndarray],
+    *,
+    threshold_m: float | None = 0.05,
+    title: str = "",
+) -> Path:
+    """Histograms of surface distances, e.g. ``{"accuracy": pred->gt, "completion": gt->pred}``."""
+    figure = _new_figure(7.0, 4.0)
+    axes = figure.add_subplot()
+    finite = [np.asarray(d)[np.isfinite(d)] for d in distances_m.values()]
+    upper = max((float(np.percentile(d, 99.0)) for d in finite if len(d)), default=0.1)
+    if threshold_m is not None:
+        upper = max(upper, 1.5 * threshold_m)
+    bins = np.linspace(0.0, upper, 60)
+    for (name, _), values in zip(distances_m.items(), finite, strict=True):
+        mean = float(values.mean()) if len(values) else float("nan")
+        axes.hist(
+            np.clip(values, 0.0, upper),
+            bins=bins,
+            alpha=0.55,
+            label=f"{name} (mean {100 * mean:.2f} cm)",
+        )
+    if threshold_m is not None:
+        axes.axvline(threshold_m, color="black", linestyle=":", label=f"{100 * threshold_m:g} cm")
+    axes.set_xlabel("distance [m] (last bin holds the 1% tail)")
+    axes.set_ylabel("samples")
+    axes.legend(loc="best", fontsize=8)
+    axes.set_title(title or "Mesh error distribution")
+    return _save(figure, path)
+
+
+def plot_distributions(
+    path: Path,
+    groups: Mapping[str, Mapping[str, Sequence[float]]],
+    *,
+    ylabel: str = "distance [cm]",
+    scale: float = 100.0,
+    title: str = "",
+) -> Path:
+    """Side-by-side box plots: one panel per group (e.g. ``accuracy``), one box per series (e.g.
+    ``transform`` vs ``re-encode``), values multiplied by ``scale``."""
+    figure = _new_figure(4.0 * max(1, len(groups)), 4.5)
+    panels = figure.subplots(1, max(1, len(groups)), squeeze=False)[0]
+    for axes, (group, series) in zip(panels, groups.items(), strict=False):
+        labels = list(series)
+        data = [np.asarray(series[label], dtype=np.float64) * scale for label in labels]
+        axes.boxplot(data, showmeans=True)
+        axes.set_xticks(range(1, len(labels) + 1), labels)
+        axes.set_title(group)
+        axes.set_ylabel(ylabel)
+        axes.grid(True, axis="y", alpha=0.3)
+    if title:
+        figure.suptitle(title)
+    return _save(figure, path)
+
+
+def distance_colors(distances_m: np.ndarray, max_m: float) -> np.ndarray:
+    """(N,) distances -> (N, 4) uint8 RGBA on a blue (0) to red (``max_m`` and beyond) scale."""
+    from matplotlib import colormaps
+
+    scaled = np.clip(np.nan_to_num(np.asarray(distances_m, float), nan=max_m) / max_m, 0.0, 1.0)
+    return np.asarray(colormaps["jet"](scaled, bytes=True))
+
+
+def write_error_colored_mesh(
+    path: Path, mesh: trimesh.Trimesh, vertex_distances_m: np.ndarray, *, max_m: float = 0.1
+) -> Path:
+    """Write ``mesh`` as PLY with vertex colours encoding the distance of each vertex to ground
+    truth (blue 0 m -> red >= ``max_m``)."""
+    colored = trimesh.Trimesh(
+        vertices=np.asarray(mesh.vertices),
+        faces=np.asarray(mesh.faces),
+        vertex_colors=distance_colors(vertex_distances_m, max_m),
+        process=False,
+    )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(trimesh.exchange.ply.export_ply(colored, encoding="binary"))
+    os.replace(tmp, path)
+    return path

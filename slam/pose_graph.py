@@ -1,0 +1,257 @@
+"""GTSAM pose graph over submap anchors.
+
+One node per submap anchor ``T_W_A``. Consecutive anchors are tied by odometry factors whose
+noise grows with the distance travelled and the angle turned between them; loop closures are
+``BetweenFactorPose3`` with a Cauchy robust kernel. iSAM2 keeps the estimate current as anchors
+arrive.
+
+A robust kernel alone cannot tell a wrong loop from a right one after large drift: both have a
+large residual at the odometry estimate, so a Cauchy kernel down-weights both. Therefore every
+time a loop edge is added (rare compared to anchors) the whole graph is solved by graduated
+non-convexity (GNC, truncated least squares, prior and odometry factors known inliers), which
+starts from the convex least-squares problem and only then rejects edges that stay inconsistent.
+iSAM2 is then re-seeded from the GNC solution with the inlier loops (still Cauchy-robust); the
+outliers stay in the record, are re-examined at every later GNC solve, and are reported.
+:meth:`PoseGraph.optimize_batch` runs the same GNC (or a plain Levenberg-Marquardt) at the end.
+
+GTSAM orders the Pose3 tangent space as ``[rx, ry, rz, tx, ty, tz]``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from slam.config import PoseGraphConfig
+from slam.submaps import rotation_angle_rad
+
+logger = logging.getLogger(__name__)
+
+INLIER_WEIGHT = 0.5
+
+
+@dataclass
+class LoopEdge:
+    """A loop edge: anchor ``j`` seen from anchor ``i`` (``T_Ai_Aj``).
+
+    Attributes:
+        weight: GNC weight (or Cauchy weight without GNC) at the latest solve; 1 = trusted.
+        inlier: whether the edge is part of the current estimate.
+    """
+
+    i: int
+    j: int
+    T_Ai_Aj: np.ndarray
+    sigma_scale: float = 1.0
+    weight: float = 1.0
+    inlier: bool = True
+
+
+def _pose3(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
+
+
+def _sigmas(rotation_rad: float, translation_m: float) -> np.ndarray:
+    return np.array([rotation_rad] * 3 + [translation_m] * 3, dtype=np.float64)
+
+
+class PoseGraph:
+    """Submap-anchor pose graph: iSAM2 online, GNC at loop events and at the end."""
+
+    def __init__(self, cfg: PoseGraphConfig) -> None:
+        self.cfg = cfg
+        self._isam = self._new_isam()
+        self._chain: list[gtsam.NonlinearFactor] = []  # prior and odometry factors, in order
+        self._node_ids: list[int] = []
+        self._odometry_anchor: dict[int, np.ndarray] = {}
+        self._estimate = gtsam.Values()
+        self.loops: list[LoopEdge] = []
+        self.num_solves = 0
+
+    def _new_isam(self) -> gtsam.ISAM2:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
+        params.relinearizeSkip = 1
+        return gtsam.ISAM2(params)
+
+    # --- building the graph -------------------------------------------------------------------
+
+    @property
+    def node_ids(self) -> list[int]:
+        """Ids of the anchors in the order they were added."""
+        return list(self._node_ids)
+
+    def __contains__(self, node_id: int) -> bool:
+        return node_id in self._odometry_anchor
+
+    def odometry_sigmas(self, distance_m: float, rotation_rad: float) -> np.ndarray:
+        """Standard deviations ``[rx, ry, rz, tx, ty, tz]`` of an odometry edge."""
+        c = self.cfg
+        sigma_t = c.odometry_translation_sigma_m + c.odometry_translation_sigma_per_m * distance_m
+        sigma_r = (
+            c.odometry_rotation_sigma_rad
+            + c.odometry_rotation_sigma_rad_per_m * distance_m
+            + c.odometry_rotation_sigma_per_rad * rotation_rad
+        )
+        return _sigmas(sigma_r, sigma_t)
+
+    def add_anchor(self, node_id: int, T_W_A_odometry: np.ndarray) -> None:
+        """Add the anchor of a new submap with its odometry pose.
+
+        The first anchor is fixed by a tight prior (it defines the world frame). Every later anchor
+        gets an odometry factor from the previous one, measured by the odometry poses, and is
+        initialised at the current estimate of the previous anchor composed with that measurement.
+        """
+        if node_id in self._odometry_anchor:
+            raise ValueError(f"anchor {node_id} already in the pose graph")
+        T_W_A_odometry = np.asarray(T_W_A_odometry, dtype=np.float64)
+        new_values = gtsam.Values()
+        if not self._node_ids:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(1e-6, 1e-6))
+            factor = gtsam.PriorFactorPose3(node_id, _pose3(T_W_A_odometry), noise)
+            new_values.insert(node_id, _pose3(T_W_A_odometry))
+        else:
+            prev = self._node_ids[-1]
+            T_prev_cur = np.linalg.inv(self._odometry_anchor[prev]) @ T_W_A_odometry
+            distance = float(np.linalg.norm(T_prev_cur[:3, 3]))
+            angle = rotation_angle_rad(T_prev_cur[:3, :3])
+            noise = gtsam.noiseModel.Diagonal.Sigmas(self.odometry_sigmas(distance, angle))
+            factor = gtsam.BetweenFactorPose3(prev, node_id, _pose3(T_prev_cur), noise)
+            new_values.insert(node_id, _pose3(self.pose(prev) @ T_prev_cur))
+        self._chain.append(factor)
+        self._node_ids.append(node_id)
+        self._odometry_anchor[node_id] = T_W_A_odometry
+        new_factors = gtsam.NonlinearFactorGraph()
+        new_factors.add(factor)
+        self._isam.update(new_factors, new_values)
+        self._estimate = self._isam.calculateEstimate()
+
+    def _loop_gaussian_noise(self, edge: LoopEdge) -> gtsam.noiseModel.Base:
+        c = self.cfg
+        return gtsam.noiseModel.Diagonal.Sigmas(
+            edge.sigma_scale * _sigmas(c.loop_rotation_sigma_rad, c.loop_translation_sigma_m)
+        )
+
+    def _loop_factor(self, edge: LoopEdge, robust: bool) -> gtsam.BetweenFactorPose3:
+        noise = self._loop_gaussian_noise(edge)
+        if robust and self.cfg.loop_kernel == "cauchy":
+            kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.cauchy_k)
+            noise = gtsam.noiseModel.Robust.Create(kernel, noise)
+        return gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_Ai_Aj), noise)
+
+    def add_loop(
+        self, i: int, j: int, T_Ai_Aj: np.ndarray, sigma_scale: float = 1.0
+    ) -> LoopEdge:
+        """Add a verified loop edge between anchors ``i`` and ``j`` and re-solve.
+
+        Returns the edge; its ``inlier`` flag says whether the graph kept it.
+        """
+        for node in (i, j):
+            if node not in self._odometry_anchor:
+                raise KeyError(f"anchor {node} is not in the pose graph")
+        edge = LoopEdge(i, j, np.asarray(T_Ai_Aj, dtype=np.float64).copy(), sigma_scale)
+        self.loops.append(edge)
+        if self.cfg.online_gnc:
+            self._solve_gnc()
+        else:
+            new_factors = gtsam.NonlinearFactorGraph()
+            new_factors.add(self._loop_factor(edge, robust=True))
+            self._isam.update(new_factors, gtsam.Values())
+            for _ in range(self.cfg.isam2_extra_iterations):
+                self._isam.update()
+            self._estimate = self._isam.calculateEstimate()
+            self._update_cauchy_weights()
+        return edge
+
+    # --- solving ------------------------------------------------------------------------------
+
+    def _gaussian_graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._chain:
+            graph.add(factor)
+        for edge in self.loops:
+            graph.add(self._loop_factor(edge, robust=False))
+        return graph
+
+    def _solve_gnc(self) -> None:
+        """GNC over the whole graph, then re-seed iSAM2 with the inlier loops."""
+        self.num_solves += 1
+        if not self.loops:
+            return
+        params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
+        params.setLossType(gtsam.GncLossType.TLS)
+        params.setKnownInliers(list(range(len(self._chain))))
+        optimizer = gtsam.GncLMOptimizer(self._gaussian_graph(), self._estimate, params)
+        optimizer.setInlierCostThresholdsAtProbability(self.cfg.gnc_inlier_probability)
+        result = optimizer.optimize()
+        weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
+        for edge, weight in zip(self.loops, weights[len(self._chain) :], strict=True):
+            edge.weight = float(weight)
+            edge.inlier = bool(weight > INLIER_WEIGHT)
+        self._reseed(result)
+
+    def _reseed(self, values: gtsam.Values) -> None:
+        """Restart iSAM2 from ``values`` with the chain and the inlier loops (Cauchy)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._chain:
+            graph.add(factor)
+        for edge in self.loops:
+            if edge.inlier:
+                graph.add(self._loop_factor(edge, robust=True))
+        self._isam = self._new_isam()
+        self._isam.update(graph, values)
+        self._estimate = self._isam.calculateEstimate()
+
+    def _update_cauchy_weights(self) -> None:
+        for edge in self.loops:
+            factor = self._loop_factor(edge, robust=False)
+            whitened = float(np.linalg.norm(factor.whitenedError(self._estimate)))
+            if self.cfg.loop_kernel == "cauchy":
+                edge.weight = 1.0 / (1.0 + (whitened / self.cfg.cauchy_k) ** 2)
+            else:
+                edge.weight = 1.0
+            edge.inlier = edge.weight > INLIER_WEIGHT
+
+    def optimize_batch(self) -> dict[int, np.ndarray]:
+        """Optimise the whole graph from the current estimate (``cfg.final_optimizer``).
+
+        ``gnc``: graduated non-convexity as at loop events. ``lm``: Levenberg-Marquardt on the
+        chain and every loop edge with the Cauchy kernel. ``none``: keep the iSAM2 estimate.
+        """
+        if not self._node_ids or not self.loops or self.cfg.final_optimizer == "none":
+            return self.poses()
+        if self.cfg.final_optimizer == "gnc":
+            self._solve_gnc()
+            return self.poses()
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._chain:
+            graph.add(factor)
+        for edge in self.loops:
+            graph.add(self._loop_factor(edge, robust=True))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.cfg.batch_max_iterations)
+        self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate, params).optimize()
+        self._update_cauchy_weights()
+        self.num_solves += 1
+        return self.poses()
+
+    # --- reading the estimate -----------------------------------------------------------------
+
+    def pose(self, node_id: int) -> np.ndarray:
+        """Current estimate of ``T_W_A`` of one anchor."""
+        return self._estimate.atPose3(node_id).matrix()
+
+    def poses(self) -> dict[int, np.ndarray]:
+        """Current estimate of every anchor, ``{node_id: T_W_A}``."""
+        return {n: self._estimate.atPose3(n).matrix() for n in self._node_ids}
+
+    def odometry_pose(self, node_id: int) -> np.ndarray:
+        """The odometry pose the anchor was added with."""
+        return self._odometry_anchor[node_id]
+
+    def loop_weights(self) -> list[float]:
+        """Weight in [0, 1] of every loop edge at the latest solve (1 = fully trusted)."""
+        return [edge.weight for edge in self.loops]

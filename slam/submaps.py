@@ -1,0 +1,239 @@
+"""Keyframing: consecutive frames grouped into submaps that share an anchor pose.
+
+A submap is opened by a frame (its *anchor*, ``T_W_A`` = that frame's pose) and closed when the
+sensor has travelled, turned or counted past the limits of :class:`~slam.config.SubmapConfig`
+relative to the anchor. Points of every frame are moved into the anchor frame ``A`` with the
+odometry pose relative to the anchor and kept voxel-downsampled; a closed submap is what the
+neural map encodes once and later moves as a whole, and what loop closure matches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from frontends.frame import Frame
+from slam.config import SubmapConfig
+from slam.normals import estimate_normals
+
+
+def rotation_angle_rad(R: np.ndarray) -> float:
+    """Angle in radians of a rotation matrix."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Points from frame b to frame a."""
+    return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def voxel_keys(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """One int64 key per point for the voxel containing it (21 bits per axis)."""
+    grid = np.floor(points / voxel_size_m).astype(np.int64) + (1 << 20)
+    grid = np.clip(grid, 0, (1 << 21) - 1)
+    return (grid[:, 0] << 42) | (grid[:, 1] << 21) | grid[:, 2]
+
+
+def voxel_downsample(
+    voxel_size_m: float, points: np.ndarray, *attributes: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """Average points (and per-point float attributes) over the voxels of a grid.
+
+    Returns ``(points, *attributes)`` with one row per occupied voxel.
+    """
+    if len(points) == 0:
+        return (points, *attributes)
+    _, inverse, counts = np.unique(
+        voxel_keys(points, voxel_size_m), return_inverse=True, return_counts=True
+    )
+    inverse = inverse.ravel()
+    out = []
+    for array in (points, *attributes):
+        columns = [
+            np.bincount(inverse, weights=array[:, k], minlength=len(counts))
+            for k in range(array.shape[1])
+        ]
+        out.append(np.stack(columns, axis=1) / counts[:, None])
+    return tuple(out)
+
+
+def voxel_subsample(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Keep the first point of every voxel (cheap, keeps real points)."""
+    if len(points) == 0:
+        return points
+    _, first = np.unique(voxel_keys(points, voxel_size_m), return_index=True)
+    return points[np.sort(first)]
+
+
+@dataclass
+class SubmapRecord:
+    """A closed (or open) group of frames sharing an anchor.
+
+    Attributes:
+        submap_id: 0, 1, ... in order of creation; also the pose-graph node id.
+        frame_indices: indices of the frames it holds; the first is the anchor frame.
+        T_W_A_odometry: odometry pose of the anchor.
+        travelled_m: path length of the odometry trajectory from the first frame to the anchor.
+        points_A: (N, 3) map points in the anchor frame, voxel-averaged.
+        normals_A: (N, 3) unit normals of ``points_A`` (towards the sensor).
+        loop_points_A: (M, 3) float32 coarse cloud in the anchor frame for loop closure.
+        keyframe: the anchor frame with its images (RGB-D) or None.
+        T_A_S: relative pose of every frame to the anchor (same order as ``frame_indices``).
+    """
+
+    submap_id: int
+    frame_indices: list[int]
+    T_W_A_odometry: np.ndarray
+    travelled_m: float
+    points_A: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    normals_A: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    loop_points_A: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    keyframe: Frame | None = None
+    T_A_S: list[np.ndarray] = field(default_factory=list)
+
+
+class Keyframer:
+    """Groups frames into submaps and accumulates their points in the anchor frame."""
+
+    def __init__(self, cfg: SubmapConfig) -> None:
+        self.cfg = cfg
+        self._current: SubmapRecord | None = None
+        self._next_id = 0
+        self._travelled_m = 0.0
+        self._last_T_W_S: np.ndarray | None = None
+        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._has_normals = True
+        self._accumulated = 0
+
+    @property
+    def current(self) -> SubmapRecord | None:
+        """The open submap (None before the first frame and after :meth:`finish`)."""
+        return self._current
+
+    def _should_close(self, T_A_S: np.ndarray) -> bool:
+        c = self.cfg
+        sub = self._current
+        assert sub is not None
+        if len(sub.frame_indices) >= c.max_frames:
+            return True
+        if np.linalg.norm(T_A_S[:3, 3]) > c.max_distance_m:
+            return True
+        return np.degrees(rotation_angle_rad(T_A_S[:3, :3])) > c.max_rotation_deg
+
+    def add(
+        self, frame: Frame, T_W_S: np.ndarray
+    ) -> tuple[SubmapRecord | None, SubmapRecord, np.ndarray]:
+        """Add a frame with its odometry pose.
+
+        Returns ``(closed, current, T_A_S)``: the submap this frame closed (or None), the submap
+        the frame now belongs to (a new one when it opened one), and the frame's pose relative
+        to that submap's anchor.
+        """
+        T_W_S = np.asarray(T_W_S, dtype=np.float64)
+        if self._last_T_W_S is not None:
+            self._travelled_m += float(np.linalg.norm(T_W_S[:3, 3] - self._last_T_W_S[:3, 3]))
+        self._last_T_W_S = T_W_S
+        closed = None
+        if self._current is not None:
+            T_A_S = np.linalg.inv(self._current.T_W_A_odometry) @ T_W_S
+            if self._should_close(T_A_S):
+                closed = self._close()
+        if self._current is None:
+            self._open(frame, T_W_S)
+        sub = self._current
+        assert sub is not None
+        T_A_S = np.linalg.inv(sub.T_W_A_odometry) @ T_W_S
+        sub.frame_indices.append(frame.index)
+        sub.T_A_S.append(T_A_S)
+        self._accumulate(frame, T_A_S)
+        return closed, sub, T_A_S
+
+    def finish(self) -> SubmapRecord | None:
+        """Close the open submap (end of the sequence)."""
+        return self._close() if self._current is not None else None
+
+    def _open(self, frame: Frame, T_W_S: np.ndarray) -> None:
+        keep_images = frame.depth is not None and self.cfg.keep_keyframe_images
+        keyframe = None
+        if keep_images:
+            keyframe = Frame(
+                index=frame.index,
+                timestamp=frame.timestamp,
+                points=np.zeros((0, 3)),
+                depth=frame.depth,
+                rgb=frame.rgb,
+                intrinsics=frame.intrinsics,
+                T_W_S_gt=frame.T_W_S_gt,
+            )
+        self._current = SubmapRecord(
+            submap_id=self._next_id,
+            frame_indices=[],
+            T_W_A_odometry=T_W_S,
+            travelled_m=self._travelled_m,
+            keyframe=keyframe,
+        )
+        self._next_id += 1
+        self._chunks = []
+        self._accumulated = 0
+        self._has_normals = True
+
+    def _frame_points(self, frame: Frame) -> tuple[np.ndarray, np.ndarray | None]:
+        points = np.asarray(frame.points, dtype=np.float64)
+        normals = frame.normals
+        ranges = np.linalg.norm(points, axis=1)
+        keep = (ranges >= self.cfg.min_range_m) & (ranges <= self.cfg.max_range_m)
+        points = points[keep]
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float64)[keep]
+        return points, normals
+
+    def _accumulate(self, frame: Frame, T_A_S: np.ndarray) -> None:
+        points_S, normals_S = self._frame_points(frame)
+        if len(points_S) == 0:
+            return
+        if normals_S is None:
+            self._has_normals = False
+            normals_S = np.zeros_like(points_S)
+        points_A = transform_points(T_A_S, points_S)
+        normals_A = normals_S @ T_A_S[:3, :3].T
+        viewpoint_A = np.broadcast_to(T_A_S[:3, 3], points_A.shape)
+        points_A, normals_A, viewpoint_A = voxel_downsample(
+            self.cfg.map_voxel_m, points_A, normals_A, viewpoint_A
+        )
+        self._chunks.append((points_A, normals_A, viewpoint_A))
+        self._accumulated += len(points_A)
+        if len(self._chunks) > 1 and self._accumulated > self.cfg.compact_every_points:
+            self._compact()
+
+    def _compact(self) -> None:
+        if not self._chunks:
+            return
+        stacked = [np.concatenate(parts) for parts in zip(*self._chunks, strict=True)]
+        merged = voxel_downsample(self.cfg.map_voxel_m, *stacked)
+        self._chunks = [merged]
+        self._accumulated = len(merged[0])
+
+    def _close(self) -> SubmapRecord:
+        sub = self._current
+        assert sub is not None
+        self._compact()
+        if self._chunks:
+            points_A, normals_A, viewpoint_A = self._chunks[0]
+            if self._has_normals:
+                length = np.linalg.norm(normals_A, axis=1)
+                valid = length > 0.5
+                normals_A = normals_A / np.maximum(length, 1e-12)[:, None]
+            else:
+                normals_A, valid = estimate_normals(
+                    points_A,
+                    viewpoint_A,
+                    num_neighbours=self.cfg.normal_neighbours,
+                    max_radius_m=self.cfg.normal_radius_m,
+                )
+            sub.points_A = points_A[valid]
+            sub.normals_A = normals_A[valid]
+            sub.loop_points_A = voxel_subsample(points_A, self.cfg.loop_voxel_m).astype(np.float32)
+        self._chunks = []
+        self._current = None
+        return sub

@@ -1,0 +1,125 @@
+"""slam.eval: ground-truth association, culling of unobserved ground truth, and a finished demo run
+re-evaluated to its own metrics."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from slam.eval import EvalError, evaluate_run, observed_face_mask, read_gt_poses
+from slam.trajectory_io import write_kitti, write_tum
+from tests.test_plots import assert_png
+from tests.test_rerun_logger import demo_runs
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _poses(n: int) -> np.ndarray:
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = np.arange(n) * 0.1
+    return poses
+
+
+def test_tum_ground_truth_is_associated_by_timestamp(tmp_path: Path) -> None:
+    gt = _poses(20)
+    stamps = 100.0 + np.arange(20) * 0.05
+    write_tum(tmp_path / "gt.txt", gt, stamps)
+    frame_stamps = stamps[::2] + 0.004  # every other ground-truth pose, 4 ms later
+    poses = read_gt_poses(tmp_path / "gt.txt", frame_stamps, len(frame_stamps))
+    np.testing.assert_allclose(poses, gt[::2])
+    with pytest.raises(EvalError, match="no ground-truth pose within"):
+        read_gt_poses(tmp_path / "gt.txt", np.array([100.0, 200.0]), 2)
+
+
+def test_kitti_ground_truth_needs_one_pose_per_frame(tmp_path: Path) -> None:
+    write_kitti(tmp_path / "gt.txt", _poses(5))
+    np.testing.assert_allclose(read_gt_poses(tmp_path / "gt.txt", np.arange(5.0), 5), _poses(5))
+    with pytest.raises(EvalError, match="5 KITTI poses for a run of 6 frames"):
+        read_gt_poses(tmp_path / "gt.txt", np.arange(6.0), 6)
+
+
+def test_observed_face_mask_keeps_the_observed_half() -> None:
+    # A 4 m x 4 m floor made of two big triangles; observations cover x < 0 only.
+    floor = trimesh.Trimesh(
+        vertices=[[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], faces=[[0, 1, 2], [0, 2, 3]]
+    )
+    grid = np.stack(np.meshgrid(np.arange(-1.95, 0, 0.1), np.arange(-1.95, 2, 0.1)), -1)
+    observed = np.concatenate([grid.reshape(-1, 2), np.zeros((grid.size // 2, 1))], axis=1)
+    fine, mask = observed_face_mask(floor, observed, distance_m=0.1)
+    assert np.isclose(fine.area, floor.area)
+    assert fine.edges_unique_length.max() <= 0.05 + 1e-9
+    kept = fine.area_faces[mask].sum() / fine.area
+    assert 0.45 < kept < 0.56
+    assert np.all(fine.triangles_center[mask][:, 0] < 0.1)
+
+
+def test_bad_run_folder_is_one_line_error(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "slam.eval", str(tmp_path / "missing")],
+        capture_output=True,
+        text=True,
+        cwd=REPO_ROOT,
+        timeout=120,
+    )
+    assert result.returncode == 1
+    assert result.stderr.strip().count("\n") == 0 and "run folder not found" in result.stderr
+
+
+def _close(a: object, b: object, rel: float) -> bool:
+    if isinstance(a, dict) and isinstance(b, dict):
+        return all(key in b and _close(value, b[key], rel) for key, value in a.items())
+    if isinstance(a, float) and isinstance(b, float):
+        return math.isclose(a, b, rel_tol=rel, abs_tol=1e-9)
+    return a == b
+
+
+@pytest.mark.slow
+def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    run = demo_runs(tmp_path_factory)["rrd"]
+    copy = tmp_path_factory.mktemp("eval") / "run"
+    shutil.copytree(run, copy)
+    before = json.loads((copy / "metrics.json").read_text())
+    assert "trajectory" in before and "mesh" in before
+
+    result = subprocess.run(
+        [sys.executable, "-m", "slam.eval", str(copy)],
+        capture_output=True,
+        text=True,
+        cwd=REPO_ROOT,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    after = json.loads((copy / "metrics.json").read_text())
+    # Trajectory numbers from the pose files (10 significant digits) match the run's.
+    assert _close(before["trajectory"], after["trajectory"], rel=1e-6)
+    # Mesh numbers after a PLY round trip of the mesh: the same samples up to float rounding.
+    assert _close(before["mesh"], after["mesh"], rel=1e-3)
+    for key in ("timing", "loops", "remap", "memory"):
+        assert after[key] == before[key]
+
+    plots = copy / "plots"
+    assert_png(plots / "trajectories.png")
+    assert_png(plots / "translation_error.png")
+    if before["mesh"]["num_pred_faces"]:
+        assert_png(plots / "mesh_error_histogram.png")
+        colored = trimesh.load(plots / "mesh_error.ply", process=False)
+        assert len(colored.faces) == before["mesh"]["num_pred_faces"]
+    assert set(after["evaluation"]["plots"]) >= {"plots/trajectories.png"}
+
+    culled = evaluate_run(copy, cull_unobserved=True, make_plots=False, write=False)
+    assert culled["mesh"]["culling"] == "observed"
+    assert 0.0 < culled["mesh"]["observed_gt_area_fraction"] <= 1.0
+    # Accuracy is measured against the whole ground truth in both cases.
+    assert math.isclose(
+        culled["mesh"]["accuracy_m"], after["mesh"]["accuracy_m"], rel_tol=0.1, abs_tol=2e-3
+    )

@@ -1,0 +1,213 @@
+"""RerunLogger writes a recording that Rerun's own reader loads with the expected entities."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from frontends.frame import Intrinsics
+from slam.rerun_logger import RerunLogger, metric_entity, summarize_recording
+from slam.viz import Logger, NullLogger
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+# A short demo: one lap of the generated room in 60 frames, small submaps so that the lap closes
+# a loop and the map is meshed several times. Shared with tests/test_eval.py.
+DEMO_ARGS = [
+    "demo",
+    "--set",
+    "generated.num_frames=60",
+    "--set",
+    "submaps.max_frames=6",
+    "--set",
+    "output.mesh_samples=20000",
+    "--no-progress",
+]
+_DEMO_RUNS: dict[str, Path] = {}
+
+NUM_FRAMES = 24
+LOOP_FRAMES = (11, 23)
+INTRINSICS = Intrinsics(fx=120.0, fy=120.0, cx=80.0, cy=60.0, width=160, height=120)
+
+
+def _drive(logger: Logger, rgbd: bool, scan_points: int = 6000) -> None:
+    """A short sequence of calls as the pipeline makes them: a circle with two loop closures."""
+    rng = np.random.default_rng(3)
+    positions: list[np.ndarray] = []
+    accepted: list[tuple[np.ndarray, np.ndarray]] = []
+    for i in range(NUM_FRAMES):
+        logger.set_time(i, 0.1 * i)
+        angle = 2 * np.pi * i / 12
+        T_W_S = np.eye(4)
+        T_W_S[:3, :3] = trimesh.transformations.rotation_matrix(angle, [0, 0, 1])[:3, :3]
+        T_W_S[:3, 3] = [3 * np.cos(angle), 3 * np.sin(angle), 0.0]
+        positions.append(T_W_S[:3, 3].copy())
+        logger.log_scan(rng.normal(size=(scan_points, 3)) + T_W_S[:3, 3])
+        if rgbd:
+            rgb = rng.integers(0, 255, (INTRINSICS.height, INTRINSICS.width, 3), dtype=np.uint8)
+            depth = rng.uniform(0.5, 4.0, (INTRINSICS.height, INTRINSICS.width))
+            logger.log_sensor(T_W_S, INTRINSICS, rgb=rgb, depth_m=depth.astype(np.float32))
+        else:
+            logger.log_sensor(T_W_S)
+        logger.log_trajectory("odometry", np.asarray(positions))
+        logger.log_trajectory("gt", np.asarray(positions) * 1.01)
+        logger.log_metrics(odometry_ms=3.0 + i, ate_so_far_m=0.01 * i, loops=len(accepted))
+        if i in LOOP_FRAMES:
+            accepted.append((positions[0], positions[-1]))
+            logger.log_trajectory("optimized", np.asarray(positions))
+            logger.log_loop_closures(accepted, rejected=[(positions[1], positions[-2])])
+            mesh = trimesh.creation.icosphere(subdivisions=2, radius=1.0 + 0.1 * i)
+            voxels = rng.uniform(-3, 3, (500, 3))
+            logger.log_map(voxels, rng.uniform(0, 20, 500), mesh=mesh)
+    logger.close()
+
+
+def test_null_logger_accepts_the_same_calls() -> None:
+    _drive(NullLogger(), rgbd=True)
+
+
+@pytest.mark.parametrize("rgbd", [False, True])
+def test_recording_has_expected_entities(tmp_path: Path, rgbd: bool) -> None:
+    path = tmp_path / "sub" / "rec.rrd"
+    _drive(RerunLogger(rrd_path=path, scan_max_points=2000, voxel_size_m=0.2), rgbd=rgbd)
+    summary = summarize_recording(path)
+    assert summary.application_id == "neural-remap-slam"
+    assert summary.num_blueprints >= 1
+    # One downsampled scan per frame, never more points than the budget.
+    assert summary.rows("world/scan") == NUM_FRAMES
+    assert summary.entities["world/scan"].max_instances == 2000
+    assert {"frame", "sensor_time"} <= summary.entities["world/scan"].timelines
+    assert summary.rows("world/sensor") == NUM_FRAMES
+    # Optimised trajectory after each loop closure, mesh versions, loop edges.
+    assert summary.rows("world/trajectory/optimized") == len(LOOP_FRAMES)
+    assert summary.rows("world/trajectory/odometry") >= NUM_FRAMES // 2
+    assert summary.rows("world/map/mesh") == len(LOOP_FRAMES)
+    assert summary.rows("world/map/voxels") == len(LOOP_FRAMES)
+    assert summary.entities["world/map/voxels"].max_instances == 500
+    assert summary.entities["world/loop_closures"].max_instances == len(LOOP_FRAMES)
+    assert summary.rows("world/loop_closures_rejected") == len(LOOP_FRAMES)
+    for name in ("odometry_ms", "ate_so_far_m", "loops"):
+        assert summary.rows(metric_entity(name)) == NUM_FRAMES
+    assert metric_entity("odometry_ms") == "metrics/timing/odometry_ms"
+    assert metric_entity("ate_so_far_m") == "metrics/error/ate_so_far_m"
+    assert metric_entity("loops") == "metrics/counts/loops"
+    assert metric_entity("loop_candidates") == "metrics/counts/loop_candidates"
+    camera = ("world/sensor/camera/rgb", "world/sensor/depth_camera/depth")
+    if rgbd:
+        assert summary.entities["world/sensor/camera"].static_rows >= 1
+        assert summary.entities["world/sensor/depth_camera"].static_rows >= 1
+        assert all(summary.rows(entity) == NUM_FRAMES for entity in camera)
+        assert any("EncodedImage" in c for c in summary.entities[camera[0]].components)
+        assert any("DepthImage" in c for c in summary.entities[camera[1]].components)
+        assert summary.num_blueprints == 2  # the camera view was added on the first image
+    else:
+        assert not any(entity in summary.entities for entity in camera)
+
+
+def test_recording_verifies_with_rerun_cli(tmp_path: Path) -> None:
+    path = tmp_path / "rec.rrd"
+    _drive(RerunLogger(rrd_path=path), rgbd=True)
+    result = subprocess.run(
+        [sys.executable, "-m", "rerun", "rrd", "verify", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_two_recordings_in_one_process_stay_separate(tmp_path: Path) -> None:
+    first = RerunLogger(rrd_path=tmp_path / "a.rrd")
+    second = RerunLogger(rrd_path=tmp_path / "b.rrd")
+    for i in range(3):
+        first.set_time(i, float(i))
+        first.log_scan(np.zeros((10, 3)))
+    second.set_time(0, 0.0)
+    second.log_metrics(loops=1)
+    first.close()
+    second.close()
+    a, b = summarize_recording(tmp_path / "a.rrd"), summarize_recording(tmp_path / "b.rrd")
+    assert a.rows("world/scan") == 3 and "world/scan" not in b.entities
+    assert b.rows("metrics/counts/loops") == 1 and "metrics/counts/loops" not in a.entities
+
+
+def test_long_trajectory_is_throttled_but_moves_and_final_state_are_logged(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "rec.rrd"
+    logger = RerunLogger(rrd_path=path, trajectory_relog_points=10)
+    positions = np.cumsum(np.ones((100, 3)), axis=0)
+    moved_at = (55, 77)
+    for i in range(100):
+        logger.set_time(i, float(i))
+        if i in moved_at:
+            positions = positions + 0.5  # an optimisation moves the whole trajectory
+        logger.log_trajectory("odometry", positions[: i + 1])
+    logger.close()
+    rows = summarize_recording(path).rows("world/trajectory/odometry")
+    # Every frame up to 10 poses, then every ceil(N/10) frames (~27 rows over 100 frames),
+    # plus the two moves and the pending last state.
+    assert 25 <= rows <= 40
+
+    logger = RerunLogger(rrd_path=tmp_path / "moves.rrd", trajectory_relog_points=1)
+    for i in range(10):
+        logger.set_time(i, float(i))
+        logger.log_trajectory("optimized", positions[:50] + i)  # moved every frame
+    logger.close()
+    assert summarize_recording(tmp_path / "moves.rrd").rows("world/trajectory/optimized") == 10
+
+
+def test_requires_a_sink() -> None:
+    with pytest.raises(ValueError, match="needs a sink"):
+        RerunLogger()
+
+
+def demo_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Run folders of the short demo with ``--no-viz`` and with ``--rrd`` (made once a session)."""
+    if not _DEMO_RUNS:
+        base = tmp_path_factory.mktemp("demo_runs")
+        for mode in ("no-viz", "rrd"):
+            folder = base / mode
+            viz = ["--no-viz"] if mode == "no-viz" else ["--rrd", str(folder / "recording.rrd")]
+            result = subprocess.run(
+                [sys.executable, "-m", "slam.run", *DEMO_ARGS, *viz, "--out", str(folder)],
+                capture_output=True,
+                text=True,
+                cwd=REPO_ROOT,
+                timeout=1200,
+            )
+            assert result.returncode == 0, result.stderr[-3000:]
+            _DEMO_RUNS[mode] = folder
+    return _DEMO_RUNS
+
+
+@pytest.mark.slow
+def test_demo_recording_and_null_logger_give_identical_slam_outputs(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    runs = demo_runs(tmp_path_factory)
+    for name in ("poses_odometry.kitti.txt", "poses_slam.kitti.txt", "loops.csv"):
+        assert (runs["no-viz"] / name).read_bytes() == (runs["rrd"] / name).read_bytes(), name
+    assert not (runs["no-viz"] / "recording.rrd").exists()
+
+    metrics = json.loads((runs["rrd"] / "metrics.json").read_text())
+    num_frames = metrics["num_frames"]
+    summary = summarize_recording(runs["rrd"] / "recording.rrd")
+    assert summary.rows("world/scan") == num_frames
+    assert summary.rows("world/sensor") == num_frames
+    assert summary.rows("world/sensor/camera/rgb") == num_frames
+    assert summary.rows("world/sensor/depth_camera/depth") == num_frames
+    assert summary.rows("world/trajectory/optimized") >= 1
+    assert summary.rows("world/trajectory/gt") >= 1
+    assert summary.rows("world/map/mesh") >= 2
+    assert summary.rows("world/map/voxels") >= 2
+    kept_loops = metrics["loops"]["graph_inliers"]
+    assert kept_loops >= 1, "the short demo should close its lap"
+    assert summary.entities["world/loop_closures"].max_instances >= 1
+    assert summary.rows("metrics/timing/frame_ms") == num_frames
+    assert summary.rows("metrics/error/ate_slam_m") >= 1
