@@ -2,8 +2,8 @@
 
 A :class:`Scene` is one triangle mesh plus per-face material attributes (LiDAR reflectance, base
 colour and texture cell size) that the sensors read at the hit triangle. Every random choice is
-drawn from generators seeded by ``seed`` and, for street objects, by the world cell they stand in,
-so that revisiting a place along a trajectory sees the same structures.
+drawn from generators seeded by ``seed``; street objects reserve their footprints, so revisiting a
+place along a trajectory sees the structures of the first visit, not a second copy.
 """
 
 from __future__ import annotations
@@ -60,6 +60,23 @@ class _SceneBuilder:
         self.reflectance.append(np.full(n, reflectance, np.float32))
         self.albedo.append(np.tile(np.asarray(albedo, np.float32), (n, 1)))
         self.texture_m.append(np.full(n, texture_m, np.float32))
+
+    def add_arrays(
+        self,
+        mesh: trimesh.Trimesh,
+        *,
+        reflectance: np.ndarray,
+        albedo: np.ndarray,
+        texture_m: np.ndarray | None = None,
+    ) -> None:
+        """Add ``mesh`` with per-face materials: (F,) reflectance, (F, 3) albedo, (F,) texture."""
+        n = len(mesh.faces)
+        self.parts.append(mesh)
+        self.reflectance.append(np.asarray(reflectance, np.float32).reshape(n))
+        self.albedo.append(np.asarray(albedo, np.float32).reshape(n, 3))
+        self.texture_m.append(
+            np.zeros(n, np.float32) if texture_m is None else np.asarray(texture_m, np.float32)
+        )
 
     def build(self) -> Scene:
         mesh = trimesh.util.concatenate(self.parts)
@@ -142,38 +159,134 @@ class _Footprints:
         self._path = cKDTree(dense_path_xy)
         self._occupied: set[tuple[int, int]] = set()
 
-    def try_place(
-        self, center_xy: np.ndarray, yaw: float, size_xy: tuple[float, float], clearance_m: float
-    ) -> bool:
-        """Reserve the rectangle if it is ``clearance_m`` away from the path and free."""
+    @staticmethod
+    def _samples(center_xy: np.ndarray, yaw: float, size_xy: tuple[float, float]) -> np.ndarray:
         hx, hy = size_xy[0] / 2, size_xy[1] / 2
         u = np.linspace(-hx, hx, max(2, int(np.ceil(2 * hx / 0.5)) + 1))
         v = np.linspace(-hy, hy, max(2, int(np.ceil(2 * hy / 0.5)) + 1))
         gu, gv = np.meshgrid(u, v)
         c, s = np.cos(yaw), np.sin(yaw)
-        pts = np.stack(
+        return np.stack(
             [
                 center_xy[0] + c * gu.ravel() - s * gv.ravel(),
                 center_xy[1] + s * gu.ravel() + c * gv.ravel(),
             ],
             axis=1,
         )
-        dist, _ = self._path.query(pts)
-        if dist.min() < clearance_m:
-            return False
+
+    def clear_of_path(
+        self, center_xy: np.ndarray, yaw: float, size_xy: tuple[float, float], clearance_m: float
+    ) -> bool:
+        """Whether the rectangle stays ``clearance_m`` away from the path (reserves nothing)."""
+        dist, _ = self._path.query(self._samples(center_xy, yaw, size_xy))
+        return bool(dist.min() >= clearance_m)
+
+    def try_place(
+        self, center_xy: np.ndarray, yaw: float, size_xy: tuple[float, float], clearance_m: float
+    ) -> bool:
+        """Reserve the rectangle if it is ``clearance_m`` away from the path and free."""
+        pts = self._samples(center_xy, yaw, size_xy)
         cells = set(map(tuple, np.floor(pts).astype(np.int64).tolist()))
         if cells & self._occupied:
+            return False
+        dist, _ = self._path.query(pts)
+        if dist.min() < clearance_m:
             return False
         self._occupied |= cells
         return True
 
 
-def _cell_rng(
-    seed: int, kind: int, xy: np.ndarray, cell_m: float
-) -> tuple[tuple, np.random.Generator]:
-    key = (kind, *np.floor(xy / cell_m).astype(np.int64).tolist())
-    entropy = [seed, kind, int(key[1]) + 2**31, int(key[2]) + 2**31]
-    return key, np.random.default_rng(entropy)
+class _Instances:
+    """Many scaled/posed copies of one template mesh, concatenated into one mesh at once.
+
+    Far faster than building and concatenating one trimesh per object.
+    """
+
+    def __init__(self, template: trimesh.Trimesh) -> None:
+        self._vertices = np.asarray(template.vertices, np.float64)
+        self._faces = np.asarray(template.faces, np.int64)
+        self._T: list[np.ndarray] = []
+        self._reflectance: list[float] = []
+        self._albedo: list[np.ndarray] = []
+
+    def add(
+        self,
+        scale: tuple[float, float, float],
+        T: np.ndarray,
+        reflectance: float,
+        albedo: tuple[float, float, float] | np.ndarray = (0.6, 0.6, 0.6),
+    ) -> None:
+        """One copy scaled by ``scale`` along the template axes, then moved by ``T``."""
+        self._T.append(T @ np.diag([*scale, 1.0]))
+        self._reflectance.append(reflectance)
+        self._albedo.append(np.asarray(albedo, np.float32))
+
+    def add_to(self, builder: _SceneBuilder) -> None:
+        if not self._T:
+            return
+        T = np.stack(self._T)
+        vertices = np.einsum("nij,vj->nvi", T[:, :3, :3], self._vertices) + T[:, None, :3, 3]
+        offsets = np.arange(len(T))[:, None, None] * len(self._vertices)
+        faces = (self._faces[None] + offsets).reshape(-1, 3)
+        mesh = trimesh.Trimesh(vertices=vertices.reshape(-1, 3), faces=faces, process=False)
+        per_face = len(self._faces)
+        builder.add_arrays(
+            mesh,
+            reflectance=np.repeat(np.asarray(self._reflectance, np.float32), per_face),
+            albedo=np.repeat(np.stack(self._albedo), per_face, axis=0),
+        )
+
+
+class _StreetPath:
+    """The driven path, resampled every ``SPACING_M`` along its arc length, with its frame.
+
+    An open path is extended straight by ``extension_m`` before its start and after its end so
+    that the street continues behind the first and beyond the last pose.
+    """
+
+    SPACING_M = 0.5
+
+    def __init__(self, path_xyz: np.ndarray, extension_m: float) -> None:
+        dense = _resample_polyline(path_xyz, self.SPACING_M)
+        closed = len(path_xyz) > 2 and np.linalg.norm(path_xyz[-1] - path_xyz[0]) < 1.0
+        if len(dense) >= 2 and not closed and extension_m > 0:
+            k = round(extension_m / self.SPACING_M)
+            steps = self.SPACING_M * np.arange(1, k + 1)[:, None]
+            head_dir = _unit_xy(dense[min(4, len(dense) - 1)] - dense[0])
+            tail_dir = _unit_xy(dense[-1] - dense[max(0, len(dense) - 5)])
+            head = dense[0] - steps[::-1] * head_dir
+            tail = dense[-1] + steps * tail_dir
+            dense = np.vstack([head, dense, tail])
+        self.xyz = dense
+        tangents = np.gradient(dense[:, :2], axis=0) if len(dense) > 1 else np.ones((1, 2))
+        norms = np.linalg.norm(tangents, axis=1, keepdims=True)
+        self.tangents = np.where(norms > 1e-9, tangents / np.maximum(norms, 1e-12), [1.0, 0.0])
+        self.lefts = np.stack([-self.tangents[:, 1], self.tangents[:, 0]], axis=1)
+        self.length_m = self.SPACING_M * (len(dense) - 1)
+
+    def at(self, s: float, side: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Point, unit tangent and unit normal towards ``side`` (+1 left, -1 right) at ``s``."""
+        i = int(np.clip(round(s / self.SPACING_M), 0, len(self.xyz) - 1))
+        return self.xyz[i, :2], self.tangents[i], self.lefts[i] * side
+
+
+def _unit_xy(v: np.ndarray) -> np.ndarray:
+    d = np.array([v[0], v[1], 0.0])
+    n = np.linalg.norm(d)
+    return d / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])
+
+
+def _blob(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A lumpy unit sphere (tree crowns, bushes): an icosphere with jittered vertex radii."""
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=1.0)
+    vertices = np.asarray(sphere.vertices) * rng.uniform(0.8, 1.15, (len(sphere.vertices), 1))
+    return trimesh.Trimesh(vertices=vertices, faces=sphere.faces, process=False)
+
+
+SIDEWALK_INNER_M = 4.5
+"""Distance from the path to the kerb: parked cars stand inside it, poles and trees outside."""
+SIDEWALK_WIDTH_M = 2.0
+KERB_HEIGHT_M = 0.15
 
 
 def street_scene(
@@ -183,134 +296,221 @@ def street_scene(
     sensor_height_m: float = 1.73,
     margin_m: float = 45.0,
     ground_cell_m: float = 2.0,
+    extension_m: float = 40.0,
 ) -> Scene:
     """A street built along ``path_xyz`` (N, 3 sensor positions in a z-up world).
 
-    Ground follows the path at ``sensor_height_m`` below it; building blocks with balconies or
-    ledges line both sides with varied setbacks, sizes and heights; poles, parked cars and trees
-    stand between road and facades. Nothing is placed on the path itself. Objects are keyed by
-    the world cell they stand in, so a revisited place gets the same objects, not a second copy.
+    Ground follows the path at ``sensor_height_m`` below it, with a raised sidewalk behind a kerb
+    on both sides. Building blocks 8-30 m long stand behind it with 2-10 m gaps, varied
+    setbacks, depths and heights, and facades with pilasters, ledges, balconies and entrance
+    canopies at irregular spacing; parked cars line the kerbs in irregular runs, poles and trees
+    stand every 10-25 m, and some blocks have a low wall or hedge in front. An open path is
+    extended by ``extension_m`` at both ends so the street also continues behind the first pose.
+    Nothing is placed on the path itself, and a place the path revisits keeps the objects of its
+    first visit (footprints are reserved), so it is not built twice.
     """
-    path_xyz = np.asarray(path_xyz, np.float64)
-    dense = _resample_polyline(path_xyz, 0.5)
-    height = _GroundHeight(dense, sensor_height_m)
-    footprints = _Footprints(dense[:, :2])
+    rng = np.random.default_rng([seed, 11])
+    path = _StreetPath(np.asarray(path_xyz, np.float64), extension_m)
+    height = _GroundHeight(path.xyz, sensor_height_m)
+    footprints = _Footprints(path.xyz[:, :2])
     builder = _SceneBuilder()
     builder.add(
-        _ground_mesh(dense, height, margin_m, ground_cell_m),
+        _ground_mesh(path.xyz, height, margin_m, ground_cell_m),
         reflectance=0.15,
         albedo=(0.3, 0.3, 0.3),
     )
+    boxes = _Instances(trimesh.creation.box(extents=(1.0, 1.0, 1.0)))
+    cylinders = _Instances(trimesh.creation.cylinder(radius=1.0, height=1.0, sections=10))
+    spheres = _Instances(_blob(np.random.default_rng([seed, 12])))
+    sides = (1.0, -1.0)
 
-    tangents = np.gradient(dense[:, :2], axis=0)
-    norms = np.linalg.norm(tangents, axis=1, keepdims=True)
-    tangents = np.where(norms > 1e-9, tangents / np.maximum(norms, 1e-12), [1.0, 0.0])
-    lefts = np.stack([-tangents[:, 1], tangents[:, 0]], axis=1)
-    used: set[tuple] = set()
+    def facing_yaw(t: np.ndarray, side: float) -> float:
+        """Yaw whose local +y points away from the path (local -y faces the street)."""
+        return float(np.arctan2(t[1], t[0])) + (0.0 if side > 0 else np.pi)
 
-    def place_candidates(every: int, kind: int, cell_m: float, lateral: float, make) -> None:
-        for i in range(0, len(dense), every):
-            for side in (1.0, -1.0):
-                p, t, n = dense[i, :2], tangents[i], lefts[i] * side
-                key, rng = _cell_rng(seed, kind, p + n * lateral, cell_m)
-                if key in used:
+    def ground_z(xy: np.ndarray) -> float:
+        return float(height(xy)[0])
+
+    def add_sidewalks() -> None:
+        claimed: dict[tuple[int, int], float] = {}
+        segment_m = 3.0
+        for side in sides:
+            for s in np.arange(segment_m / 2, path.length_m, segment_m):
+                p, t, n = path.at(s, side)
+                center = p + n * (SIDEWALK_INNER_M + SIDEWALK_WIDTH_M / 2)
+                yaw = float(np.arctan2(t[1], t[0]))
+                size = (segment_m + 0.1, SIDEWALK_WIDTH_M)
+                if not footprints.clear_of_path(center, yaw, size, SIDEWALK_INNER_M - 0.3):
                     continue
-                if make(p, t, n, rng):
-                    used.add(key)
+                cells = set(map(tuple, np.floor(footprints._samples(center, yaw, size)).tolist()))
+                if any(abs(claimed.get(c, s) - s) > 6.0 for c in cells):
+                    continue  # a revisit: this stretch already has its sidewalk
+                claimed.update({c: s for c in cells})
+                z0 = ground_z(center)
+                T = _pose_xy_yaw(center[0], center[1], z0 + (KERB_HEIGHT_M - 0.3) / 2, yaw)
+                boxes.add((*size, KERB_HEIGHT_M + 0.3), T, reflectance=0.25, albedo=(0.5,) * 3)
 
-    def make_building(p, t, n, rng) -> bool:
-        setback = rng.uniform(6.5, 11.0)
-        width, depth = rng.uniform(7.0, 16.0), rng.uniform(6.0, 14.0)
-        storeys = int(rng.integers(2, 7))
-        h = storeys * 3.0 + rng.uniform(0.5, 1.5)
-        center = p + n * (setback + depth / 2)
-        yaw = float(np.arctan2(t[1], t[0]))
-        if not footprints.try_place(center, yaw, (width + 0.5, depth + 0.5), clearance_m=5.5):
-            return False
-        z0 = float(height(center)[0]) - 1.0
-        T = _pose_xy_yaw(center[0], center[1], z0 + (h + 1.0) / 2, yaw)
-        shade = rng.uniform(0.35, 0.85)
-        builder.add(
-            _box((width, depth, h + 1.0), T), reflectance=rng.uniform(0.2, 0.6), albedo=(shade,) * 3
-        )
-        # Front face faces the path: in the box frame that is -y when n is +y (left of tangent).
-        front_sign = -1.0 if np.dot(n, [-np.sin(yaw), np.cos(yaw)]) > 0 else 1.0
-        base_local = 1.0 - (h + 1.0) / 2  # ground level in the box frame
-        if rng.random() < 0.5:  # balconies: a slab and a railing in front of some storeys
-            for k in range(1, storeys):
+    def add_facade(T: np.ndarray, width: float, depth: float, storeys: int) -> None:
+        """Pilasters, ledges, balconies and an entrance canopy on the local -y face of a box
+        whose local frame ``T`` sits at ground level in the middle of its footprint."""
+        front = -depth / 2
+        top = 3.0 * storeys
+        if rng.random() < 0.65:  # pilasters at irregular spacing
+            x = -width / 2 + rng.uniform(0.2, 2.0)
+            while x < width / 2 - 0.3:
+                w, out = rng.uniform(0.3, 0.8), rng.uniform(0.15, 0.45)
+                boxes.add((w, out, top), T @ _pose_xy_yaw(x, front - out / 2, top / 2, 0.0), 0.5)
+                x += rng.uniform(2.0, 6.5)
+        ledges = rng.random() < 0.5
+        for k in range(1, storeys):
+            z = 3.0 * k
+            if ledges:
+                x0, x1 = sorted(rng.uniform(-width / 2, width / 2, 2))
+                if rng.random() < 0.6:
+                    x0, x1 = -width / 2, width / 2
+                if x1 - x0 > 1.0:
+                    ledge = _pose_xy_yaw((x0 + x1) / 2, front - 0.15, z, 0.0)
+                    boxes.add((x1 - x0, 0.3, 0.25), T @ ledge, 0.5)
+            if rng.random() < 0.45:
                 for _ in range(int(rng.integers(1, 3))):
-                    bw = rng.uniform(1.8, 3.2)
+                    bw = rng.uniform(1.5, min(3.5, width - 0.6))
                     bx = rng.uniform(-width / 2 + bw / 2 + 0.3, width / 2 - bw / 2 - 0.3)
-                    floor_z = base_local + 3.0 * k
-                    slab = _pose_xy_yaw(bx, front_sign * (depth / 2 + 0.5), floor_z, 0.0)
-                    rail = _pose_xy_yaw(bx, front_sign * (depth / 2 + 0.96), floor_z + 0.55, 0.0)
-                    builder.add(_box((bw, 1.0, 0.15), T @ slab), reflectance=0.45)
-                    builder.add(_box((bw, 0.08, 1.0), T @ rail), reflectance=0.45)
-        else:  # ledges along the whole facade at every storey
-            for k in range(1, storeys):
-                ledge = _pose_xy_yaw(
-                    0.0, front_sign * (depth / 2 + 0.15), base_local + 3.0 * k, 0.0
-                )
-                builder.add(_box((width, 0.3, 0.25), T @ ledge), reflectance=0.5)
-        return True
+                    bd = rng.uniform(0.8, 1.2)
+                    slab = _pose_xy_yaw(bx, front - bd / 2, z, 0.0)
+                    rail = _pose_xy_yaw(bx, front - bd + 0.04, z + 0.55, 0.0)
+                    boxes.add((bw, bd, 0.15), T @ slab, 0.45)
+                    boxes.add((bw, 0.08, 1.0), T @ rail, 0.45)
+        if rng.random() < 0.7:  # entrance canopy with a step below it
+            cw, cd = rng.uniform(1.5, 3.5), rng.uniform(0.8, 1.2)
+            cx = rng.uniform(-width / 2 + cw / 2 + 0.2, width / 2 - cw / 2 - 0.2)
+            boxes.add((cw, cd, 0.2), T @ _pose_xy_yaw(cx, front - cd / 2, 2.8, 0.0), 0.45)
+            boxes.add((cw, 0.6, 0.5), T @ _pose_xy_yaw(cx, front - 0.3, 0.1, 0.0), 0.3)
 
-    def make_pole(p, t, n, rng) -> bool:
-        lateral = rng.uniform(3.8, 4.8)
-        c = p + n * lateral
-        if not footprints.try_place(c, 0.0, (0.4, 0.4), clearance_m=3.3):
+    def place_building(s: float, side: float, width: float, row: int) -> bool:
+        p, t, n = path.at(s, side)
+        setback = rng.uniform(6.5, 12.0) if row == 0 else rng.uniform(24.0, 34.0)
+        depth = rng.uniform(8.0, 16.0)
+        storeys = int(rng.integers(2, 8))
+        center = p + n * (setback + depth / 2)
+        yaw = facing_yaw(t, side)
+        # Reserve the protrusions in front too (up to 1.2 m).
+        if not footprints.try_place(center, yaw, (width + 0.3, depth + 2.6), clearance_m=5.1):
             return False
-        z0 = float(height(c)[0])
-        pole_h = rng.uniform(5.0, 8.0)
-        pole = trimesh.creation.cylinder(radius=0.12, height=pole_h, sections=12)
-        pole.apply_translation([c[0], c[1], z0 + pole_h / 2 - 0.2])
-        builder.add(pole, reflectance=0.7)
-        return True
-
-    def make_car(p, t, n, rng) -> bool:
-        if rng.random() < 0.35:
-            return False
-        lateral = rng.uniform(3.0, 3.6)
-        c = p + n * lateral
-        yaw = float(np.arctan2(t[1], t[0]))
-        if not footprints.try_place(c, yaw, (4.4, 1.9), clearance_m=2.0):
-            return False
-        z0 = float(height(c)[0])
-        paint = rng.uniform(0.1, 0.9, 3)
-        builder.add(
-            _box((4.3, 1.8, 0.9), _pose_xy_yaw(c[0], c[1], z0 + 0.25 + 0.45, yaw)),
-            reflectance=0.8,
-            albedo=paint,
+        z0 = ground_z(center)
+        h = 3.0 * storeys + rng.uniform(0.5, 1.5)
+        T = _pose_xy_yaw(center[0], center[1], z0, yaw)
+        shade = rng.uniform(0.35, 0.85)
+        boxes.add(
+            (width, depth, h + 1.0),
+            T @ _pose_xy_yaw(0.0, 0.0, (h - 1.0) / 2, 0.0),
+            reflectance=rng.uniform(0.2, 0.6),
+            albedo=(shade,) * 3,
         )
-        builder.add(
-            _box((2.2, 1.6, 0.55), _pose_xy_yaw(c[0], c[1], z0 + 1.15 + 0.275, yaw)),
-            reflectance=0.3,
-            albedo=paint,
-        )
+        add_facade(T, width, depth, storeys)
+        if rng.random() < 0.3:  # low wall or hedge in front, with openings
+            x = -width / 2
+            while x < width / 2 - 1.0:
+                length = min(rng.uniform(2.0, 8.0), width / 2 - x)
+                wall_h, thick = rng.uniform(0.5, 1.3), rng.uniform(0.2, 0.7)
+                wall = _pose_xy_yaw(x + length / 2, -depth / 2 - 1.6, wall_h / 2 - 0.1, 0.0)
+                boxes.add((length, thick, wall_h + 0.1), T @ wall, 0.35, (0.3, 0.45, 0.3))
+                x += length + rng.uniform(1.0, 4.0)
         return True
 
-    def make_tree(p, t, n, rng) -> bool:
-        if rng.random() < 0.4:
-            return False
-        lateral = rng.uniform(5.0, 6.0)
-        c = p + n * lateral
-        crown_r = rng.uniform(1.2, 2.0)
-        if not footprints.try_place(c, 0.0, (2 * crown_r, 2 * crown_r), clearance_m=2.5):
-            return False
-        z0 = float(height(c)[0])
-        trunk_h = rng.uniform(2.5, 3.5)
-        trunk = trimesh.creation.cylinder(radius=0.18, height=trunk_h + 0.3, sections=10)
-        trunk.apply_translation([c[0], c[1], z0 + trunk_h / 2 - 0.15])
-        crown = trimesh.creation.icosphere(subdivisions=2, radius=crown_r)
-        crown.apply_translation([c[0], c[1], z0 + trunk_h + crown_r * 0.8])
-        builder.add(trunk, reflectance=0.35, albedo=(0.4, 0.3, 0.2))
-        builder.add(crown, reflectance=0.25, albedo=(0.2, 0.5, 0.2))
-        return True
+    def add_buildings(row: int) -> None:
+        """Row 0 lines the street; row 1 stands behind it, seen through the gaps."""
+        for side in sides:
+            s = rng.uniform(0.0, 6.0)
+            while s < path.length_m:
+                width = rng.uniform(8.0, 30.0)
+                while width >= 6.0 and not place_building(s + width / 2, side, width, row):
+                    width *= 0.6
+                s += (width if width >= 6.0 else 2.0) + rng.uniform(2.0, 10.0)
 
-    # Small objects first (they stand closer to the road), then the facades behind them.
-    place_candidates(every=40, kind=1, cell_m=10.0, lateral=4.3, make=make_pole)
-    place_candidates(every=14, kind=2, cell_m=5.0, lateral=3.3, make=make_car)
-    place_candidates(every=24, kind=3, cell_m=6.0, lateral=5.5, make=make_tree)
-    place_candidates(every=8, kind=4, cell_m=6.0, lateral=12.0, make=make_building)
+    def add_bushes() -> None:
+        """Clumps of bushes in front gardens and in the gaps between buildings."""
+        for side in sides:
+            s = rng.uniform(0.0, 8.0)
+            while s < path.length_m:
+                p, t, n = path.at(s, side)
+                base = p + n * rng.uniform(6.8, 9.0)
+                for _ in range(int(rng.integers(1, 4))):
+                    r = rng.uniform(0.4, 1.0)
+                    c = base + t * rng.uniform(-1.5, 1.5) + n * rng.uniform(0.0, 1.0)
+                    if footprints.try_place(c, 0.0, (1.6 * r, 1.6 * r), clearance_m=5.5):
+                        bush = _pose_xy_yaw(c[0], c[1], ground_z(c) + 0.5 * r, rng.uniform(0, 6.3))
+                        spheres.add((r * rng.uniform(1.0, 1.8), r, r), bush, 0.3, (0.2, 0.45, 0.2))
+                s += rng.uniform(3.0, 12.0)
+
+    def add_cars() -> None:
+        for side in sides:
+            s = rng.uniform(0.0, 10.0)
+            while s < path.length_m:
+                if rng.random() < 0.2:  # an empty stretch of kerb
+                    s += rng.uniform(4.0, 15.0)
+                    continue
+                length, width = rng.uniform(3.8, 4.9), rng.uniform(1.65, 1.9)
+                p, t, n = path.at(s + length / 2, side)
+                c = p + n * rng.uniform(2.95, SIDEWALK_INNER_M - width / 2 - 0.05)
+                yaw = float(np.arctan2(t[1], t[0])) + rng.normal(0.0, 0.03)
+                if footprints.try_place(c, yaw, (length + 0.2, width + 0.1), clearance_m=2.0):
+                    z0 = ground_z(c)
+                    paint = rng.uniform(0.1, 0.9, 3)
+                    body_h, cabin_h = rng.uniform(0.8, 1.0), rng.uniform(0.45, 0.65)
+                    cabin_l = rng.uniform(0.45, 0.6) * length
+                    body = _pose_xy_yaw(c[0], c[1], z0 + 0.25 + body_h / 2, yaw)
+                    cabin = body @ _pose_xy_yaw(
+                        rng.uniform(-0.3, 0.1), 0.0, (body_h + cabin_h) / 2, 0.0
+                    )
+                    boxes.add((length, width, body_h), body, 0.8, paint)
+                    boxes.add((cabin_l, width - 0.15, cabin_h), cabin, 0.3, paint)
+                s += length + rng.uniform(0.6, 3.0)
+
+    def add_poles_and_trees() -> None:
+        for side in sides:
+            s = rng.uniform(0.0, 15.0)
+            while s < path.length_m:
+                p, _, n = path.at(s, side)
+                if rng.random() < 0.45:
+                    c = p + n * rng.uniform(4.8, 5.3)
+                    if footprints.try_place(c, 0.0, (0.4, 0.4), clearance_m=4.0):
+                        pole_h = rng.uniform(5.0, 8.5)
+                        z0 = ground_z(c)
+                        cyl = _pose_xy_yaw(c[0], c[1], z0 + pole_h / 2 - 0.2, 0.0)
+                        cylinders.add((0.12, 0.12, pole_h), cyl, 0.7)
+                        if rng.random() < 0.5:  # lamp arm over the sidewalk
+                            yaw = float(np.arctan2(-n[1], -n[0]))
+                            arm = _pose_xy_yaw(c[0], c[1], z0 + pole_h - 0.4, yaw)
+                            boxes.add((1.2, 0.15, 0.15), arm @ _pose_xy_yaw(0.5, 0, 0, 0), 0.7)
+                else:
+                    crown_r = rng.uniform(1.2, 2.2)
+                    c = p + n * rng.uniform(5.2, 6.2)
+                    crown_ok = footprints.clear_of_path(c, 0.0, (2 * crown_r,) * 2, 2.6)
+                    if crown_ok and footprints.try_place(c, 0.0, (0.6, 0.6), clearance_m=4.0):
+                        z0 = ground_z(c)
+                        trunk_h = rng.uniform(2.5, 3.5)
+                        trunk = _pose_xy_yaw(c[0], c[1], z0 + trunk_h / 2 - 0.15, 0.0)
+                        cylinders.add((0.18, 0.18, trunk_h + 0.3), trunk, 0.35, (0.4, 0.3, 0.2))
+                        squash = rng.uniform(0.75, 1.25)
+                        crown = _pose_xy_yaw(c[0], c[1], z0 + trunk_h + crown_r * 0.8, 0.0)
+                        crown = crown @ _pose_xy_yaw(0, 0, 0, rng.uniform(0, np.pi))
+                        spheres.add(
+                            (crown_r, crown_r * rng.uniform(0.8, 1.0), crown_r * squash),
+                            crown,
+                            0.25,
+                            (0.2, 0.5, 0.2),
+                        )
+                s += rng.uniform(10.0, 25.0) / 2  # a pole or a tree about every 10-25 m
+
+    # The street layout first (kerbs, cars, poles, trees), then the buildings behind them.
+    add_sidewalks()
+    add_cars()
+    add_poles_and_trees()
+    add_buildings(row=0)
+    add_bushes()
+    add_buildings(row=1)
+    for instances in (boxes, cylinders, spheres):
+        instances.add_to(builder)
     return builder.build()
 
 

@@ -27,7 +27,7 @@ from frontends.sources.base import SensorKind, Source, register_source
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 """Bump when the generator's output changes, so stale cache entries are not reused."""
 
 LIDAR_SEQUENCE = "00"
