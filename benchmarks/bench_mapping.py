@@ -163,31 +163,33 @@ class Variant:
     name: str
     weighting: str
     use_jacobian: bool
-    sigma_vu: float = 0.35
+    sigma_vu: float = 0.5
+    target_rule: str | None = None
 
 
-def timed(fn, repeats: int) -> float:
-    """Median seconds of ``fn()`` over ``repeats`` runs (after one warm-up)."""
+def timed(fn, repeats: int) -> tuple[float, float]:
+    """Median wall and CPU seconds (all threads) of ``fn()`` over ``repeats`` runs (+1 warm-up)."""
     fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+        wall.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    return float(np.median(wall)), float(np.median(cpu))
 
 
 # ---------------------------------------------------------------------------- experiments
 def fidelity(model, quick: bool, lines: list[str]) -> None:
-    size = (3.0, 2.5, 2.4) if quick else (4.0, 3.0, 2.5)
-    density = 800 if quick else 1500
+    size = (2.4, 2.0, 2.2) if quick else (4.0, 3.0, 2.5)
+    density = 600 if quick else 1500
     room = room_mesh(size)
     points, normals = sample_surface(room, density)
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
     t = time.perf_counter()
     base = encode_points(model, torch.from_numpy(points), torch.from_numpy(normals), V)
     encode_s = time.perf_counter() - t
-    samples = 50_000 if quick else 150_000
+    samples = 30_000 if quick else 150_000
     lines += [
         "### Transform fidelity (two paths)",
         "",
@@ -212,10 +214,14 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
     variants = [
         Variant("ours (gaussian, Jacobian)", "gaussian", True),
         Variant("ours without Jacobian", "gaussian", False),
+        Variant(
+            "ours, paper's target rule (nearest source < 1 voxel)", "gaussian", True, 0.5, "radius"
+        ),
         Variant("paper-style (uniform K=8, no Jacobian)", "uniform", False),
     ]
     if quick:
         motions.pop("(c) 3 deg + 2.7 cm")
+        variants.pop(2)
     sweep: dict[str, list[tuple[float, float]]] = {}
     for label, D in motions.items():
         moved_pts = points @ D[:3, :3].T + D[:3, 3]
@@ -235,6 +241,7 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
                 weighting=var.weighting,
                 use_jacobian=var.use_jacobian,
                 sigma_vu=var.sigma_vu,
+                target_rule=var.target_rule,
             )
             mesh = mesh_of(model, cfg, block)
             d12, d21 = mesh_distance(mesh, ref_mesh, samples)
@@ -264,39 +271,43 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
 
 
 def speed(model, quick: bool, lines: list[str]) -> None:
-    repeats = 3 if quick else 7
-    room = room_mesh((3.0, 2.5, 2.4) if quick else (5.0, 4.0, 2.6))
+    repeats = 2 if quick else 5
+    room = room_mesh((2.4, 2.0, 2.2) if quick else (5.0, 4.0, 2.6))
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
     nm = NeuralMap(cfg, model)
-    frame_pts, frame_nrm, hits = depth_frame_points(room, keep=30000)
-    enc_s = timed(lambda: nm.encode(1, frame_pts, frame_nrm, np.eye(4)), repeats)
-    enc_nojac_s = timed(
-        lambda: encode_points(
-            nm.model,
-            torch.from_numpy(frame_pts),
-            torch.from_numpy(frame_nrm),
-            V,
-            with_jacobian=False,
-        ),
-        repeats,
-    )
+    rows: list[tuple[str, str, tuple[float, float], str, str]] = []
+
+    keep = 10000 if quick else 30000
+    frame_pts, frame_nrm, hits = depth_frame_points(room, keep=keep)
     frame_sub = nm.encode(1, frame_pts, frame_nrm, np.eye(4))
-    # a ~2,000-voxel submap: the frame's voxels closest to the camera
-    centres = frame_sub.original.centers(V)
-    order = np.argsort(np.linalg.norm(centres - np.array([-0.5, 0.0, 1.4]), axis=1))
-    idx = torch.from_numpy(np.sort(order[:2000]))
-    sub_block = frame_sub.original.select(idx)
-    D = pose([0.3, -0.5, 0.8], 2.0, [0.013, -0.02, 0.004])
-    tr_s = timed(lambda: transform_block(sub_block, D, V), 5 * repeats)
-    tr_paper_s = timed(
-        lambda: transform_block(sub_block, D, V, weighting="uniform", use_jacobian=False),
-        5 * repeats,
+    enc = timed(lambda: nm.encode(1, frame_pts, frame_nrm, np.eye(4)), repeats)
+    size = (
+        f"{len(frame_pts):,} points (of {hits:,} hits) -> {frame_sub.original.num_voxels:,} voxels"
     )
+    rows.append(("encode one 640x480 depth frame, with Jacobians", size, enc, "frames", ">= 30/s"))
+    pts_t, nrm_t = torch.from_numpy(frame_pts), torch.from_numpy(frame_nrm)
+    enc_nj = timed(lambda: encode_points(nm.model, pts_t, nrm_t, V, with_jacobian=False), repeats)
+    rows.append(("encode, latents only (no Jacobians)", "same", enc_nj, "frames", "-"))
 
     points, normals = sample_surface(room, 800 if quick else 1200, seed=1)
-    big = encode_points(
-        nm.model, torch.from_numpy(points), torch.from_numpy(normals), V, with_jacobian=False
+    big = encode_points(nm.model, torch.from_numpy(points), torch.from_numpy(normals), V)
+    # a compact ~2,000-voxel submap: the voxels nearest to one surface point
+    centres = big.centers(V)
+    order = np.argsort(np.linalg.norm(centres - points[0], axis=1))
+    sub_block = big.select(torch.from_numpy(np.sort(order[: min(2000, len(order))])))
+    D = pose([0.3, -0.5, 0.8], 2.0, [0.013, -0.02, 0.004])
+    tr = timed(lambda: transform_block(sub_block, D, V), 10 * repeats)
+    n_sub = f"{sub_block.num_voxels:,} voxels"
+    rows.append(
+        ("transform + re-grid (ours: gaussian, Jacobian)", n_sub, tr, "submaps", ">= 100/s")
     )
+    if not quick:
+        tr_paper = timed(
+            lambda: transform_block(sub_block, D, V, weighting="uniform", use_jacobian=False),
+            10 * repeats,
+        )
+        rows.append(("transform + re-grid (paper-style)", n_sub, tr_paper, "submaps", "-"))
+
     big_map = NeuralMap(cfg, model)
     big_map.fuse(fresh_submap(big))
     moving = Submap(7, np.eye(4), sub_block, np.eye(4), sub_block)
@@ -305,48 +316,62 @@ def speed(model, quick: bool, lines: list[str]) -> None:
         big_map.fuse(moving)
         big_map.remove(moving)
 
-    fr_s = timed(fuse_remove, 20 * repeats) / 2.0
-    t = time.perf_counter()
+    fr = timed(fuse_remove, 20 * repeats)
+    rows.append(
+        (
+            f"fuse or remove (map of {big_map.num_voxels:,} voxels)",
+            n_sub,
+            (fr[0] / 2, fr[1] / 2),
+            "ops",
+            ">= 1000/s",
+        )
+    )
+    t, c = time.perf_counter(), time.process_time()
     mesh = big_map.extract_mesh()
-    mesh_s = time.perf_counter() - t
+    mesh_t = (time.perf_counter() - t, time.process_time() - c)
+    rows.append(
+        (
+            f"mesh the whole map, cold (s = {cfg.mesh_subdivisions})",
+            f"{big_map.num_voxels:,} voxels -> {len(mesh.faces):,} faces",
+            mesh_t,
+            "",
+            "< 5 s (20k voxels)",
+        )
+    )
     big_map.fuse(moving)
     big_map.extract_mesh()
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     big_map.move(moving, D)
-    mesh2 = big_map.extract_mesh()
-    remesh_s = time.perf_counter() - t
-    sub_bytes_per_voxel = frame_sub.nbytes() / frame_sub.original.num_voxels
-    per_voxel = big_map.memory_bytes() / max(big_map.num_voxels, 1)
-    payload = model.latent_channels * 3 * 4 + model.latent_channels * 9 * 4 + 8 + 16
+    big_map.extract_mesh()
+    remesh_t = (time.perf_counter() - t, time.process_time() - c)
+    rows.append(("move one submap + incremental re-mesh", n_sub, remesh_t, "", "-"))
+
     lines += [
         "### Speed and memory",
         "",
-        "| operation | size | time | rate | goal |",
-        "|---|---|---|---|---|",
-        f"| encode one 640x480 depth frame (with Jacobians) | {len(frame_pts):,} points "
-        f"(subsampled from {hits:,} hits) -> {frame_sub.original.num_voxels:,} voxels | "
-        f"{1000 * enc_s:.0f} ms | {1 / enc_s:.2f} frames/s | >= 30 frames/s |",
-        f"| encode, latents only (no Jacobians) | same | {1000 * enc_nojac_s:.0f} ms | "
-        f"{1 / enc_nojac_s:.2f} frames/s | - |",
-        f"| transform + re-grid (ours) | {sub_block.num_voxels:,} voxels | {1000 * tr_s:.1f} ms | "
-        f"{1 / tr_s:.0f} /s | >= 100 /s |",
-        f"| transform + re-grid (paper-style) | {sub_block.num_voxels:,} voxels | "
-        f"{1000 * tr_paper_s:.1f} ms | {1 / tr_paper_s:.0f} /s | - |",
-        f"| fuse or remove (into a {big_map.num_voxels:,}-voxel map) | {sub_block.num_voxels:,} "
-        f"voxels | {1000 * fr_s:.2f} ms | {1 / fr_s:.0f} /s | >= 1000 /s |",
-        f"| mesh the whole map (cold, s = {cfg.mesh_subdivisions}) | {big_map.num_voxels:,} "
-        f"voxels -> {len(mesh.faces):,} faces | {mesh_s:.2f} s | - | < 5 s |",
-        f"| move one submap + incremental re-mesh | {sub_block.num_voxels:,} voxels moved, "
-        f"{len(mesh2.faces):,} faces | {remesh_s:.2f} s | - | - |",
+        "| operation | size | wall | CPU (all threads) | rate (wall) | goal |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, size_text, (wall, cpu), unit, goal in rows:
+        rate = f"{1 / wall:.1f} {unit}/s" if unit else "-"
+        lines.append(f"| {name} | {size_text} | {_fmt_s(wall)} | {_fmt_s(cpu)} | {rate} | {goal} |")
+    per_voxel = big_map.memory_bytes() / max(big_map.num_voxels, 1)
+    payload = model.latent_channels * 3 * 4 + model.latent_channels * 9 * 4 + 8 + 16
+    sub_bytes = frame_sub.nbytes() / max(frame_sub.original.num_voxels, 1)
+    lines += [
         "",
         f"Memory: {per_voxel:.0f} bytes per global-map voxel as allocated (capacity included; "
-        f"payload {payload} B: latent {model.latent_channels}x3 + Jacobian "
-        f"{model.latent_channels}x3x3 float32, float64 weight, sorted key + row index); "
-        f"a stored submap of {frame_sub.original.num_voxels:,} voxels (one frame) holds "
-        f"{frame_sub.nbytes() / 1e6:.2f} MB ({sub_bytes_per_voxel:.0f} B/voxel; "
-        "the original encoding, plus as much again for its placed copy once moved).",
+        f"payload {payload} B: latent {model.latent_channels}x3 and Jacobian "
+        f"{model.latent_channels}x3x3 float32, float64 weight, sorted key and row index). A "
+        f"stored submap holds {sub_bytes:.0f} B per voxel (the frame above: "
+        f"{frame_sub.nbytes() / 1e6:.2f} MB for {frame_sub.original.num_voxels:,} voxels), "
+        "twice that once moved (original + placed copy).",
         "",
     ]
+
+
+def _fmt_s(seconds: float) -> str:
+    return f"{seconds:.2f} s" if seconds >= 1 else f"{1000 * seconds:.1f} ms"
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -35,7 +35,7 @@ def _vn_linear(weight: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 def _vn_leaky_relu(
     layer: VNLeakyReLU, x: torch.Tensor, dx: torch.Tensor | None
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Channel-last VN-LeakyReLU with optional forward-mode tangents ``dx (T, ..., 3, C)``.
+    """Channel-last VN-LeakyReLU with optional forward-mode tangents ``dx (P, T, 3, C)``.
 
     With ``k = U x``, ``coef = <x, k> / (|k|^2 + eps)`` and ``a`` the slope, the module computes
     ``out = a x + (1 - a) relu`` where ``relu = x - coef k`` if ``<x, k> < 0`` else ``x``, i.e.
@@ -54,11 +54,12 @@ def _vn_leaky_relu(
     if dx is None:
         return out, None
     dk = _vn_linear(weight, dx)
-    y = torch.addcmul(x, coef, k, value=-2.0)
-    d_coef = ((dx * k).sum(-2, keepdim=True) + (y * dk).sum(-2, keepdim=True)) / k_sq
-    gamma = gate * d_coef
-    d_out = torch.addcmul(dx, gamma, k, value=-1.0)
-    d_out.addcmul_(beta, dk, value=-1.0)
+    k1 = k.unsqueeze(1)
+    y = torch.addcmul(x, coef, k, value=-2.0).unsqueeze(1)
+    d_coef = ((dx * k1).sum(-2, keepdim=True) + (y * dk).sum(-2, keepdim=True)) / k_sq.unsqueeze(1)
+    gamma = gate.unsqueeze(1) * d_coef
+    d_out = torch.addcmul(dx, gamma, k1, value=-1.0)
+    d_out.addcmul_(beta.unsqueeze(1), dk, value=-1.0)
     return out, d_out
 
 
@@ -86,12 +87,12 @@ def point_latents(
 
     Returns:
         ``F (P, 3, C)`` with ``F[p, i, c]`` = component i of channel c, and, if asked,
-        ``dF (3, P, 3, C)`` with ``dF[j, p, i, c] = dF[p, i, c] / dr[p, j]``.
+        ``dF (P, 3, 3, C)`` with ``dF[p, j, i, c] = dF[p, i, c] / dr[p, j]``.
     """
     p = r.shape[0]
     eye = None
     if with_jacobian:
-        eye = torch.eye(3, dtype=r.dtype, device=r.device).view(3, 1, 3, 1).expand(3, p, 3, 1)
+        eye = torch.eye(3, dtype=r.dtype, device=r.device).view(1, 3, 3, 1).expand(p, 3, 3, 1)
     if encoder.kind == "joint":
         x = torch.stack([r, n], dim=-1)
         dx = None if eye is None else torch.cat([eye, torch.zeros_like(eye)], dim=-1)
@@ -102,7 +103,7 @@ def point_latents(
     if d_pos is None:
         return out, None
     return out, torch.cat(
-        [d_pos, torch.zeros(3, p, 3, nrm.shape[-1], dtype=r.dtype, device=r.device)], -1
+        [d_pos, torch.zeros(p, 3, 3, nrm.shape[-1], dtype=r.dtype, device=r.device)], -1
     )
 
 
@@ -186,7 +187,7 @@ def encode_points(
         f, df = point_latents(encoder, r[sl], n[sl], with_jacobian)
         sums.index_add_(0, idx, f)
         if jac_sums is not None and df is not None:
-            jac_sums.index_add_(0, idx, df.transpose(0, 1))
+            jac_sums.index_add_(0, idx, df)
     counts = torch.bincount(inverse, minlength=m).to(dtype)
     latents = (sums / counts.view(m, 1, 1)).transpose(1, 2)
     if jac_sums is None:

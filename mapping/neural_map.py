@@ -65,7 +65,9 @@ class NeuralMap:
         self.cfg = cfg
         self.device = resolve_device(cfg.device)
         model = model if model is not None else _model_from_config(cfg)
-        self.model = model.to(self.device).float().eval().requires_grad_(False)
+        # the map moves the model to its device and puts it in eval mode (all map code runs
+        # under torch.no_grad, so a model that is being trained elsewhere is not frozen)
+        self.model = model.to(self.device).eval()
         self.voxel_size_m = cfg.voxel_size_m
         self._store = VoxelStore(self.model.latent_channels, self.device)
         self._fused_ids: set[int] = set()
@@ -81,7 +83,11 @@ class NeuralMap:
     def encode(
         self, submap_id: int, points_A: np.ndarray, normals_A: np.ndarray, T_W_A: np.ndarray
     ) -> Submap:
-        """Encode points (anchor frame ``A``) at pose ``T_W_A`` onto the world grid; no fusing."""
+        """Encode points (anchor frame ``A``) at pose ``T_W_A`` onto the world grid; no fusing.
+
+        Points or normals that are not finite, and zero normals, are dropped; the rest are
+        pruned by ``min_points_per_voxel`` and encoded with their Jacobians.
+        """
         T = check_rigid(T_W_A, "T_W_A")
         points_A = np.asarray(points_A, dtype=np.float64)
         normals_A = np.asarray(normals_A, dtype=np.float64)

@@ -59,6 +59,14 @@ class TrainConfig(BaseModel):
     latent_penalty: float = Field(
         1e-3, ge=0, description="Weight of the mean squared latent entry added to the loss."
     )
+    nll_beta: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="beta-NLL (Seitzer et al. 2022): each sample's NLL is weighted by the "
+        "detached sigma^(2 beta); 0 is the plain Gaussian NLL, 0.5 keeps the mean fitting where "
+        "the model is uncertain.",
+    )
     threads: int = Field(
         1,
         ge=1,
@@ -95,13 +103,19 @@ def encode_patches(model: PriorModel, batch: PatchBatch) -> torch.Tensor:
 
 
 def patch_loss(
-    model: PriorModel, batch: PatchBatch, sdf_clamp_vu: float, latent_penalty: float
+    model: PriorModel,
+    batch: PatchBatch,
+    sdf_clamp_vu: float,
+    latent_penalty: float,
+    nll_beta: float = 0.0,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Gaussian NLL of the clamped SDF under (mean, sigma) + latent penalty; and its parts."""
+    """Gaussian (beta-)NLL of the clamped SDF under (mean, sigma) + latent penalty; its parts."""
     F = encode_patches(model, batch)
     mean, sigma = model.decoder(F, batch.queries)
     target = batch.sdf.clamp(-sdf_clamp_vu, sdf_clamp_vu)
     nll = torch.log(sigma) + 0.5 * ((mean - target) / sigma) ** 2
+    if nll_beta > 0:
+        nll = nll * sigma.detach() ** (2 * nll_beta)
     mask = (batch.sdf_mask & batch.point_mask.any(-1, keepdim=True)).to(nll.dtype)
     nll = (nll * mask).sum() / mask.sum().clamp_min(1.0)
     penalty = (F * F).mean()
@@ -248,7 +262,7 @@ def train(
         batch = batch.to(device)
         for group in opt.param_groups:
             group["lr"] = learning_rate(cfg, step)
-        loss, parts = patch_loss(model, batch, cfg.sdf_clamp_vu, cfg.latent_penalty)
+        loss, parts = patch_loss(model, batch, cfg.sdf_clamp_vu, cfg.latent_penalty, cfg.nll_beta)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)

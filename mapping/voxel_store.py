@@ -20,15 +20,16 @@ log = logging.getLogger(__name__)
 WEIGHT_TOLERANCE = 1e-6
 
 
-def _canonical(block: VoxelBlock) -> VoxelBlock:
-    """The block with sorted keys; duplicate keys are an error."""
+def _canonical(block: VoxelBlock) -> tuple[VoxelBlock, torch.Tensor]:
+    """The block with sorted keys and its packed keys; duplicate keys are an error."""
     keys = block.packed_keys()
     if keys.shape[0] < 2 or bool((keys[1:] > keys[:-1]).all()):
-        return block
+        return block, keys
     order = torch.argsort(keys)
-    if bool((keys[order][1:] == keys[order][:-1]).any()):
+    keys = keys[order]
+    if bool((keys[1:] == keys[:-1]).any()):
         raise ValueError("VoxelBlock has duplicate voxel keys; a block holds each voxel once")
-    return block.select(order)
+    return block.select(order), keys
 
 
 class VoxelStore:
@@ -115,63 +116,62 @@ class VoxelStore:
         """Fuse: ``F <- (F w + F_k w_k) / (w + w_k)``, ``w <- w + w_k`` (same for Jacobians)."""
         if block.num_voxels == 0:
             return
-        block = _canonical(block.to(self.device))
-        keys = block.packed_keys()
+        block, keys = _canonical(block.to(self.device))
         rows = self.lookup(keys)
         found = rows >= 0
+        n_found = int(found.sum())
         w_new = block.weights.to(torch.float64)
-        if bool(found.any()):
-            r = rows[found]
-            w_old = self._weights[r]
-            total = w_old + w_new[found]
-            a = (w_old / total).to(torch.float32)
-            self._latents[r] = self._latents[r] * a.view(-1, 1, 1) + block.latents[found] * (
-                1.0 - a
-            ).view(-1, 1, 1)
-            self._jacobians[r] = self._jacobians[r] * a.view(-1, 1, 1, 1) + block.jacobians[
-                found
-            ] * (1.0 - a).view(-1, 1, 1, 1)
-            self._weights[r] = total
-        missing = ~found
-        if bool(missing.any()):
-            new_keys = keys[missing]
-            r = self._allocate(new_keys.shape[0])
-            self._latents[r] = block.latents[missing]
-            self._jacobians[r] = block.jacobians[missing]
-            self._weights[r] = w_new[missing]
-            self._insert(new_keys, r)
+        if n_found == keys.shape[0]:
+            self._blend(rows, block.latents, block.jacobians, w_new)
+        else:
+            hit = found.nonzero().squeeze(1)
+            miss = (~found).nonzero().squeeze(1)
+            if n_found:
+                self._blend(rows[hit], block.latents[hit], block.jacobians[hit], w_new[hit])
+            r = self._allocate(miss.shape[0])
+            self._latents[r] = block.latents[miss]
+            self._jacobians[r] = block.jacobians[miss]
+            self._weights[r] = w_new[miss]
+            self._insert(keys[miss], r)
         self._dirty.append(keys)
 
     def subtract(self, block: VoxelBlock) -> None:
         """Remove: ``F <- (F w - F_k w_k) / (w - w_k)``, ``w <- w - w_k``; drop emptied voxels."""
         if block.num_voxels == 0:
             return
-        block = _canonical(block.to(self.device))
-        keys = block.packed_keys()
+        block, keys = _canonical(block.to(self.device))
         rows = self.lookup(keys)
         found = rows >= 0
+        latents, jacobians, w_k = block.latents, block.jacobians, block.weights.to(torch.float64)
         if not bool(found.all()):
             log.debug("remove: %d voxels of the block are not in the map", int((~found).sum()))
-        r = rows[found]
-        w_old = self._weights[r]
-        w_k = block.weights[found].to(torch.float64)
-        remaining = w_old - w_k
-        alive = remaining > WEIGHT_TOLERANCE * torch.clamp(w_old, min=1.0)
-        ra = r[alive]
-        w_rem = remaining[alive]
-        scale_old = (w_old[alive] / w_rem).to(torch.float32)
-        scale_k = (w_k[alive] / w_rem).to(torch.float32)
-        self._latents[ra] = self._latents[ra] * scale_old.view(-1, 1, 1) - block.latents[found][
-            alive
-        ] * scale_k.view(-1, 1, 1)
-        self._jacobians[ra] = self._jacobians[ra] * scale_old.view(-1, 1, 1, 1) - block.jacobians[
-            found
-        ][alive] * scale_k.view(-1, 1, 1, 1)
-        self._weights[ra] = w_rem
-        dead_keys = keys[found][~alive]
-        if dead_keys.numel():
-            self._delete(dead_keys, r[~alive])
+            hit = found.nonzero().squeeze(1)
+            rows, latents, jacobians, w_k = rows[hit], latents[hit], jacobians[hit], w_k[hit]
+            keys = keys[hit]
+        w_old = self._weights[rows]
+        alive = (w_old - w_k) > WEIGHT_TOLERANCE * torch.clamp(w_old, min=1.0)
+        if bool(alive.all()):
+            self._blend(rows, latents, jacobians, -w_k)
+        else:
+            live = alive.nonzero().squeeze(1)
+            dead = (~alive).nonzero().squeeze(1)
+            self._blend(rows[live], latents[live], jacobians[live], -w_k[live])
+            self._delete(keys[dead], rows[dead])
         self._dirty.append(keys)
+
+    def _blend(
+        self, rows: torch.Tensor, latents: torch.Tensor, jacobians: torch.Tensor, w_k: torch.Tensor
+    ) -> None:
+        """``X <- (X w + X_k w_k) / (w + w_k)`` at ``rows``; a negative ``w_k`` removes.
+
+        Written as ``lerp(X, X_k, w_k / (w + w_k))``; the caller guarantees ``w + w_k > 0``.
+        """
+        total = self._weights.index_select(0, rows) + w_k
+        t = (w_k / total).to(torch.float32)
+        for store, new in ((self._latents, latents), (self._jacobians, jacobians)):
+            old = store.index_select(0, rows)
+            store.index_copy_(0, rows, old.lerp_(new, t.view(-1, *([1] * (new.ndim - 1)))))
+        self._weights.index_copy_(0, rows, total)
 
     def load_arrays(self, block: VoxelBlock, weights64: torch.Tensor) -> None:
         """Replace the whole content (used by loading); ``block`` must have sorted unique keys."""

@@ -143,6 +143,15 @@ class SubmapConfig(_Strict):
     normal_radius_m: float | None = Field(
         None, description="ignore normal-fit neighbours farther than this (None: no limit)"
     )
+    max_map_points: int | None = Field(
+        None,
+        ge=100,
+        description="cap on the points a submap encodes (seeded random subset; None: no cap)",
+    )
+    keep_points: bool = Field(
+        False,
+        description="keep each submap's points after encoding (for re-encoding experiments)",
+    )
     keep_keyframe_images: bool = Field(
         True, description="keep the anchor frame's RGB-D images (needed by RGB-D loop closure)"
     )
@@ -163,7 +172,15 @@ class LidarLoopConfig(_Strict):
     inliers_threshold: int = Field(
         5, ge=3, description="minimum 2D RANSAC inliers of a map_closures candidate"
     )
-    top_k: int = Field(3, ge=1, description="candidates per query submap that are verified")
+    top_k: int = Field(3, ge=1, description="map_closures candidates verified per query submap")
+    proximity_radius_m: float = Field(
+        0.0,
+        ge=0,
+        description="also verify older anchors whose estimate is this close (0: map_closures only)",
+    )
+    max_proximity_candidates: int = Field(
+        2, ge=1, description="nearest proximity candidates verified per query submap"
+    )
     icp_max_correspondence_m: float = Field(
         2.0, gt=0, description="ICP correspondence distance"
     )
@@ -348,7 +365,10 @@ class RunConfig(_Strict):
     viz: VizConfig = Field(default_factory=VizConfig, description="Rerun logging")
     output: OutputConfig = Field(default_factory=OutputConfig, description="run folder")
     torch_threads: int = Field(
-        2, ge=1, description="torch CPU threads (the pipeline is otherwise single-threaded)"
+        1,
+        ge=1,
+        description="torch CPU threads; 1 is fastest when other work shares the cores "
+        "(OpenMP threads spin and thrash under oversubscription)",
     )
 
 

@@ -1,10 +1,17 @@
 """LiDAR loop closure: map_closures candidates on submap clouds, verified by ICP and overlap.
 
-map_closures (Gupta et al., ICRA 2024) turns each submap cloud into a ground-aligned bird's-eye
-density image, matches ORB features against every earlier submap and aligns the matches by 2D
-RANSAC. Its ``pose`` maps the reference submap into the query submap (``T_Aj_Ai``). Each candidate
-is then refined by point-to-point ICP (KISS-ICP's registration against a voxel hash map of the
-reference cloud) and accepted only when
+Candidates come from two places:
+
+* map_closures (Gupta et al., ICRA 2024) turns each submap cloud into a ground-aligned bird's-eye
+  density image, matches ORB features against every earlier submap and aligns the matches by 2D
+  RANSAC. Its ``pose`` maps the reference submap into the query submap (``T_Aj_Ai``). It does not
+  depend on the drift, but needs distinctive structure in the density image.
+* pose proximity: older anchors whose current estimate lies within ``proximity_radius_m`` of the
+  query anchor, with the estimated relative pose as the initial guess. This finds revisits that
+  map_closures misses while the drift is small compared to the radius.
+
+Each candidate is refined by point-to-point ICP (KISS-ICP's registration against a voxel hash
+map of the reference cloud, coarse then fine) and accepted only when
 
 * ICP did not have to move the candidate far (a large correction means the 2D match was wrong),
 * enough query points lie close to the reference cloud after alignment (inlier ratio), and
@@ -44,7 +51,8 @@ class IcpVerifier:
     def align(
         self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
     ) -> np.ndarray:
-        """Refine ``T_ref_query`` with KISS-ICP's robust point-to-point registration."""
+        """Refine ``T_ref_query`` with KISS-ICP's robust point-to-point registration: a coarse
+        pass (3x the correspondence distance and kernel) then the configured one."""
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
 
@@ -58,16 +66,20 @@ class IcpVerifier:
         registration = Registration(
             max_num_iterations=c.icp_max_iterations, convergence_criterion=1e-4, max_num_threads=1
         )
-        return np.asarray(
-            registration.align_points_to_map(
-                points=np.asarray(query, dtype=np.float64),
-                voxel_map=voxel_map,
-                initial_guess=np.asarray(T_ref_query_guess, dtype=np.float64),
-                max_correspondance_distance=c.icp_max_correspondence_m,
-                kernel=c.icp_kernel_m,
-            ),
-            dtype=np.float64,
-        )
+        points = np.asarray(query, dtype=np.float64)
+        T = np.asarray(T_ref_query_guess, dtype=np.float64)
+        for scale in (3.0, 1.0):
+            T = np.asarray(
+                registration.align_points_to_map(
+                    points=points,
+                    voxel_map=voxel_map,
+                    initial_guess=T,
+                    max_correspondance_distance=scale * c.icp_max_correspondence_m,
+                    kernel=scale * c.icp_kernel_m,
+                ),
+                dtype=np.float64,
+            )
+        return T
 
     def verify(
         self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
@@ -123,31 +135,58 @@ class LidarLoopDetector(LoopDetector):
         self._clouds: dict[int, np.ndarray] = {}
         self._travelled: dict[int, float] = {}
 
+    def _eligible(self, i: int, submap: SubmapRecord) -> bool:
+        return (
+            i in self._clouds
+            and submap.submap_id - i >= self.cfg.min_submap_separation
+            and submap.travelled_m - self._travelled[i] >= self.cfg.min_travel_m
+        )
+
+    def _guesses(
+        self, submap: SubmapRecord, cloud: np.ndarray, T_W_A: dict[int, np.ndarray]
+    ) -> dict[int, tuple[str, np.ndarray, dict[str, float]]]:
+        """Candidate reference ids with their detector, ``T_Ai_Aj`` guess and scores."""
+        lidar = self.cfg.lidar
+        j = submap.submap_id
+        guesses: dict[int, tuple[str, np.ndarray, dict[str, float]]] = {}
+        for closure in self._closures.get_top_k_closures(j, cloud, lidar.top_k):
+            i = int(closure.source_id)
+            inliers = int(closure.number_of_inliers)
+            if inliers < lidar.inliers_threshold or not self._eligible(i, submap):
+                continue
+            T_Aj_Ai = np.asarray(closure.pose, dtype=np.float64)
+            guesses[i] = ("map_closures", np.linalg.inv(T_Aj_Ai), {"map_closures_inliers": inliers})
+        if lidar.proximity_radius_m > 0 and j in T_W_A:
+            near = []
+            for i in self._clouds:
+                if i in guesses or i not in T_W_A or not self._eligible(i, submap):
+                    continue
+                distance = float(np.linalg.norm(T_W_A[i][:3, 3] - T_W_A[j][:3, 3]))
+                if distance <= lidar.proximity_radius_m:
+                    near.append((distance, i))
+            for distance, i in sorted(near)[: lidar.max_proximity_candidates]:
+                guess = np.linalg.inv(T_W_A[i]) @ T_W_A[j]
+                guesses[i] = ("proximity", guess, {"anchor_distance_m": distance})
+        return guesses
+
     def process(
         self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
     ) -> list[LoopCandidate]:
         cloud = np.asarray(submap.loop_points_A, dtype=np.float64)
         j = submap.submap_id
+        if len(cloud) < 100:
+            self._closures.get_top_k_closures(j, cloud, 1)
+            self._clouds[j] = submap.loop_points_A
+            self._travelled[j] = submap.travelled_m
+            return []
+        guesses = self._guesses(submap, cloud, T_W_A_estimates)
         self._clouds[j] = submap.loop_points_A
         self._travelled[j] = submap.travelled_m
-        if len(cloud) < 100:
-            return []
-        raw = self._closures.get_top_k_closures(j, cloud, self.cfg.lidar.top_k)
         candidates = []
-        for closure in raw:
-            i = int(closure.source_id)
-            inliers = int(closure.number_of_inliers)
-            if inliers < self.cfg.lidar.inliers_threshold or i not in self._clouds:
-                continue
-            if j - i < self.cfg.min_submap_separation:
-                continue
-            if submap.travelled_m - self._travelled[i] < self.cfg.min_travel_m:
-                continue
-            T_Aj_Ai = np.asarray(closure.pose, dtype=np.float64)
-            guess = np.linalg.inv(T_Aj_Ai)
+        for i, (detector, guess, detection_scores) in guesses.items():
             reference = np.asarray(self._clouds[i], dtype=np.float64)
             accepted, reason, T_Ai_Aj, scores = self._verifier.verify(reference, cloud, guess)
-            scores["map_closures_inliers"] = float(inliers)
-            logger.debug("loop %d-%d: %s %s", i, j, reason, scores)
-            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores))
+            scores.update(detection_scores)
+            logger.debug("loop %d-%d (%s): %s %s", i, j, detector, reason, scores)
+            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, detector))
         return candidates

@@ -265,7 +265,7 @@ class RgbdLoopDetector(LoopDetector):
                 self._features[i], query, matches
             )
             logger.debug("loop %d-%d: %s %s", i, j, reason, scores)
-            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores))
+            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "orb"))
         self._features[j] = query
         self._travelled[j] = submap.travelled_m
         return candidates

@@ -19,6 +19,7 @@ class LoopCandidate:
         reason: ``accepted`` or why it was rejected, e.g. ``overlap 0.12 < 0.30``.
         T_Ai_Aj: the verified relative pose (or the last estimate before rejection), or None.
         scores: diagnostics of detection and verification (inliers, overlap, residuals...).
+        detector: what proposed it (``map_closures``, ``proximity``, ``orb``).
         graph_inlier: set by the pipeline after the pose graph solved with this edge.
     """
 
@@ -28,6 +29,7 @@ class LoopCandidate:
     reason: str
     T_Ai_Aj: np.ndarray | None = None
     scores: dict[str, float] = field(default_factory=dict)
+    detector: str = ""
     graph_inlier: bool | None = None
 
 

@@ -39,6 +39,7 @@ logger = logging.getLogger(__name__)
 LOOP_COLUMNS = (
     "reference_submap",
     "query_submap",
+    "detector",
     "status",
     "reason",
     "graph_inlier",
@@ -96,7 +97,9 @@ def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
         inlier = "" if c.graph_inlier is None else str(bool(c.graph_inlier)).lower()
         scores = json.dumps({k: round(float(v), 4) for k, v in c.scores.items()})
         status = "accepted" if c.accepted else "rejected"
-        writer.writerow([c.reference_id, c.query_id, status, c.reason, inlier, *pose, scores])
+        writer.writerow(
+            [c.reference_id, c.query_id, c.detector, status, c.reason, inlier, *pose, scores]
+        )
     return buffer.getvalue()
 
 

@@ -95,6 +95,7 @@ class SlamPipeline:
         )
         self.remapper = Remapper(cfg.remap, neural_map)
         self.submaps: dict[int, object] = {}
+        self.records: dict[int, SubmapRecord] = {}
         self.loop_candidates: list[LoopCandidate] = []
         self.timings_s: dict[str, list[float]] = defaultdict(list)
         self._frame_submap: list[int] = []
@@ -202,16 +203,26 @@ class SlamPipeline:
         return candidates, remap
 
     def _encode(self, record: SubmapRecord) -> None:
+        record.keyframe = None  # loop detection has taken what it needs
+        self.records[record.submap_id] = record
         if len(record.points_A) == 0:
             logger.warning("submap %d has no points; nothing to encode", record.submap_id)
             return
         T_W_A = self.graph.pose(record.submap_id)
+        logger.info(
+            "submap %d: frames %d-%d, %d points",
+            record.submap_id,
+            record.frame_indices[0],
+            record.frame_indices[-1],
+            len(record.points_A),
+        )
         submap = self.map.encode(record.submap_id, record.points_A, record.normals_A, T_W_A)
         self.map.fuse(submap)
         self.submaps[record.submap_id] = submap
-        # The map keeps the encoding; the raw points are not needed any more.
-        record.points_A = np.zeros((0, 3))
-        record.normals_A = np.zeros((0, 3))
+        if not self.cfg.submaps.keep_points:
+            # The map keeps the encoding; the raw points are not needed any more.
+            record.points_A = np.zeros((0, 3))
+            record.normals_A = np.zeros((0, 3))
 
     def _refresh_graph_inliers(self) -> None:
         """Copy the pose graph's current inlier decision onto the accepted candidates."""

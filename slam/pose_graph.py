@@ -31,6 +31,9 @@ from slam.submaps import rotation_angle_rad
 logger = logging.getLogger(__name__)
 
 INLIER_WEIGHT = 0.5
+"""A GNC weight above this keeps a loop edge."""
+CAUCHY_INLIER_WEIGHT = 0.1
+"""A Cauchy weight above this (whitened residual below 3 k) counts as an inlier."""
 
 
 @dataclass
@@ -213,7 +216,7 @@ class PoseGraph:
                 edge.weight = 1.0 / (1.0 + (whitened / self.cfg.cauchy_k) ** 2)
             else:
                 edge.weight = 1.0
-            edge.inlier = edge.weight > INLIER_WEIGHT
+            edge.inlier = edge.weight > CAUCHY_INLIER_WEIGHT
 
     def optimize_batch(self) -> dict[int, np.ndarray]:
         """Optimise the whole graph from the current estimate (``cfg.final_optimizer``).

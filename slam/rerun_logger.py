@@ -78,7 +78,7 @@ class RerunLogger(Logger):
         connect_url: stream to a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
         scan_max_points: scans are randomly subsampled to at most this many points.
         map_max_voxels: voxel centres are randomly subsampled to at most this many.
-        mesh_max_faces: meshes with more faces are logged with a random subset of faces.
+        mesh_max_faces: meshes with more faces are decimated by vertex clustering (display only).
         voxel_size_m: drawn radius of a voxel centre is half of this (UI points when None).
         up_axis: ``+z`` (LiDAR, KITTI), ``+y`` or ``-y``; sets the view and the height colouring.
         image_every: log RGB-D images every n-th call of :meth:`log_sensor` (poses every call).
@@ -105,9 +105,9 @@ class RerunLogger(Logger):
         rrd_path: Path | str | None = None,
         spawn: bool = False,
         connect_url: str | None = None,
-        scan_max_points: int = 4000,
-        map_max_voxels: int = 40_000,
-        mesh_max_faces: int = 200_000,
+        scan_max_points: int = 3000,
+        map_max_voxels: int = 20_000,
+        mesh_max_faces: int = 60_000,
         voxel_size_m: float | None = None,
         up_axis: str = "+z",
         image_every: int = 1,
@@ -339,20 +339,24 @@ class RerunLogger(Logger):
             self.log_mesh(mesh)
 
     def log_mesh(self, mesh: trimesh.Trimesh) -> None:
-        """Log ``mesh`` at ``world/map/mesh`` (also called by :meth:`log_map`)."""
+        """Log ``mesh`` at ``world/map/mesh`` (also called by :meth:`log_map`), decimated by
+        vertex clustering to at most ``mesh_max_faces`` faces."""
         import rerun as rr
 
-        faces = np.asarray(mesh.faces)
-        if len(faces) > self.mesh_max_faces:
-            faces = faces[np.sort(self._rng.choice(len(faces), self.mesh_max_faces, replace=False))]
         vertex_colors = None
         if mesh.visual is not None and mesh.visual.kind == "vertex":
             vertex_colors = np.asarray(mesh.visual.vertex_colors)[:, :3]
-        normals = np.asarray(mesh.vertex_normals, dtype=np.float32) if len(faces) else None
+        vertices, faces, vertex_colors = decimate_mesh(
+            np.asarray(mesh.vertices), np.asarray(mesh.faces), self.mesh_max_faces, vertex_colors
+        )
+        normals = None
+        if len(faces):
+            shown = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+            normals = np.asarray(shown.vertex_normals, dtype=np.float32)
         self.rec.log(
             "world/map/mesh",
             rr.Mesh3D(
-                vertex_positions=np.asarray(mesh.vertices, dtype=np.float32),
+                vertex_positions=vertices.astype(np.float32),
                 triangle_indices=faces.astype(np.uint32),
                 vertex_normals=normals,
                 vertex_colors=vertex_colors,
@@ -443,6 +447,62 @@ class RerunLogger(Logger):
             if ok:
                 return rr.EncodedDepthImage(png.tobytes(), media_type="image/png", meter=1000.0)
         return rr.DepthImage(depth_m, meter=1.0)
+
+
+def decimate_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    max_faces: int,
+    vertex_colors: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Vertex-clustering decimation for display: vertices are merged per cell of a grid (cell
+    size from the mesh area, ``sqrt(2 area / max_faces)``, grown until the face budget holds),
+    collapsed and duplicate faces dropped. Meshes within budget are returned unchanged."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if len(faces) <= max_faces:
+        return vertices, faces, vertex_colors
+    corners = vertices[faces]
+    area = (
+        0.5
+        * np.linalg.norm(
+            np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
+        ).sum()
+    )
+    cell = max(math.sqrt(1.2 * area / max(max_faces, 1)), 1e-9)
+    while True:
+        grid = np.floor((vertices - vertices.min(axis=0)) / cell).astype(np.int64)
+        keys = (grid[:, 0] << 42) | (grid[:, 1] << 21) | grid[:, 2]  # < 2**21 cells per axis
+        _, cluster, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        cluster = cluster.ravel()
+        new_faces = cluster[faces]
+        keep = (
+            (new_faces[:, 0] != new_faces[:, 1])
+            & (new_faces[:, 1] != new_faces[:, 2])
+            & (new_faces[:, 0] != new_faces[:, 2])
+        )
+        new_faces = new_faces[keep]
+        ordered = np.sort(new_faces, axis=1)
+        if len(counts) < 1 << 21:
+            ordered = (ordered[:, 0] << 42) | (ordered[:, 1] << 21) | ordered[:, 2]
+        _, first = np.unique(ordered, axis=0 if ordered.ndim == 2 else None, return_index=True)
+        new_faces = new_faces[np.sort(first)]
+        if len(new_faces) <= max_faces:
+            break
+        cell *= 1.15
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, cluster, vertices)
+    new_vertices = sums / counts[:, None]
+    new_colors = None
+    if vertex_colors is not None:
+        color_sums = np.zeros((len(counts), 3))
+        np.add.at(color_sums, cluster, np.asarray(vertex_colors, dtype=np.float64)[:, :3])
+        new_colors = np.round(color_sums / counts[:, None]).astype(np.uint8)
+    used = np.unique(new_faces)
+    remap = np.full(len(counts), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    colors_out = None if new_colors is None else new_colors[used]
+    return new_vertices[used], remap[new_faces], colors_out
 
 
 def _viewer_executable() -> str | None:

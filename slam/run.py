@@ -57,7 +57,6 @@ DATASETS: dict[str, DatasetEntry] = {
     "replica": DatasetEntry("replica", "replica", True, True),
     "7scenes": DatasetEntry("7scenes", "7scenes", True, True),
     "demo": DatasetEntry("generated", "demo", False, False),
-    "generated-rgbd": DatasetEntry("generated", "generated-rgbd", False, False),
     "generated-lidar": DatasetEntry("generated", "generated-lidar", False, False),
 }
 

@@ -231,8 +231,14 @@ class Keyframer:
                     num_neighbours=self.cfg.normal_neighbours,
                     max_radius_m=self.cfg.normal_radius_m,
                 )
-            sub.points_A = points_A[valid]
-            sub.normals_A = normals_A[valid]
+            points_A, normals_A = points_A[valid], normals_A[valid]
+            cap = self.cfg.max_map_points
+            if cap is not None and len(points_A) > cap:
+                rng = np.random.default_rng(sub.submap_id)
+                keep = np.sort(rng.choice(len(points_A), cap, replace=False))
+                points_A, normals_A = points_A[keep], normals_A[keep]
+            sub.points_A = points_A
+            sub.normals_A = normals_A
             sub.loop_points_A = voxel_subsample(points_A, self.cfg.loop_voxel_m).astype(np.float32)
         self._chunks = []
         self._current = None

@@ -5,7 +5,8 @@ as good as encoding the transformed points?
         [--frames A:B:STEP] [--every 20] [--max-frames 12] [--variants first-order,zeroth-order]
 
 For each selected frame with a ground-truth pose ``T_W_S`` (the frame's points ``P`` in the sensor
-frame, with normals, range-limited and averaged on the run's submap grid as the pipeline does):
+frame with normals, range-limited; RGB-D depth is read at full resolution,
+``source.depth.stride=1``, unless ``--set`` says otherwise):
 
 - encode-transform (the paper's contribution): encode ``P`` at the identity, then move the map to
   ``T_W_S`` with :meth:`mapping.neural_map.NeuralMap.move` (one map per *variant* of the transform
@@ -44,11 +45,14 @@ DEFAULT_VARIANTS = ("first-order", "zeroth-order")
 
 
 def frame_points(frame, submap_cfg) -> tuple[np.ndarray, np.ndarray]:
-    """Points and unit normals of a frame in its sensor frame, prepared like a submap's points:
-    range-limited, normals estimated when the source has none (towards the sensor), averaged on
-    ``submap_cfg.map_voxel_m``."""
+    """Points and unit normals of a frame in its sensor frame: range-limited like a submap's,
+    normals estimated (towards the sensor) when the source has none.
+
+    The points are not averaged on the submap grid: a single frame is much sparser than a submap,
+    and averaging it would leave too few points per voxel for the encoder's pruning
+    (``mapping.min_points_per_voxel``).
+    """
     from slam.normals import estimate_normals
-    from slam.submaps import voxel_downsample
 
     points = np.asarray(frame.points, dtype=np.float64)
     distance = np.linalg.norm(points, axis=1)
@@ -56,14 +60,12 @@ def frame_points(frame, submap_cfg) -> tuple[np.ndarray, np.ndarray]:
     points = points[keep]
     if frame.normals is not None:
         normals = np.asarray(frame.normals, dtype=np.float64)[keep]
-        valid = np.linalg.norm(normals, axis=1) > 0.5
     else:
-        normals, valid = estimate_normals(
+        normals, _ = estimate_normals(
             points, np.zeros(3), num_neighbours=submap_cfg.normal_neighbours
         )
-    points, normals = voxel_downsample(submap_cfg.map_voxel_m, points[valid], normals[valid])
     norm = np.linalg.norm(normals, axis=1)
-    good = norm > 1e-6
+    good = norm > 0.5
     return points[good], normals[good] / norm[good, None]
 
 
@@ -273,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         spawn=False,
         connect=None,
         rrd=None,
-        set=args.set,
+        set=["source.depth.stride=1", *args.set],
     )
     command = "python -m slam.eval transform " + " ".join(argv)
     try:

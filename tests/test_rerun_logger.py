@@ -16,14 +16,21 @@ from slam.rerun_logger import RerunLogger, metric_entity, summarize_recording
 from slam.viz import Logger, NullLogger
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-# A short demo: one lap of the generated room in 60 frames, small submaps so that the lap closes
-# a loop and the map is meshed several times. Shared with tests/test_eval.py.
+# A short demo: one lap of the generated room in 60 frames with ground-truth odometry (so that a
+# 6-degree step per frame is no problem), small submaps so that the lap closes a loop and the map
+# is meshed several times, and a coarse mesh lattice to keep it fast. Shared with test_eval.py.
 DEMO_ARGS = [
     "demo",
+    "--odometry",
+    "gt",
     "--set",
     "generated.num_frames=60",
     "--set",
-    "submaps.max_frames=6",
+    "submaps.max_frames=10",
+    "--set",
+    "source.depth.stride=4",
+    "--set",
+    "mapping.mesh_subdivisions=2",
     "--set",
     "output.mesh_samples=20000",
     "--no-progress",
@@ -167,30 +174,28 @@ def test_requires_a_sink() -> None:
         RerunLogger()
 
 
-def demo_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """Run folders of the short demo with ``--no-viz`` and with ``--rrd`` (made once a session)."""
-    if not _DEMO_RUNS:
-        base = tmp_path_factory.mktemp("demo_runs")
-        for mode in ("no-viz", "rrd"):
-            folder = base / mode
-            viz = ["--no-viz"] if mode == "no-viz" else ["--rrd", str(folder / "recording.rrd")]
-            result = subprocess.run(
-                [sys.executable, "-m", "slam.run", *DEMO_ARGS, *viz, "--out", str(folder)],
-                capture_output=True,
-                text=True,
-                cwd=REPO_ROOT,
-                timeout=1200,
-            )
-            assert result.returncode == 0, result.stderr[-3000:]
-            _DEMO_RUNS[mode] = folder
-    return _DEMO_RUNS
+def demo_run(tmp_path_factory: pytest.TempPathFactory, mode: str) -> Path:
+    """Run folder of the short demo with ``--no-viz`` or ``--rrd`` (made once per session)."""
+    if mode not in _DEMO_RUNS:
+        folder = tmp_path_factory.mktemp("demo_runs") / mode
+        viz = ["--no-viz"] if mode == "no-viz" else ["--rrd", str(folder / "recording.rrd")]
+        result = subprocess.run(
+            [sys.executable, "-m", "slam.run", *DEMO_ARGS, *viz, "--out", str(folder)],
+            capture_output=True,
+            text=True,
+            cwd=REPO_ROOT,
+            timeout=1200,
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        _DEMO_RUNS[mode] = folder
+    return _DEMO_RUNS[mode]
 
 
 @pytest.mark.slow
 def test_demo_recording_and_null_logger_give_identical_slam_outputs(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> None:
-    runs = demo_runs(tmp_path_factory)
+    runs = {mode: demo_run(tmp_path_factory, mode) for mode in ("no-viz", "rrd")}
     for name in ("poses_odometry.kitti.txt", "poses_slam.kitti.txt", "loops.csv"):
         assert (runs["no-viz"] / name).read_bytes() == (runs["rrd"] / name).read_bytes(), name
     assert not (runs["no-viz"] / "recording.rrd").exists()
@@ -211,3 +216,19 @@ def test_demo_recording_and_null_logger_give_identical_slam_outputs(
     assert summary.entities["world/loop_closures"].max_instances >= 1
     assert summary.rows("metrics/timing/frame_ms") == num_frames
     assert summary.rows("metrics/error/ate_slam_m") >= 1
+
+
+def test_mesh_decimation_keeps_the_surface_within_budget() -> None:
+    from slam.rerun_logger import decimate_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=5)  # 20480 faces, radius 1
+    colors = np.tile(np.array([[10, 200, 30]], np.uint8), (len(sphere.vertices), 1))
+    vertices, faces, out_colors = decimate_mesh(sphere.vertices, sphere.faces, 2000, colors)
+    assert 500 < len(faces) <= 2000
+    assert faces.max() < len(vertices) and out_colors is not None
+    assert len(out_colors) == len(vertices) and np.all(out_colors == [10, 200, 30])
+    decimated = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    assert abs(decimated.area - sphere.area) / sphere.area < 0.1
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 1.0).max() < 0.1
+    same = decimate_mesh(sphere.vertices, sphere.faces, 30000)
+    assert same[1] is not None and len(same[1]) == len(sphere.faces)

@@ -1,0 +1,201 @@
+"""The whole back-end on short generated loops: loop closure, pose graph, remapping.
+
+The odometry is the ground truth with a constant per-frame bias accumulated on top (a stand-in for
+a drifting front-end), so that loop closure has a known drift to remove; everything downstream
+(keyframing, neural map, loop detection and verification, pose graph, remapping) is the real code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from frontends.frame import Frame
+from frontends.odometry.base import Odometry
+from frontends.odometry.ground_truth import GroundTruthOdometry
+from frontends.sources import make_source
+from slam.builders import build_map
+from slam.config import RunConfig
+from slam.loops import LoopCandidate, LoopDetector
+from slam.metrics.mesh import mesh_metrics
+from slam.metrics.trajectory import ate_rmse
+from slam.pipeline import SlamPipeline, make_loop_detector
+from slam.submaps import SubmapRecord
+from slam.viz import NullLogger
+
+ROOM = {"kind": "rgbd", "num_frames": 240, "seed": 0, "width": 320, "height": 240}
+STREET = {"kind": "lidar", "num_frames": 150, "seed": 0, "azimuth_steps": 1024}
+
+
+class DriftingOdometry(Odometry):
+    """Ground-truth increments with a constant yaw bias and a scale error per frame."""
+
+    def __init__(self, yaw_deg_per_frame: float, scale: float, up_axis: int) -> None:
+        self._gt = GroundTruthOdometry()
+        self._previous: np.ndarray | None = None
+        self._pose = np.eye(4)
+        angle = np.radians(yaw_deg_per_frame)
+        axes = [a for a in range(3) if a != up_axis]
+        self._bias = np.eye(4)
+        self._bias[axes[0], axes[0]] = self._bias[axes[1], axes[1]] = np.cos(angle)
+        self._bias[axes[0], axes[1]] = -np.sin(angle)
+        self._bias[axes[1], axes[0]] = np.sin(angle)
+        self._scale = scale
+
+    def register(self, frame: Frame) -> np.ndarray:
+        T = self._gt.register(frame)
+        if self._previous is not None:
+            step = np.linalg.inv(self._previous) @ T
+            step[:3, 3] *= self._scale
+            self._pose = self._pose @ step @ self._bias
+        self._previous = T
+        return self._pose.copy()
+
+
+class FalseLoopInjector(LoopDetector):
+    """Passes the real detector's candidates through and adds one wrong 'verified' edge."""
+
+    def __init__(self, inner: LoopDetector, at_submap: int, wrong_by_m: float) -> None:
+        self.inner = inner
+        self.at_submap = at_submap
+        self.wrong_by_m = wrong_by_m
+
+    def process(self, submap: SubmapRecord, T_W_A_estimates):
+        candidates = self.inner.process(submap, T_W_A_estimates)
+        j = submap.submap_id
+        if j == self.at_submap:
+            T = np.linalg.inv(T_W_A_estimates[j - 4]) @ T_W_A_estimates[j]
+            T[:3, 3] += [self.wrong_by_m, -self.wrong_by_m, 0.0]
+            candidates.append(LoopCandidate(j - 4, j, True, "accepted", T, {}, "injected"))
+        return candidates
+
+
+def room_config(**submaps) -> RunConfig:
+    return RunConfig.model_validate(
+        {
+            "source": {"dataset": "generated", "depth": {"stride": 2, "max_depth_m": 6.0}},
+            "submaps": {
+                "max_frames": 10,
+                "max_distance_m": 0.5,
+                "max_range_m": 6.0,
+                "map_voxel_m": 0.03,
+                "keep_points": True,
+                **submaps,
+            },
+            "loop_closure": {"min_travel_m": 1.0, "rgbd": {"candidate_radius_m": 1.5}},
+            # Remap every anchor that moved by more than 2 mm / 0.1 deg, so that the map holds
+            # every submap at its final pose up to that.
+            "remap": {"translation_threshold_m": 0.002, "rotation_threshold_deg": 0.1},
+            "mapping": {"voxel_size_m": 0.1, "device": "cpu"},
+            "viz": {"mode": "none", "mesh_every_submaps": 10**6},
+        }
+    )
+
+
+def run(cfg: RunConfig, source, odometry: Odometry, detector=None) -> SlamPipeline:
+    pipeline = SlamPipeline(
+        cfg, source.sensor, odometry, build_map(cfg), NullLogger(), loop_detector=detector
+    )
+    for frame in source:
+        pipeline.process(frame)
+    pipeline.finish()
+    return pipeline
+
+
+@pytest.fixture(scope="module")
+def room():
+    """Every second frame of the generated room lap (the drift does not need them all)."""
+    return make_source(
+        "generated",
+        **ROOM,
+        frames=slice(None, None, 2),
+        loader_options={"depth_options": {"stride": 2}},
+    )
+
+
+def room_odometry() -> DriftingOdometry:
+    return DriftingOdometry(yaw_deg_per_frame=0.08, scale=1.01, up_axis=1)
+
+
+@pytest.fixture(scope="module")
+def room_run(room):
+    cfg = room_config(max_map_points=8000)
+    return cfg, run(cfg, room, room_odometry())
+
+
+def test_rgbd_loop_is_closed_and_lowers_ate(room, room_run):
+    _, pipeline = room_run
+    kept = [c for c in pipeline.loop_candidates if c.accepted and c.graph_inlier]
+    assert kept, [c.reason for c in pipeline.loop_candidates]
+    gt = room.gt_poses
+    ate_odometry = ate_rmse(pipeline.odometry_poses(), gt)
+    ate_slam = ate_rmse(pipeline.slam_poses(), gt)
+    assert ate_slam < 0.5 * ate_odometry, (ate_slam, ate_odometry)
+    # The loop moved the map: submaps were remapped from their original encodings.
+    assert pipeline.remapper.total_moved > 0
+    assert all(s.fused for s in pipeline.submaps.values())
+
+
+def test_remapped_map_matches_a_map_encoded_at_the_final_poses(room_run):
+    cfg, pipeline = room_run
+    scratch = build_map(cfg)
+    final = pipeline.graph.poses()
+    for submap_id, record in pipeline.records.items():
+        held = pipeline.submaps[submap_id].T_W_A
+        assert np.linalg.norm(held[:3, 3] - final[submap_id][:3, 3]) <= 0.002
+        scratch.fuse(scratch.encode(submap_id, record.points_A, record.normals_A, final[submap_id]))
+    remapped_mesh = pipeline.map.extract_mesh()
+    scratch_mesh = scratch.extract_mesh()
+    assert len(remapped_mesh.faces) > 1000 and len(scratch_mesh.faces) > 1000
+    distance = mesh_metrics(remapped_mesh, scratch_mesh, num_samples=30_000)
+    assert distance.accuracy_m < 0.01, distance
+    assert distance.completion_m < 0.01, distance
+
+
+def test_a_false_loop_edge_does_not_spoil_the_trajectory(room, room_run):
+    _, clean = room_run
+    cfg = room_config(max_map_points=1000)
+    detector = FalseLoopInjector(make_loop_detector(cfg, "rgbd"), at_submap=8, wrong_by_m=2.0)
+    corrupted = run(cfg, room, room_odometry(), detector)
+    injected = [c for c in corrupted.loop_candidates if c.detector == "injected"]
+    assert len(injected) == 1 and injected[0].graph_inlier is False
+    gt = room.gt_poses
+    ate_clean = ate_rmse(clean.slam_poses(), gt)
+    ate_corrupted = ate_rmse(corrupted.slam_poses(), gt)
+    assert ate_corrupted <= 1.1 * ate_clean + 1e-3, (ate_corrupted, ate_clean)
+
+
+def test_lidar_loop_is_closed_and_lowers_ate():
+    street = make_source("generated", **STREET)
+    cfg = RunConfig.model_validate(
+        {
+            "submaps": {
+                "max_distance_m": 15.0,
+                "max_rotation_deg": 360.0,
+                "max_frames": 1000,
+                "max_range_m": 25.0,
+                "map_voxel_m": 0.25,
+                "loop_voxel_m": 0.5,
+                "normal_radius_m": 1.0,
+                "max_map_points": 3000,
+            },
+            "loop_closure": {"min_travel_m": 40.0, "lidar": {"proximity_radius_m": 25.0}},
+            "pose_graph": {
+                "odometry_translation_sigma_per_m": 0.01,
+                "odometry_rotation_sigma_rad_per_m": 0.0005,
+                "loop_translation_sigma_m": 0.1,
+                "loop_rotation_sigma_rad": 0.005,
+            },
+            "mapping": {"voxel_size_m": 0.5, "min_points_per_voxel": 2, "device": "cpu"},
+            "viz": {"mode": "none", "mesh_every_submaps": 10**6},
+        }
+    )
+    odometry = DriftingOdometry(yaw_deg_per_frame=0.01, scale=1.01, up_axis=2)
+    pipeline = run(cfg, street, odometry)
+    kept = [c for c in pipeline.loop_candidates if c.accepted and c.graph_inlier]
+    assert kept, [c.reason for c in pipeline.loop_candidates]
+    gt = street.gt_poses
+    ate_odometry = ate_rmse(pipeline.odometry_poses(), gt)
+    ate_slam = ate_rmse(pipeline.slam_poses(), gt)
+    assert ate_slam < 0.5 * ate_odometry, (ate_slam, ate_odometry)
+    assert pipeline.remapper.total_moved > 0

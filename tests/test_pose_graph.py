@@ -1,0 +1,124 @@
+"""Pose graph over submap anchors on synthetic trajectories with drift (fast, no data)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from slam.config import PoseGraphConfig
+from slam.pose_graph import PoseGraph
+
+
+def circle(num: int, radius_m: float = 10.0) -> np.ndarray:
+    """Anchors on a circle; the last one is back near the first."""
+    poses = np.tile(np.eye(4), (num, 1, 1))
+    for k in range(num):
+        angle = 2 * np.pi * k / (num - 1)
+        poses[k, :3, :3] = Rotation.from_euler("z", angle + np.pi / 2).as_matrix()
+        poses[k, :3, 3] = [radius_m * np.cos(angle), radius_m * np.sin(angle), 0.0]
+    poses[-1, :3, 3] += [0.3, 0.0, 0.0]
+    return poses
+
+
+def drifting(gt: np.ndarray, seed: int, sigma_t: float, sigma_r: float) -> np.ndarray:
+    """Odometry: ground-truth increments with accumulating noise."""
+    rng = np.random.default_rng(seed)
+    odometry = [gt[0]]
+    for k in range(1, len(gt)):
+        step = np.linalg.inv(gt[k - 1]) @ gt[k]
+        noise = np.eye(4)
+        noise[:3, :3] = Rotation.from_rotvec(rng.normal(0, sigma_r, 3)).as_matrix()
+        noise[:3, 3] = rng.normal(0, sigma_t, 3)
+        odometry.append(odometry[-1] @ step @ noise)
+    return np.array(odometry)
+
+
+def ate(est: dict[int, np.ndarray] | np.ndarray, gt: np.ndarray) -> float:
+    est = np.array(list(est.values())) if isinstance(est, dict) else est
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def relative(gt: np.ndarray, i: int, j: int) -> np.ndarray:
+    return np.linalg.inv(gt[i]) @ gt[j]
+
+
+def build(cfg: PoseGraphConfig, odometry: np.ndarray, loops, false_loops=()) -> PoseGraph:
+    """Anchors in order; each loop is added as soon as both its anchors exist."""
+    graph = PoseGraph(cfg)
+    pending = [(i, j, T) for i, j, T in loops] + list(false_loops)
+    for k, T in enumerate(odometry):
+        graph.add_anchor(k, T)
+        for i, j, T_ij in [p for p in pending if max(p[0], p[1]) == k]:
+            graph.add_loop(i, j, T_ij)
+    return graph
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    gt = circle(41)
+    odometry = drifting(gt, seed=0, sigma_t=0.08, sigma_r=0.015)
+    loops = [(0, 40, relative(gt, 0, 40)), (5, 25, relative(gt, 5, 25))]
+    return gt, odometry, loops
+
+
+@pytest.mark.parametrize("final", ["gnc", "lm"])
+def test_loop_closure_reduces_ate(scenario, final):
+    gt, odometry, loops = scenario
+    graph = build(PoseGraphConfig(final_optimizer=final), odometry, loops)
+    online = graph.poses()
+    final_poses = graph.optimize_batch()
+    assert ate(final_poses, gt) < 0.5 * ate(odometry, gt)
+    assert ate(online, gt) < 0.7 * ate(odometry, gt)
+    assert all(edge.inlier for edge in graph.loops)
+
+
+def test_world_frame_is_the_first_anchor(scenario):
+    gt, odometry, loops = scenario
+    graph = build(PoseGraphConfig(), odometry, loops)
+    graph.optimize_batch()
+    np.testing.assert_allclose(graph.pose(0), odometry[0], atol=1e-6)
+    assert graph.node_ids == list(range(len(odometry)))
+
+
+@pytest.mark.parametrize("online_gnc", [True, False])
+def test_false_loop_is_rejected_or_down_weighted(scenario, online_gnc):
+    gt, odometry, loops = scenario
+    wrong = relative(gt, 10, 30)
+    wrong[:3, 3] += [3.0, -2.0, 0.5]  # off by ~3.6 m
+    cfg = PoseGraphConfig(online_gnc=online_gnc, final_optimizer="gnc" if online_gnc else "lm")
+    clean = build(cfg, odometry, loops)
+    corrupted = build(cfg, odometry, loops, false_loops=[(10, 30, wrong)])
+    ate_clean = ate(clean.optimize_batch(), gt)
+    ate_corrupted = ate(corrupted.optimize_batch(), gt)
+    assert ate_corrupted <= 1.1 * ate_clean + 1e-3
+    false_edge = next(e for e in corrupted.loops if (e.i, e.j) == (10, 30))
+    assert false_edge.weight < 0.1
+    assert not false_edge.inlier
+    if online_gnc:
+        assert all(e.inlier for e in corrupted.loops if (e.i, e.j) != (10, 30))
+
+
+def test_true_loop_survives_large_drift():
+    """GNC must keep a correct loop even when drift makes its first residual large."""
+    gt = circle(41)
+    odometry = drifting(gt, seed=3, sigma_t=0.05, sigma_r=0.03)
+    graph = build(PoseGraphConfig(), odometry, [(0, 40, relative(gt, 0, 40))])
+    assert graph.loops[0].inlier
+    assert ate(graph.optimize_batch(), gt) < 0.6 * ate(odometry, gt)
+
+
+def test_odometry_noise_grows_with_distance():
+    graph = PoseGraph(PoseGraphConfig())
+    near = graph.odometry_sigmas(1.0, 0.0)
+    far = graph.odometry_sigmas(10.0, 0.5)
+    assert np.all(far > near)
+
+
+def test_bad_anchor_ids():
+    graph = PoseGraph(PoseGraphConfig())
+    graph.add_anchor(0, np.eye(4))
+    with pytest.raises(ValueError):
+        graph.add_anchor(0, np.eye(4))
+    with pytest.raises(KeyError):
+        graph.add_loop(0, 7, np.eye(4))
