@@ -19,9 +19,9 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 TRAJECTORY_STYLES: dict[str, dict[str, object]] = {
-    "gt": {"color": "0.35", "linestyle": "--", "linewidth": 1.5, "label": "ground truth"},
-    "odometry": {"color": "tab:orange", "linewidth": 1.2, "label": "odometry"},
-    "slam": {"color": "tab:blue", "linewidth": 1.4, "label": "SLAM (loop-closed)"},
+    "gt": {"color": "0.2", "linestyle": "--", "linewidth": 1.2, "label": "GT", "zorder": 4},
+    "odometry": {"color": "tab:orange", "linewidth": 1.2, "label": "odometry", "zorder": 2},
+    "slam": {"color": "tab:blue", "linewidth": 1.4, "label": "SLAM (loop-closed)", "zorder": 3},
 }
 
 

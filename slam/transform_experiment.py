@@ -200,14 +200,14 @@ def write_outputs(
     groups = {
         label: {name: [row["variants"][name][key] for row in rows] for name in variants}
         for label, key in (
-            ("accuracy (encode-transform -> transform-encode)", "accuracy_m"),
-            ("completion (transform-encode -> encode-transform)", "completion_m"),
+            ("accuracy: moved -> re-encoded", "accuracy_m"),
+            ("completion: re-encoded -> moved", "completion_m"),
         )
     }
     figure = plots.plot_distributions(
         out_dir / "transform_distributions.png",
         groups,
-        title=f"Transform vs re-encode over {len(rows)} frames",
+        title=f"Encode-transform (moved map) vs transform-encode over {len(rows)} frames",
     )
     return {"results": results_path, "summary": summary_path, "plot": figure}
 

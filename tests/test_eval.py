@@ -126,3 +126,28 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
     assert math.isclose(
         culled["mesh"]["accuracy_m"], after["mesh"]["accuracy_m"], rel_tol=0.1, abs_tol=2e-3
     )
+
+
+def test_transform_experiment_outputs_summarize_per_variant(tmp_path: Path) -> None:
+    from slam.transform_experiment import summarize, write_outputs
+
+    def result(accuracy: float) -> dict[str, float]:
+        return {
+            "accuracy_m": accuracy,
+            "completion_m": accuracy / 2,
+            "completion_ratio": 1.0,
+            "move_s": 0.1,
+        }
+
+    rows = [
+        {"frame": i, "variants": {"first-order": result(0.002 * i), "zeroth-order": result(0.01)}}
+        for i in range(1, 4)
+    ]
+    summary = summarize(rows, ["first-order", "zeroth-order"])
+    assert summary["first-order"]["frames"] == 3
+    assert math.isclose(summary["first-order"]["accuracy_m_mean"], 0.004)
+    assert math.isclose(summary["zeroth-order"]["completion_m_median"], 0.005)
+    files = write_outputs(tmp_path, rows, ["first-order", "zeroth-order"], "cmd")
+    assert_png(files["plot"])
+    assert json.loads(files["results"].read_text())["summary"] == summary
+    assert "| first-order | 3 | 0.40 / 0.40 |" in files["summary"].read_text()
