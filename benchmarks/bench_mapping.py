@@ -212,7 +212,7 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
         motions["(b) grid-aligned 90 deg + 3 voxels"][:3, :3]
     )
     variants = [
-        Variant("ours (gaussian, Jacobian)", "gaussian", True),
+        Variant("ours (gaussian sigma 0.5 vu, Jacobian)", "gaussian", True),
         Variant("ours without Jacobian", "gaussian", False),
         Variant(
             "ours, paper's target rule (nearest source < 1 voxel)", "gaussian", True, 0.5, "radius"
@@ -252,7 +252,7 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
             )
             log.info("%s %s: %.4f %.4f", label, var.name, d12, d21)
         if not quick and not label.startswith("(b)"):
-            for sigma in (0.2, 0.3, 0.35, 0.5, 0.7):
+            for sigma in (0.2, 0.3, 0.5, 0.7, 1.0):
                 block = transform_block(base, D, V, sigma_vu=sigma)
                 d12, d21 = mesh_distance(mesh_of(model, cfg, block), ref_mesh, samples)
                 sweep.setdefault(label, []).append((sigma, 0.5 * (d12 + d21)))

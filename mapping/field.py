@@ -81,15 +81,17 @@ def decode_indexed(
     n = voxel.shape[0]
     mean = torch.empty(n, dtype=code.dtype, device=code.device)
     sigma = torch.empty_like(mean)
-    sq_term = _sq_term(decoder, q)
+    w_sq = decoder.query_in.weight[:, -1]
+    q_ext = torch.cat([q, (q * q).sum(-1, keepdim=True)], dim=1)  # (Q, 4): q and |q|^2
     axes = [A[..., d].contiguous() for d in range(3)]  # (M, H) each
     for start in range(0, n, DECODE_ROWS):
         sl = slice(start, start + DECODE_ROWS)
         v, k = voxel[sl], offset[sl]
-        qk = q[k]
-        x = code[v] + sq_term[k]
+        qk = q_ext.index_select(0, k)
+        x = code.index_select(0, v)
+        x.addcmul_(qk[:, 3:4], w_sq)
         for d in range(3):
-            x.addcmul_(axes[d][v], qk[:, d : d + 1])
+            x.addcmul_(axes[d].index_select(0, v), qk[:, d : d + 1])
         mean[sl], sigma[sl] = _finish(decoder, decoder.mlp(x))
     return mean, sigma
 

@@ -141,9 +141,6 @@ class NeuralMap:
         the result back if it was fused (an unfused submap stays unfused, with ``placed`` updated).
         """
         T_new = check_rigid(T_W_A_new, "T_W_A_new")
-        was_fused = submap.fused
-        if was_fused:
-            self.remove(submap)
         D = T_new @ np.linalg.inv(submap.T_W_A_encoded)
         if np.array_equal(T_new, submap.T_W_A_encoded):
             placed = submap.original
@@ -157,6 +154,9 @@ class NeuralMap:
                 weighting=self.cfg.transform_weighting,
                 sigma_vu=self.cfg.transform_sigma_vu,
             )
+        was_fused = submap.fused
+        if was_fused:  # the transform succeeded: swap the placed blocks
+            self.remove(submap)
         submap.placed = placed
         submap.T_W_A = T_new.copy()
         if was_fused:
