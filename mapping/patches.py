@@ -23,13 +23,14 @@ the rest are dropped.
 Sign. Normals point towards the sensor and the sensor is in free space, so the SDF is positive in
 front of an observed surface (free space) and negative behind it (solid), as in the map.
 
-Observation. One or two sensors sit in free space 1.5 to 40 vu away, looking at the patch. A surface
-point is observed when it faces a sensor (incidence below ``max_incidence_deg``) and the ray to the
-sensor is not blocked (sphere tracing on the SDF). The encoder's points are drawn from the observed
-points with uneven density (``cos(incidence) / range^2`` times a random exponential ramp, sometimes
-cut by a random plane, as at the border of a depth image), get noise along the viewing ray
-(sigma drawn per patch up to ``2 * point_noise_vu``), and normals tilted by up to
-``normal_tilt_deg`` and then oriented towards the sensor.
+Observation. One or two sensors sit in free space 1.5 to 40 vu away (closer inside small
+cavities), looking at the patch. A surface point is observed when it faces a sensor (incidence
+below ``max_incidence_deg``) and the ray to the sensor is not blocked (sphere tracing on the SDF).
+The encoder's points are drawn from the observed points with uneven density
+(``cos(incidence) / range^2`` times a random exponential ramp, sometimes cut by a random plane,
+as at the border of a depth image), get noise along the viewing ray (sigma drawn per patch up to
+``2 * point_noise_vu``), and normals tilted by up to ``normal_tilt_deg`` and then oriented
+towards the sensor.
 
 Supervision of one-sided observations. An SDF sample is supervised only when its nearest surface
 point faces a sensor (occlusion is not tested for samples) and lies within ``0.1`` vu of the cube.

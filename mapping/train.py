@@ -287,7 +287,9 @@ def train(
     checkpoint(cfg.steps)
 
     model.eval()
-    metrics = evaluate(model, heldout_batches(cfg.eval_patches), cfg.eval_near_vu, cfg.sdf_clamp_vu)
+    batches = heldout_batches(cfg.eval_patches)
+    metrics = evaluate(model, batches, cfg.eval_near_vu, cfg.sdf_clamp_vu)
+    quick = evaluate(model, batches[:1], cfg.eval_near_vu, cfg.sdf_clamp_vu)
     final_losses = [h[1] for h in history[-4:]]
     metadata = {
         "steps": cfg.steps,
@@ -296,6 +298,12 @@ def train(
         "heldout": {
             **metrics,
             "eval_patches": cfg.eval_patches,
+            "eval_seed_base": EVAL_SEED_BASE,
+            "near_vu": cfg.eval_near_vu,
+        },
+        "heldout_quick": {
+            **quick,
+            "eval_patches": batches[0].points.shape[0],
             "eval_seed_base": EVAL_SEED_BASE,
             "near_vu": cfg.eval_near_vu,
         },
