@@ -469,3 +469,12 @@ def test_depth_to_points_on_real_depth_has_unit_normals_facing_the_sensor():
     cloud = depth_to_points(depth, Intrinsics(585, 585, 320, 240, 640, 480))
     np.testing.assert_allclose(np.linalg.norm(cloud.normals, axis=1), 1.0, atol=1e-9)
     assert np.all(np.einsum("ij,ij->i", cloud.normals, cloud.points) <= 0)
+
+
+def test_seven_scenes_poses_are_proper_rotations():
+    if not (DATA / "7scenes_redkitchen").is_dir():
+        pytest.skip(f"real 7-Scenes frames not found under {DATA}")
+    source = make_source("7scenes", root=DATA / "7scenes_redkitchen", sequence="seq-01")
+    R = source.gt_poses[:, :3, :3]
+    assert np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() < 1e-9
+    assert np.allclose(np.linalg.det(R), 1.0)
