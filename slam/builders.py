@@ -7,7 +7,7 @@ from typing import Any
 
 from frontends.odometry.base import Odometry, make_odometry
 from frontends.sources.base import Source, make_source
-from slam.config import RunConfig
+from slam.config import ConfigError, RunConfig
 from slam.viz import Logger, NullLogger
 
 
@@ -44,9 +44,7 @@ def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
                 loader_options={"max_range_m": src.kitti.max_range_m},
             )
         else:
-            kwargs.update(
-                width=g.width, height=g.height, loader_options={"depth_options": depth}
-            )
+            kwargs.update(width=g.width, height=g.height, loader_options={"depth_options": depth})
         return kwargs
     kwargs = {"root": src.root, "sequence": src.sequence, "frames": frames}
     if src.dataset == "kitti":
@@ -88,9 +86,14 @@ def build_odometry(cfg: RunConfig, sensor: str) -> Odometry:
 
 
 def build_map(cfg: RunConfig):
-    """An empty neural map with the shipped prior."""
+    """An empty neural map with the shipped prior (or ``mapping.weights_path``)."""
+    from mapping.config import resolve_device
     from mapping.neural_map import NeuralMap
 
+    try:
+        resolve_device(cfg.mapping.device)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     return NeuralMap(cfg.mapping)
 
 

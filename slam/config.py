@@ -181,22 +181,41 @@ class LidarLoopConfig(_Strict):
     max_proximity_candidates: int = Field(
         2, ge=1, description="nearest proximity candidates verified per query submap"
     )
-    icp_max_correspondence_m: float = Field(
-        2.0, gt=0, description="ICP correspondence distance"
-    )
+    icp_max_correspondence_m: float = Field(2.0, gt=0, description="ICP correspondence distance")
     icp_kernel_m: float = Field(0.5, gt=0, description="ICP robust kernel scale")
+    icp_scales: list[float] = Field(
+        default_factory=lambda: [5.0, 2.0, 1.0, 0.5],
+        min_length=1,
+        description="coarse-to-fine ICP passes: factors on the correspondence distance and kernel",
+    )
     icp_max_iterations: int = Field(200, ge=1, description="ICP iterations")
     overlap_voxel_m: float = Field(
         1.0, gt=0, description="grid of the overlap test between the aligned submap clouds"
     )
     min_overlap: float = Field(
-        0.3, gt=0, le=1, description="accept when shared voxels / smaller cloud is at least this"
+        0.4,
+        gt=0,
+        le=1,
+        description="accept when shared voxels / smaller cloud (above the ground) is at least this",
     )
     inlier_distance_m: float = Field(
         0.5, gt=0, description="a query point is an ICP inlier within this distance"
     )
+    ground_clearance_m: float = Field(
+        0.5,
+        ge=0,
+        description="inlier ratio and overlap count only points this far above the lowest "
+        "point of their xy cell (the ground matches anywhere along a street); 0: all points",
+    )
+    ground_cell_m: float = Field(4.0, gt=0, description="xy cell size of that ground estimate")
+    min_structure_points: int = Field(
+        100, ge=1, description="reject when either cloud has fewer points above the ground"
+    )
     min_inlier_ratio: float = Field(
-        0.3, gt=0, le=1, description="accept when this fraction of the query cloud are inliers"
+        0.5,
+        gt=0,
+        le=1,
+        description="accept when this fraction of the query cloud (above the ground) are inliers",
     )
     max_icp_correction_m: float = Field(
         5.0, gt=0, description="reject when ICP moves the candidate pose by more than this"
@@ -271,9 +290,7 @@ class PoseGraphConfig(_Strict):
     odometry_rotation_sigma_per_rad: float = Field(
         0.02, ge=0, description="odometry edge rotation sigma per radian turned"
     )
-    loop_translation_sigma_m: float = Field(
-        0.05, gt=0, description="loop edge translation sigma"
-    )
+    loop_translation_sigma_m: float = Field(0.05, gt=0, description="loop edge translation sigma")
     loop_rotation_sigma_rad: float = Field(0.01, gt=0, description="loop edge rotation sigma")
     loop_kernel: Literal["cauchy", "none"] = Field(
         "cauchy", description="robust kernel of loop edges"
@@ -329,6 +346,9 @@ class VizConfig(_Strict):
     mesh_every_submaps: int = Field(
         1, ge=1, description="extract and log the mesh every n-th closed submap"
     )
+    mesh_after_remap: bool = Field(
+        True, description="extract and log the mesh after every remapping pass"
+    )
 
 
 class OutputConfig(_Strict):
@@ -341,7 +361,7 @@ class OutputConfig(_Strict):
     write_mesh: bool = Field(True, description="write mesh.ply at the end")
     write_map: bool = Field(True, description="write the neural map file at the end")
     mesh_samples: int = Field(
-        200_000, ge=1000, description="surface samples per mesh for mesh accuracy/completion"
+        100_000, ge=1000, description="surface samples per mesh for mesh accuracy/completion"
     )
 
 
@@ -357,9 +377,7 @@ class RunConfig(_Strict):
     loop_closure: LoopClosureConfig = Field(
         default_factory=LoopClosureConfig, description="loop closure"
     )
-    pose_graph: PoseGraphConfig = Field(
-        default_factory=PoseGraphConfig, description="pose graph"
-    )
+    pose_graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig, description="pose graph")
     remap: RemapConfig = Field(default_factory=RemapConfig, description="remapping")
     mapping: MapConfig = Field(default_factory=MapConfig, description="the neural implicit map")
     viz: VizConfig = Field(default_factory=VizConfig, description="Rerun logging")
@@ -429,9 +447,7 @@ def build_run_config(data: dict[str, Any], origin: str) -> RunConfig:
         raise ConfigError(describe_validation_error(exc, origin)) from None
 
 
-def load_run_config(
-    path: Path | None = None, overrides: dict[str, Any] | None = None
-) -> RunConfig:
+def load_run_config(path: Path | None = None, overrides: dict[str, Any] | None = None) -> RunConfig:
     """Read ``path`` (YAML), apply nested ``overrides`` on top, validate.
 
     Raises:

@@ -27,9 +27,25 @@ from scipy.spatial import cKDTree
 
 from slam.config import LidarLoopConfig, LoopClosureConfig
 from slam.loops import LoopCandidate, LoopDetector, relative_motion
-from slam.submaps import SubmapRecord, transform_points, voxel_keys
+from slam.submaps import SubmapRecord, orthonormalize, transform_points, voxel_keys
 
 logger = logging.getLogger(__name__)
+
+
+def above_ground(points: np.ndarray, cell_m: float, clearance_m: float) -> np.ndarray:
+    """Points more than ``clearance_m`` above the lowest point of their ``cell_m`` xy cell.
+
+    LiDAR clouds are in a sensor frame with z up; the ground matches everywhere along a street,
+    so the acceptance tests count only the structure standing on it.
+    """
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    cells = np.floor(points[:, :2] / cell_m).astype(np.int64)
+    _, inverse = np.unique(cells, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    lowest = np.full(inverse.max() + 1, np.inf)
+    np.minimum.at(lowest, inverse, points[:, 2])
+    return points[:, 2] > lowest[inverse] + clearance_m
 
 
 def voxel_overlap(points_a: np.ndarray, points_b: np.ndarray, voxel_size_m: float) -> float:
@@ -51,8 +67,9 @@ class IcpVerifier:
     def align(
         self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
     ) -> np.ndarray:
-        """Refine ``T_ref_query`` with KISS-ICP's robust point-to-point registration: a coarse
-        pass (3x the correspondence distance and kernel) then the configured one."""
+        """Refine ``T_ref_query`` with KISS-ICP's robust point-to-point registration, coarse to
+        fine: one pass per ``icp_scales`` entry, each scaling the correspondence distance and the
+        kernel (a guess off by a couple of degrees needs the wide first passes)."""
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
 
@@ -67,8 +84,8 @@ class IcpVerifier:
             max_num_iterations=c.icp_max_iterations, convergence_criterion=1e-4, max_num_threads=1
         )
         points = np.asarray(query, dtype=np.float64)
-        T = np.asarray(T_ref_query_guess, dtype=np.float64)
-        for scale in (3.0, 1.0):
+        T = orthonormalize(T_ref_query_guess)
+        for scale in c.icp_scales:
             T = np.asarray(
                 registration.align_points_to_map(
                     points=points,
@@ -86,20 +103,25 @@ class IcpVerifier:
     ) -> tuple[bool, str, np.ndarray, dict[str, float]]:
         """ICP plus the acceptance tests: ``(accepted, reason, T_ref_query, scores)``."""
         c = self.cfg
+        reference = np.asarray(reference, dtype=np.float64)
+        query = np.asarray(query, dtype=np.float64)
         T = self.align(reference, query, T_ref_query_guess)
         correction_m, correction_deg = relative_motion(T_ref_query_guess, T)
-        query_in_ref = transform_points(T, np.asarray(query, dtype=np.float64))
+        scores = {"icp_correction_m": correction_m, "icp_correction_deg": correction_deg}
+        if not np.all(np.isfinite(T)):
+            return False, "icp diverged", T_ref_query_guess, scores
+        if c.ground_clearance_m > 0:
+            reference = reference[above_ground(reference, c.ground_cell_m, c.ground_clearance_m)]
+            query = query[above_ground(query, c.ground_cell_m, c.ground_clearance_m)]
+        scores["structure_points"] = float(min(len(reference), len(query)))
+        if min(len(reference), len(query)) < c.min_structure_points:
+            return False, "too little structure above the ground", T, scores
+        query_in_ref = transform_points(T, query)
         distances, _ = cKDTree(reference).query(query_in_ref, k=1)
         inlier_ratio = float(np.mean(distances < c.inlier_distance_m))
         overlap = voxel_overlap(reference, query_in_ref, c.overlap_voxel_m)
-        scores = {
-            "icp_correction_m": correction_m,
-            "icp_correction_deg": correction_deg,
-            "inlier_ratio": inlier_ratio,
-            "overlap": overlap,
-        }
-        if not np.all(np.isfinite(T)):
-            return False, "icp diverged", T_ref_query_guess, scores
+        scores["inlier_ratio"] = inlier_ratio
+        scores["overlap"] = overlap
         if correction_m > c.max_icp_correction_m or correction_deg > c.max_icp_correction_deg:
             return (
                 False,

@@ -51,6 +51,16 @@ LOOP_COLUMNS = (
 )
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+FILE_MODE = 0o666 & ~_umask()
+"""Mode of written files: what ``open()`` would give (mkstemp alone gives 0600)."""
+
+
 def write_text_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same folder."""
     path = Path(path)
@@ -59,6 +69,7 @@ def write_text_atomic(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
+        os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -91,7 +102,12 @@ def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
         if c.T_Ai_Aj is not None:
             t = c.T_Ai_Aj[:3, 3]
             cos = np.clip((np.trace(c.T_Ai_Aj[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-            pose = [f"{t[0]:.4f}", f"{t[1]:.4f}", f"{t[2]:.4f}", f"{np.degrees(np.arccos(cos)):.3f}"]
+            pose = [
+                f"{t[0]:.4f}",
+                f"{t[1]:.4f}",
+                f"{t[2]:.4f}",
+                f"{np.degrees(np.arccos(cos)):.3f}",
+            ]
         else:
             pose = ["", "", "", ""]
         inlier = "" if c.graph_inlier is None else str(bool(c.graph_inlier)).lower()
@@ -124,9 +140,7 @@ class RunOutputs:
     def write_config(self, cfg: RunConfig) -> None:
         write_text_atomic(self.path("config.yaml"), dump_run_config(cfg))
 
-    def write_poses(
-        self, odometry: np.ndarray, slam: np.ndarray, timestamps: np.ndarray
-    ) -> None:
+    def write_poses(self, odometry: np.ndarray, slam: np.ndarray, timestamps: np.ndarray) -> None:
         """Both trajectories in KITTI and TUM format."""
         if len(odometry) == 0:
             return
@@ -144,6 +158,7 @@ class RunOutputs:
         os.close(fd)
         try:
             mesh.export(tmp, file_type="ply")
+            os.chmod(tmp, FILE_MODE)
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
@@ -151,14 +166,10 @@ class RunOutputs:
         return path
 
     def write_map(self, neural_map, submaps: Sequence) -> Path:
-        """Save the neural map through a temporary name (the map picks its own format)."""
+        """The neural map with its submaps (``NeuralMap.save`` writes atomically)."""
         path = self.path("map.npz")
-        tmp = self.path(".map.tmp.npz")
-        saved = neural_map.save(tmp, list(submaps))
-        written = Path(saved) if isinstance(saved, (str, Path)) else tmp
-        final = path.with_suffix(written.suffix) if written.suffix else path
-        os.replace(written, final)
-        return final
+        neural_map.save(path, list(submaps))
+        return path
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         text = json.dumps(_json_safe(metrics), indent=2, sort_keys=False) + "\n"

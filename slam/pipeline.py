@@ -157,8 +157,8 @@ class SlamPipeline:
             result.closed_submap_id = closed.submap_id
             result.loops, result.remap = self._on_submap_closed(closed, frame.index)
             result.T_W_S = self.graph.pose(current.submap_id) @ T_A_S
-        self._log_frame(frame, result)
         self.timings_s["frame"].append(time.perf_counter() - start)
+        self._log_frame(frame, result)
         return result
 
     def _record_gt(self, frame: Frame) -> None:
@@ -198,7 +198,9 @@ class SlamPipeline:
             self._timed("remap", t)
             self._refresh_graph_inliers()
             self._log_loops()
-        self._log_map(with_mesh=self._closed_count % max(self.cfg.viz.mesh_every_submaps, 1) == 0)
+        periodic = self._closed_count % self.cfg.viz.mesh_every_submaps == 0
+        remapped = remap is not None and remap.num_moved > 0
+        self._log_map(with_mesh=periodic or (remapped and self.cfg.viz.mesh_after_remap))
         self._log_errors_so_far()
         return candidates, remap
 
@@ -305,7 +307,7 @@ class SlamPipeline:
             viz.log_sensor(result.T_W_S, frame.intrinsics, frame.rgb, frame.depth)
         self._log_trajectories()
         viz.log_metrics(
-            frame_ms=1e3 * self.timings_s["frame"][-1] if self.timings_s["frame"] else 0.0,
+            frame_ms=1e3 * self.timings_s["frame"][-1],
             odometry_ms=1e3 * self.timings_s["odometry"][-1],
             submaps=float(len(self.submaps)),
             loops_accepted=float(len(self.accepted_loops())),
@@ -329,9 +331,7 @@ class SlamPipeline:
             return anchors[c.reference_id][:3, 3], anchors[c.query_id][:3, 3]
 
         accepted = [segment(c) for c in self.loop_candidates if c.accepted and c.graph_inlier]
-        rejected = [
-            segment(c) for c in self.loop_candidates if not (c.accepted and c.graph_inlier)
-        ]
+        rejected = [segment(c) for c in self.loop_candidates if not (c.accepted and c.graph_inlier)]
         self.viz.log_loop_closures(
             [s for s in accepted if s is not None], [s for s in rejected if s is not None]
         )

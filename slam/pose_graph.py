@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 
 from slam.config import PoseGraphConfig
-from slam.submaps import rotation_angle_rad
+from slam.submaps import orthonormalize, rotation_angle_rad
 
 logger = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ class LoopEdge:
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
+    return gtsam.Pose3(orthonormalize(T))
 
 
 def _sigmas(rotation_rad: float, translation_m: float) -> np.ndarray:
@@ -145,9 +145,7 @@ class PoseGraph:
             noise = gtsam.noiseModel.Robust.Create(kernel, noise)
         return gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_Ai_Aj), noise)
 
-    def add_loop(
-        self, i: int, j: int, T_Ai_Aj: np.ndarray, sigma_scale: float = 1.0
-    ) -> LoopEdge:
+    def add_loop(self, i: int, j: int, T_Ai_Aj: np.ndarray, sigma_scale: float = 1.0) -> LoopEdge:
         """Add a verified loop edge between anchors ``i`` and ``j`` and re-solve.
 
         Returns the edge; its ``inlier`` flag says whether the graph kept it.

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from frontends.errors import DatasetError
+from mapping.errors import MapFileError
 from slam.config import (
     ConfigError,
     RunConfig,
@@ -179,8 +181,10 @@ def resolve_config(args: argparse.Namespace) -> tuple[DatasetEntry, RunConfig]:
     if entry is None:
         raise UsageError(f"unknown dataset '{args.dataset}'; choose one of: {', '.join(DATASETS)}")
     if entry.needs_sequence and args.sequence is None:
-        raise UsageError(f"{args.dataset} needs a SEQUENCE, e.g. python -m slam.run {args.dataset} "
-                         f"{'00' if args.dataset == 'kitti' else '<name>'} --root DIR")
+        raise UsageError(
+            f"{args.dataset} needs a SEQUENCE, e.g. python -m slam.run {args.dataset} "
+            f"{'00' if args.dataset == 'kitti' else '<name>'} --root DIR"
+        )
     if not entry.needs_sequence and args.sequence is not None:
         raise UsageError(f"{args.dataset} takes no SEQUENCE (got '{args.sequence}')")
     if entry.needs_root and args.root is None and args.config is None:
@@ -202,9 +206,7 @@ def run_folder(cfg: RunConfig, args: argparse.Namespace) -> Path:
     if args.out is not None:
         return args.out
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    name = cfg.output.run_name or "-".join(
-        part for part in (args.dataset, args.sequence) if part
-    )
+    name = cfg.output.run_name or "-".join(part for part in (args.dataset, args.sequence) if part)
     folder = cfg.output.root / f"{name}-{stamp}"
     suffix = 1
     while folder.exists():
@@ -239,6 +241,9 @@ def execute(entry: DatasetEntry, cfg: RunConfig, folder: Path, progress: bool) -
     from slam.run_metrics import collect_metrics
 
     torch.set_num_threads(cfg.torch_threads)
+    if cfg.viz.mode == "none":  # nobody would see intermediate meshes
+        cfg.viz.mesh_every_submaps = 10**9
+        cfg.viz.mesh_after_remap = False
     outputs = RunOutputs(folder)
     outputs.write_config(cfg)
     start = time.perf_counter()
@@ -246,8 +251,6 @@ def execute(entry: DatasetEntry, cfg: RunConfig, folder: Path, progress: bool) -
     sensor = source.sensor
     odometry = build_odometry(cfg, sensor)
     neural_map = build_map(cfg)
-    if cfg.viz.mode == "none":
-        cfg.viz.mesh_every_submaps = 10**9
     viz = build_logger(cfg, sensor, outputs.recording_path)
     pipeline = SlamPipeline(cfg, sensor, odometry, neural_map, viz)
     logger.info("%s: %d frames, sensor %s", source.name, len(source), sensor)
@@ -278,6 +281,9 @@ def execute(entry: DatasetEntry, cfg: RunConfig, folder: Path, progress: bool) -
         if bar is not None:
             bar.set_postfix_str("final optimisation and mesh")
         pipeline.finish()
+    except BaseException:
+        viz.close()  # keep what was recorded
+        raise
     finally:
         if bar is not None:
             bar.close()
@@ -295,6 +301,7 @@ def execute(entry: DatasetEntry, cfg: RunConfig, folder: Path, progress: bool) -
         mesh=mesh,
         gt_mesh_path=source.gt_mesh_path,
         intrinsics=intrinsics,
+        lidar_range_m=cfg.submaps.max_range_m if sensor == "lidar" else None,
         num_mesh_samples=cfg.output.mesh_samples,
         extra={"dataset": cfg.source.dataset, "sequence": cfg.source.sequence, "sensor": sensor},
     )
@@ -302,7 +309,9 @@ def execute(entry: DatasetEntry, cfg: RunConfig, folder: Path, progress: bool) -
     viz.log_metrics(**_final_scalars(metrics))
     viz.close()
     metrics["run_folder"] = str(folder)
-    metrics["recording"] = str(cfg.viz.rrd_path or outputs.recording_path) if cfg.viz.mode == "rrd" else None
+    metrics["recording"] = (
+        str(cfg.viz.rrd_path or outputs.recording_path) if cfg.viz.mode == "rrd" else None
+    )
     return metrics
 
 
@@ -356,22 +365,17 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _user_errors() -> tuple[type[BaseException], ...]:
-    errors: list[type[BaseException]] = [
-        UsageError,
-        ConfigError,
-        DatasetError,
-        FileNotFoundError,
-        NotADirectoryError,
-        PermissionError,
-    ]
-    try:
-        from mapping.errors import MapError
-    except ImportError:
-        pass
-    else:
-        errors.append(MapError)
-    return tuple(errors)
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    UsageError,
+    ConfigError,
+    DatasetError,
+    MapFileError,
+    FileNotFoundError,
+    NotADirectoryError,
+    PermissionError,
+    ValidationError,
+)
+"""Errors caused by the user's input: reported in one line, without a traceback."""
 
 
 def _one_line(exc: BaseException) -> str:
@@ -383,9 +387,19 @@ def _one_line(exc: BaseException) -> str:
     return text or type(exc).__name__
 
 
+def _discard_empty_run(folder: Path | None) -> None:
+    """Remove a run folder that holds nothing but its log and config (the run never started)."""
+    if folder is None or not folder.is_dir():
+        return
+    if {p.name for p in folder.iterdir()} <= {"run.log", "config.yaml"}:
+        logging.shutdown()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
-    debug = argv is not None and "--debug" in argv or "--debug" in sys.argv[1:]
+    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    folder: Path | None = None
     try:
         args = build_parser().parse_args(argv)
         entry, cfg = resolve_config(args)
@@ -395,9 +409,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
-    except (ValidationError, *_user_errors()) as exc:
+    except USER_ERRORS as exc:
         if debug:
             raise
+        _discard_empty_run(folder)
         status = 2 if isinstance(exc, UsageError) else 1
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return status

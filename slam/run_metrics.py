@@ -56,16 +56,18 @@ def remap_summary(pipeline: SlamPipeline) -> dict[str, Any]:
         "seconds_total": seconds,
         "seconds_per_event_max": max((e.seconds for e in events), default=0.0),
         "submaps_per_s": moved / seconds if seconds > 0 else None,
-        "frames_moved": sum(
-            len(pipeline.submap_frames(i)) for e in events for i in e.moved_ids
-        ),
+        "frames_moved": sum(len(pipeline.submap_frames(i)) for e in events for i in e.moved_ids),
     }
 
 
 def timing_summary(pipeline: SlamPipeline, wall_s: float) -> dict[str, Any]:
     """Wall time, frame rate and per-stage time."""
     stages = {
-        name: {"calls": len(values), "mean_ms": 1e3 * float(np.mean(values)), "total_s": sum(values)}
+        name: {
+            "calls": len(values),
+            "mean_ms": 1e3 * float(np.mean(values)),
+            "total_s": sum(values),
+        }
         for name, values in pipeline.timings_s.items()
         if values
     }
@@ -76,14 +78,31 @@ def timing_summary(pipeline: SlamPipeline, wall_s: float) -> dict[str, Any]:
     }
 
 
+def near_trajectory_mask(
+    mesh: trimesh.Trimesh, positions: np.ndarray, radius_m: float
+) -> np.ndarray:
+    """Faces whose centroid lies within ``radius_m`` of a sensor position (LiDAR coverage)."""
+    from scipy.spatial import cKDTree
+
+    distance, _ = cKDTree(np.asarray(positions)).query(mesh.triangles_center, k=1)
+    return distance <= radius_m
+
+
 def mesh_errors(
     mesh: trimesh.Trimesh,
     gt_mesh_path: Path,
     T_gt_W: np.ndarray,
     num_samples: int,
-    cameras: tuple[np.ndarray, np.ndarray, int, int] | None = None,
+    gt_poses: np.ndarray,
+    cameras: tuple[np.ndarray, int, int] | None = None,
+    lidar_range_m: float | None = None,
 ) -> dict[str, Any]:
-    """Accuracy / completion of ``mesh`` (world frame W) against the ground-truth mesh file."""
+    """Accuracy / completion of ``mesh`` (world frame W) against the ground-truth mesh file.
+
+    Completion only counts ground-truth faces the sensor could have seen: inside the frustum of
+    a ground-truth camera (``cameras = (K, width, height)``), or within ``lidar_range_m`` of a
+    ground-truth LiDAR position.
+    """
     from slam.metrics.mesh import mesh_metrics, visible_face_mask
 
     gt = trimesh.load(gt_mesh_path, force="mesh", process=False)
@@ -91,14 +110,16 @@ def mesh_errors(
     pred.apply_transform(T_gt_W)
     mask = None
     if cameras is not None:
-        poses, K, width, height = cameras
-        mask = visible_face_mask(gt, poses[:: max(1, len(poses) // 200)], K, width, height)
-        if not mask.any():
-            mask = None
+        K, width, height = cameras
+        mask = visible_face_mask(gt, gt_poses[:: max(1, len(gt_poses) // 200)], K, width, height)
+    elif lidar_range_m is not None:
+        mask = near_trajectory_mask(gt, gt_poses[:, :3, 3], lidar_range_m)
+    if mask is not None and not mask.any():
+        mask = None
     result = mesh_metrics(pred, gt, num_samples=num_samples, gt_face_mask=mask)
     out = dict(result.__dict__)
     out["gt_mesh"] = str(gt_mesh_path)
-    out["completion_visible_only"] = mask is not None
+    out["completion_seen_only"] = mask is not None
     return out
 
 
@@ -109,11 +130,17 @@ def collect_metrics(
     mesh: trimesh.Trimesh | None,
     gt_mesh_path: Path | None,
     intrinsics=None,
-    num_mesh_samples: int = 200_000,
+    lidar_range_m: float | None = None,
+    num_mesh_samples: int = 100_000,
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Everything ``metrics.json`` holds."""
-    from slam.metrics.trajectory import align_se3, trajectory_metrics
+    from slam.metrics.trajectory import (
+        KITTI_LENGTHS_M,
+        align_se3,
+        trajectory_length_m,
+        trajectory_metrics,
+    )
 
     metrics: dict[str, Any] = dict(extra or {})
     metrics["num_frames"] = pipeline.num_frames
@@ -127,17 +154,35 @@ def collect_metrics(
     gt = pipeline.gt_poses()
     slam = pipeline.slam_poses()
     if gt is not None and len(gt) >= 2:
-        metrics["trajectory"] = {
-            "odometry": trajectory_metrics(pipeline.odometry_poses(), gt).as_dict(),
-            "slam": trajectory_metrics(slam, gt).as_dict(),
-        }
+        lengths = [length for length in KITTI_LENGTHS_M if length <= trajectory_length_m(gt)]
+        lengths = lengths or [min(KITTI_LENGTHS_M)]  # too short: reported as nan
+        quiet = logging.getLogger("slam.metrics.trajectory")
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)  # "too short for the KITTI error" is expected here
+        try:
+            metrics["trajectory"] = {
+                "odometry": trajectory_metrics(
+                    pipeline.odometry_poses(), gt, kitti_lengths_m=lengths
+                ).as_dict(),
+                "slam": trajectory_metrics(slam, gt, kitti_lengths_m=lengths).as_dict(),
+            }
+        finally:
+            quiet.setLevel(level)
     if mesh is not None and gt_mesh_path is not None and gt is not None:
         T_gt_W = align_se3(slam, gt)
         cameras = None
         if intrinsics is not None:
-            cameras = (gt, intrinsics.K, intrinsics.width, intrinsics.height)
+            cameras = (intrinsics.K, intrinsics.width, intrinsics.height)
         try:
-            metrics["mesh"] = mesh_errors(mesh, gt_mesh_path, T_gt_W, num_mesh_samples, cameras)
+            metrics["mesh"] = mesh_errors(
+                mesh,
+                gt_mesh_path,
+                T_gt_W,
+                num_mesh_samples,
+                gt,
+                cameras=cameras,
+                lidar_range_m=None if cameras is not None else lidar_range_m,
+            )
         except ValueError as exc:
             logger.warning("mesh metrics skipped: %s", exc)
     metrics["timing"] = timing_summary(pipeline, wall_s)

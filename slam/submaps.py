@@ -23,6 +23,20 @@ def rotation_angle_rad(R: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation projected onto SO(3) (poses read from text files are only
+    orthogonal to ~1e-8, which Sophus-based libraries such as KISS-ICP reject)."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    T[:3, :3] = R
+    T[3] = [0.0, 0.0, 0.0, 1.0]
+    return T
+
+
 def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Points from frame b to frame a."""
     return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
@@ -231,6 +245,7 @@ class Keyframer:
                     num_neighbours=self.cfg.normal_neighbours,
                     max_radius_m=self.cfg.normal_radius_m,
                 )
+            sub.loop_points_A = voxel_subsample(points_A, self.cfg.loop_voxel_m).astype(np.float32)
             points_A, normals_A = points_A[valid], normals_A[valid]
             cap = self.cfg.max_map_points
             if cap is not None and len(points_A) > cap:
@@ -239,7 +254,6 @@ class Keyframer:
                 points_A, normals_A = points_A[keep], normals_A[keep]
             sub.points_A = points_A
             sub.normals_A = normals_A
-            sub.loop_points_A = voxel_subsample(points_A, self.cfg.loop_voxel_m).astype(np.float32)
         self._chunks = []
         self._current = None
         return sub

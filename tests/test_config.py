@@ -49,10 +49,10 @@ def test_unknown_key_names_the_key(tmp_path: Path):
 def test_unknown_section_and_bad_value(tmp_path: Path):
     with pytest.raises(ConfigError, match="unknown key 'mapings'"):
         build_run_config({"mapings": {}}, "x.yaml")
-    with pytest.raises(ConfigError, match="submaps.max_frames") as info:
+    with pytest.raises(ConfigError, match=r"submaps\.max_frames") as info:
         build_run_config({"submaps": {"max_frames": 0}}, "x.yaml")
     assert "\n" not in str(info.value)
-    with pytest.raises(ConfigError, match="mapping.voxel_size_m"):
+    with pytest.raises(ConfigError, match=r"mapping\.voxel_size_m"):
         build_run_config({"mapping": {"voxel_size_m": "big"}}, "x.yaml")
 
 

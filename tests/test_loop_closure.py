@@ -107,9 +107,7 @@ def test_icp_verification_recovers_a_revisit(street):
 def test_icp_verification_rejects_a_wrong_place(street):
     reference = street_cloud(street, 0, 10)
     query = street_cloud(street, 70, 80)
-    accepted, reason, _, scores = IcpVerifier(LidarLoopConfig()).verify(
-        reference, query, np.eye(4)
-    )
+    accepted, _, _, scores = IcpVerifier(LidarLoopConfig()).verify(reference, query, np.eye(4))
     assert not accepted, scores
 
 
@@ -118,14 +116,12 @@ def test_voxel_overlap():
     cloud = rng.uniform(0, 10, (2000, 3))
     assert voxel_overlap(cloud, cloud, 1.0) == pytest.approx(1.0)
     assert voxel_overlap(cloud, cloud + 100.0, 1.0) == 0.0
-    assert 0.0 < voxel_overlap(cloud, cloud + [5.0, 0, 0], 1.0) < 1.0
+    assert 0.0 < voxel_overlap(cloud, cloud + np.array([5.0, 0.0, 0.0]), 1.0) < 1.0
 
 
 def test_lidar_detector_closes_the_lap(street):
     """Submaps of 15 frames along the lap; the last one revisits the first."""
-    cfg = LoopClosureConfig(
-        min_travel_m=40.0, lidar=LidarLoopConfig(proximity_radius_m=25.0)
-    )
+    cfg = LoopClosureConfig(min_travel_m=40.0, lidar=LidarLoopConfig(proximity_radius_m=25.0))
     detector = LidarLoopDetector(cfg)
     gt = street.gt_poses
     # Drifted anchor estimates: a slow yaw drift moves the last anchors by a few metres.

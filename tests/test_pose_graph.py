@@ -74,7 +74,7 @@ def test_loop_closure_reduces_ate(scenario, final):
 
 
 def test_world_frame_is_the_first_anchor(scenario):
-    gt, odometry, loops = scenario
+    _, odometry, loops = scenario
     graph = build(PoseGraphConfig(), odometry, loops)
     graph.optimize_batch()
     np.testing.assert_allclose(graph.pose(0), odometry[0], atol=1e-6)

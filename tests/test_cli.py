@@ -1,0 +1,116 @@
+"""``python -m slam.run``: bad input ends in one clear line; a short run writes its folder."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from slam.run import UsageError, parse_frames
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        [sys.executable, "-m", "slam.run", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess, *needles: str) -> None:
+    assert result.returncode != 0
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert lines[0].startswith("error: ")
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def test_unknown_dataset():
+    result = run_cli("kitty", "00")
+    assert_one_line_error(result, "unknown dataset 'kitty'", "kitti")
+    assert result.returncode == 2
+
+
+def test_missing_root(tmp_path: Path):
+    assert_one_line_error(run_cli("kitti", "00"), "--root")
+    missing = tmp_path / "nowhere"
+    assert_one_line_error(run_cli("kitti", "00", "--root", str(missing)), str(missing))
+
+
+def test_root_without_the_sequence(tmp_path: Path):
+    assert_one_line_error(
+        run_cli("kitti", "00", "--root", str(tmp_path), "--no-viz", "--out", str(tmp_path / "run")),
+        "sequences",
+    )
+
+
+def test_bad_frame_range(tmp_path: Path):
+    assert_one_line_error(run_cli("demo", "--frames", "9:3"), "--frames '9:3'")
+    assert_one_line_error(run_cli("demo", "--frames", "a:b"), "integers")
+
+
+def test_unknown_config_key(tmp_path: Path):
+    config = tmp_path / "bad.yaml"
+    config.write_text("submaps:\n  max_frame: 20\n")
+    result = run_cli("demo", "--config", str(config), "--out", str(tmp_path / "run"))
+    assert_one_line_error(result, "submaps.max_frame", str(config))
+    result = run_cli("demo", "--set", "loop_closure.rgbd.radius=2", "--out", str(tmp_path / "r"))
+    assert_one_line_error(result, "loop_closure.rgbd.radius")
+
+
+def test_parse_frames():
+    assert parse_frames("10:50") == slice(10, 50, None)
+    assert parse_frames("::3") == slice(None, None, 3)
+    for bad in ("5", "1:2:0", "-1:5", "1:2:3:4"):
+        with pytest.raises(UsageError):
+            parse_frames(bad)
+
+
+def test_short_run_writes_the_run_folder(tmp_path: Path):
+    out = tmp_path / "run"
+    result = run_cli(
+        "generated-lidar",
+        "--frames",
+        "0:30",
+        "--no-viz",
+        "--no-progress",
+        "--out",
+        str(out),
+        "--set",
+        "submaps.max_distance_m=8",
+        "--set",
+        "submaps.max_map_points=2000",
+    )
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    for name in (
+        "config.yaml",
+        "poses_odometry.kitti.txt",
+        "poses_odometry.tum.txt",
+        "poses_slam.kitti.txt",
+        "poses_slam.tum.txt",
+        "loops.csv",
+        "mesh.ply",
+        "metrics.json",
+        "run.log",
+    ):
+        assert (out / name).is_file(), name
+    assert any(out.glob("map*")), list(out.iterdir())
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["num_frames"] == 30
+    assert metrics["num_submaps"] >= 2
+    assert metrics["trajectory"]["slam"]["ate_rmse_m"] < 0.5
+    assert len((out / "poses_slam.kitti.txt").read_text().splitlines()) == 30
+    assert "run folder:" in result.stdout
