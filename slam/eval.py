@@ -216,11 +216,14 @@ def find_ground_truth(
 
 def trajectory_section(trajectories: RunTrajectories, gt_poses: np.ndarray) -> dict[str, Any]:
     """``metrics.json["trajectory"]``: the same numbers ``slam.run_metrics`` writes."""
-    from slam.metrics.trajectory import trajectory_metrics
+    from slam.metrics.trajectory import kitti_lengths_within, trajectory_metrics
 
+    lengths = kitti_lengths_within(gt_poses)
     return {
-        "odometry": trajectory_metrics(trajectories.odometry, gt_poses).as_dict(),
-        "slam": trajectory_metrics(trajectories.slam, gt_poses).as_dict(),
+        "odometry": trajectory_metrics(
+            trajectories.odometry, gt_poses, kitti_lengths_m=lengths
+        ).as_dict(),
+        "slam": trajectory_metrics(trajectories.slam, gt_poses, kitti_lengths_m=lengths).as_dict(),
     }
 
 
@@ -266,6 +269,7 @@ def mesh_section(
     *,
     cull_unobserved: bool,
     cull_distance_m: float | None,
+    lidar_range_m: float | None = None,
 ) -> tuple[dict[str, Any], trimesh.Trimesh, np.ndarray | None]:
     """``metrics.json["mesh"]`` plus the ground-truth mesh and face mask used for completion."""
     from slam.metrics.mesh import mesh_metrics
@@ -273,18 +277,28 @@ def mesh_section(
 
     gt_mesh = trimesh.load(gt.mesh_path, force="mesh", process=False)
     if not cull_unobserved:
-        cameras = None
-        if gt.intrinsics is not None and gt.poses is not None:
-            K = gt.intrinsics.K
-            cameras = (gt.poses, K, gt.intrinsics.width, gt.intrinsics.height)
-        section = mesh_errors(mesh, gt.mesh_path, T_gt_W, num_samples, cameras)
-        section["culling"] = "frustum" if section["completion_visible_only"] else "none"
-        mask = None
-        if cameras is not None and section["completion_visible_only"]:
-            from slam.metrics.mesh import visible_face_mask
+        # The same culling as the run itself (slam.run_metrics.collect_metrics).
+        from slam.metrics.mesh import visible_face_mask
+        from slam.run_metrics import near_trajectory_mask
 
-            poses = cameras[0]
-            mask = visible_face_mask(gt_mesh, poses[:: max(1, len(poses) // 200)], *cameras[1:])
+        cameras = None
+        if gt.intrinsics is not None:
+            cameras = (gt.intrinsics.K, gt.intrinsics.width, gt.intrinsics.height)
+        range_m = None if cameras is not None else lidar_range_m
+        section = mesh_errors(
+            mesh, gt.mesh_path, T_gt_W, num_samples, gt.poses, cameras, lidar_range_m=range_m
+        )
+        mask = None
+        if section["completion_seen_only"]:
+            if cameras is not None:
+                poses = gt.poses[:: max(1, len(gt.poses) // 200)]
+                mask = visible_face_mask(gt_mesh, poses, *cameras)
+                section["culling"] = "frustum"
+            else:
+                mask = near_trajectory_mask(gt_mesh, gt.poses[:, :3, 3], range_m)
+                section["culling"] = f"within {range_m} m of the trajectory"
+        else:
+            section["culling"] = "none"
         return section, gt_mesh, mask
 
     centers_W, voxel_size_m, _ = load_map_voxels(run_dir)
@@ -464,6 +478,9 @@ def evaluate_run(
                 num_samples,
                 cull_unobserved=cull_unobserved,
                 cull_distance_m=cull_distance_m,
+                lidar_range_m=(
+                    cfg.submaps.max_range_m if cfg is not None and gt.sensor == "lidar" else None
+                ),
             )
         except ValueError as exc:
             logger.warning("mesh metrics skipped: %s", exc)

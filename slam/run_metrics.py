@@ -135,12 +135,7 @@ def collect_metrics(
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Everything ``metrics.json`` holds."""
-    from slam.metrics.trajectory import (
-        KITTI_LENGTHS_M,
-        align_se3,
-        trajectory_length_m,
-        trajectory_metrics,
-    )
+    from slam.metrics.trajectory import align_se3, kitti_lengths_within, trajectory_metrics
 
     metrics: dict[str, Any] = dict(extra or {})
     metrics["num_frames"] = pipeline.num_frames
@@ -154,8 +149,7 @@ def collect_metrics(
     gt = pipeline.gt_poses()
     slam = pipeline.slam_poses()
     if gt is not None and len(gt) >= 2:
-        lengths = [length for length in KITTI_LENGTHS_M if length <= trajectory_length_m(gt)]
-        lengths = lengths or [min(KITTI_LENGTHS_M)]  # too short: reported as nan
+        lengths = kitti_lengths_within(gt)
         quiet = logging.getLogger("slam.metrics.trajectory")
         level = quiet.level
         quiet.setLevel(logging.ERROR)  # "too short for the KITTI error" is expected here

@@ -131,6 +131,15 @@ def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> RelativePoseError:
     return RelativePoseError(float(t), float(r), delta, n)
 
 
+def kitti_lengths_within(gt_poses: np.ndarray) -> list[float]:
+    """The KITTI segment lengths a ground-truth path is long enough for.
+
+    A path shorter than 100 m keeps ``[100.0]``, for which the error is reported as nan.
+    """
+    path_m = trajectory_length_m(gt_poses)
+    return [length for length in KITTI_LENGTHS_M if length <= path_m] or [min(KITTI_LENGTHS_M)]
+
+
 def trajectory_length_m(poses: np.ndarray) -> float:
     """Path length (metres) of the positions of ``poses`` (N, 4, 4)."""
     poses = np.asarray(poses, dtype=np.float64)
