@@ -325,10 +325,10 @@ class RemapConfig(_Strict):
 
     enabled: bool = Field(True, description="move submaps in the neural map after optimisation")
     translation_threshold_m: float = Field(
-        0.01, ge=0, description="remap a submap whose anchor moved more than this"
+        0.005, ge=0, description="remap a submap whose anchor moved more than this"
     )
     rotation_threshold_deg: float = Field(
-        0.5, ge=0, description="remap a submap whose anchor turned more than this"
+        0.25, ge=0, description="remap a submap whose anchor turned more than this"
     )
 
 
