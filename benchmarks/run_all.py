@@ -25,10 +25,11 @@ import platform
 import shlex
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+from slam.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.run_all")
 
@@ -175,18 +176,6 @@ def run_one(name: str, *, quick: bool, timeout_s: float) -> BenchStatus:
     return BenchStatus(name, status, round(seconds, 1), returncode, shown, detail)
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as stream:
-            stream.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def assemble(status_record: dict | None = None, *, output: Path = OUTPUT_FILE) -> Path:
     """Rebuild ``BENCHMARKS.md`` from ``benchmarks/results/*.md`` and the last run's status."""
     if status_record is None and STATUS_FILE.is_file():
@@ -247,7 +236,7 @@ def assemble(status_record: dict | None = None, *, output: Path = OUTPUT_FILE) -
                 lines += ["Section left over from an earlier run (may be stale):", ""]
         if name in sections:
             lines += [sections[name].read_text().rstrip(), ""]
-    _write_atomic(output, "\n".join(lines).rstrip() + "\n")
+    write_text_atomic(output, "\n".join(lines).rstrip() + "\n")
     return output
 
 
@@ -300,9 +289,9 @@ def main(argv: list[str] | None = None) -> int:
             state = run_one(name, quick=args.quick, timeout_s=remaining)
         log.info("  %s: %s in %.1f s", name, state.status, state.seconds)
         record["benchmarks"].append(asdict(state))
-        _write_atomic(STATUS_FILE, json.dumps(record, indent=2) + "\n")
+        write_text_atomic(STATUS_FILE, json.dumps(record, indent=2) + "\n")
     record["total_seconds"] = round(time.time() - started, 1)
-    _write_atomic(STATUS_FILE, json.dumps(record, indent=2) + "\n")
+    write_text_atomic(STATUS_FILE, json.dumps(record, indent=2) + "\n")
     log.info("wrote %s (%.0f s total)", assemble(record), record["total_seconds"])
     return 0 if all(s["status"] == "ok" for s in record["benchmarks"]) else 1
 

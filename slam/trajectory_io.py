@@ -11,12 +11,12 @@ Writers are atomic (temporary file in the same folder, then ``os.replace``). Rea
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from frontends.errors import DatasetError
+from slam.atomic_io import write_text_atomic
 
 
 def _as_poses(poses: np.ndarray, what: str) -> np.ndarray:
@@ -26,18 +26,6 @@ def _as_poses(poses: np.ndarray, what: str) -> np.ndarray:
     if not np.all(np.isfinite(poses)):
         raise ValueError(f"{what}: poses contain nan or inf")
     return poses
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _load_rows(path: Path, num_values: int, layout: str) -> np.ndarray:
@@ -69,7 +57,7 @@ def write_kitti(path: str | os.PathLike, poses: np.ndarray) -> None:
     """Write (N, 4, 4) poses as KITTI lines of 12 values."""
     poses = _as_poses(poses, f"write_kitti({path})")
     lines = [" ".join(f"{v:.10g}" for v in T[:3, :].reshape(-1)) for T in poses]
-    _write_atomic(Path(path), "\n".join(lines) + "\n")
+    write_text_atomic(Path(path), "\n".join(lines) + "\n")
 
 
 def read_kitti(path: str | os.PathLike) -> np.ndarray:
@@ -93,7 +81,7 @@ def write_tum(path: str | os.PathLike, poses: np.ndarray, timestamps: np.ndarray
         f"{t:.9f} " + " ".join(f"{v:.10g}" for v in (*T[:3, 3], *q))
         for t, T, q in zip(timestamps, poses, quats, strict=True)
     ]
-    _write_atomic(Path(path), "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
+    write_text_atomic(Path(path), "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
 
 
 def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
