@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from slam.atomic_io import write_text_atomic
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 KITTI_POSES = DATA / "kitti" / "poses" / "00.txt"
@@ -470,8 +472,9 @@ def write_report(path: Path, results: dict, quick: bool, command: str) -> None:
         "",
         f"Frames 0-{(w['num_frames'] - 1) * w['step']} of KITTI 00, every {w['step']}. frame "
         f"({w['num_frames']} scans, {w['azimuth_steps']} firings per revolution) through the "
-        "generated street scene; the window contains the revisit of the start area (frames 1559 "
-        "on pass frames 112 on). configs/kitti.yaml: 30 m submaps, V = 1 m, loop candidates from "
+        "generated street scene; the window contains the revisit of the start area (from frame "
+        "1559 on the car passes the places of frames 112 on again). configs/kitti.yaml: "
+        "30 m submaps, V = 1 m, loop candidates from "
         "map_closures and anchor proximity (20 m), verified by ICP and overlap above the ground. "
         "The second row replaces KISS-ICP by the ground truth with an injected yaw drift, so that "
         "the loop closure has a drift to remove.",
@@ -548,8 +551,7 @@ def write_report(path: Path, results: dict, quick: bool, command: str) -> None:
     ]
     lines += stage_table(plain)
     lines.append("")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines))
+    write_text_atomic(path, "\n".join(lines))
 
 
 def _in_child(fn, *args):
@@ -595,7 +597,7 @@ def main(argv: list[str] | None = None) -> int:
     log.info("7-Scenes")
     results["7scenes"] = _in_child(scenario_7scenes)
     raw.parent.mkdir(parents=True, exist_ok=True)
-    raw.write_text(json.dumps(results, indent=2, default=str))
+    write_text_atomic(raw, json.dumps(results, indent=2, default=str))
     write_report(args.out, results, args.quick, command)
     log.info("wrote %s", args.out)
     return 0

@@ -196,8 +196,7 @@ class LidarLoopDetector(LoopDetector):
     ) -> list[LoopCandidate]:
         cloud = np.asarray(submap.loop_points_A, dtype=np.float64)
         j = submap.submap_id
-        if len(cloud) < 100:
-            self._closures.get_top_k_closures(j, cloud, 1)
+        if len(cloud) < 100:  # nothing to match (and map_closures needs a cloud)
             self._clouds[j] = submap.loop_points_A
             self._travelled[j] = submap.travelled_m
             return []
