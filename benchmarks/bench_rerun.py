@@ -222,6 +222,15 @@ def machine() -> str:
     )
 
 
+def _method_table(result: dict) -> list[str]:
+    """Markdown table of the time spent in each logger method, slowest first."""
+    lines = ["| method | calls | total [s] | per call [ms] |", "|---|---:|---:|---:|"]
+    for method, seconds in sorted(result["logger_by_method"].items(), key=lambda kv: -kv[1]):
+        calls = result["calls_by_method"][method]
+        lines.append(f"| {method} | {calls} | {seconds:.3f} | {1e3 * seconds / calls:.2f} |")
+    return lines
+
+
 def markdown(
     results: list[dict[str, Any]], alone: dict[str, Any], command: str, started: str
 ) -> str:
@@ -271,12 +280,8 @@ def markdown(
         f"({1e3 * alone['logger_s'] / alone['frames']:.1f} ms per frame); reading the frames "
         f"took {alone['load_s']:.2f} s",
         "",
-        "| method | calls | total [s] | per call [ms] |",
-        "|---|---:|---:|---:|",
+        *_method_table(alone),
     ]
-    for method, seconds in sorted(alone["logger_by_method"].items(), key=lambda kv: -kv[1]):
-        calls = alone["calls_by_method"][method]
-        lines.append(f"| {method} | {calls} | {seconds:.3f} | {1e3 * seconds / calls:.2f} |")
     for r in results:
         lines += [
             "",
@@ -284,12 +289,8 @@ def markdown(
             "",
             f"Command: `{r['command']}`",
             "",
-            "| method | calls | total [s] | per call [ms] |",
-            "|---|---:|---:|---:|",
+            *_method_table(r),
         ]
-        for method, seconds in sorted(r["logger_by_method"].items(), key=lambda kv: -kv[1]):
-            calls = r["calls_by_method"][method]
-            lines.append(f"| {method} | {calls} | {seconds:.3f} | {1e3 * seconds / calls:.2f} |")
         lines += [
             "",
             f"Largest entities of the recording (uncompressed Arrow bytes; the file is "
