@@ -35,11 +35,13 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from mapping.analytic_prior import planar_prior
+from mapping.compact_block import CompactBlock
 from mapping.config import MapConfig
 from mapping.encoding import encode_points
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.neural_map import NeuralMap, Submap
 from mapping.transform import transform_block
+from mapping.voxel_block import VoxelBlock
 
 log = logging.getLogger("benchmarks.bench_mapping")
 
@@ -123,8 +125,18 @@ def load_model() -> tuple[PriorModel, str]:
     )
 
 
-def fresh_submap(block) -> Submap:
-    return Submap(0, np.eye(4), block, np.eye(4), block, fused=False)
+def fresh_submap(block: VoxelBlock, submap_id: int = 0) -> Submap:
+    """An unmoved submap holding ``block`` exactly (float32, every channel kept)."""
+    if block.jacobians is None:
+        zeros = torch.zeros(block.num_voxels, block.channels, 3, 3)
+        block = VoxelBlock(block.keys, block.latents, block.weights, zeros)
+    compact = CompactBlock.compress(block, block.channels, block.channels, "float32")
+    return Submap(submap_id, np.eye(4), compact, np.eye(4))
+
+
+def stored(block: VoxelBlock, dtype: str, jacobian_rank: int) -> VoxelBlock:
+    """``block`` as a submap keeps it (``CompactBlock``), decompressed for the transform."""
+    return CompactBlock.compress(block, block.channels, jacobian_rank, dtype).decompress()
 
 
 def mesh_of(model: PriorModel, cfg: MapConfig, block) -> trimesh.Trimesh:
@@ -165,6 +177,7 @@ class Variant:
     use_jacobian: bool
     sigma_vu: float = 0.5
     target_rule: str | None = None
+    storage: tuple[str, int] | None = None  # (dtype, Jacobian rank) of the stored original
 
 
 def timed(fn, repeats: int) -> tuple[float, float]:
@@ -212,7 +225,22 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
         motions["(b) grid-aligned 90 deg + 3 voxels"][:3, :3]
     )
     variants = [
-        Variant("ours (gaussian sigma 0.5 vu, Jacobian)", "gaussian", True),
+        Variant("ours (gaussian sigma 0.5 vu, Jacobian), float32 original", "gaussian", True),
+        Variant(
+            "ours, stored original float16, Jacobian rank 4 (default)",
+            "gaussian",
+            True,
+            storage=("float16", 4),
+        ),
+        *(
+            Variant(
+                f"ours, stored {dtype}, Jacobian rank {rank}",
+                "gaussian",
+                True,
+                storage=(dtype, rank),
+            )
+            for dtype, rank in (("bfloat16", 4), ("float16", 2), ("float16", 8))
+        ),
         Variant("ours without Jacobian", "gaussian", False),
         Variant(
             "ours, paper's target rule (nearest source < 1 voxel)", "gaussian", True, 0.5, "radius"
@@ -221,7 +249,8 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
     ]
     if quick:
         motions.pop("(c) 3 deg + 2.7 cm")
-        variants.pop(2)
+        variants = [v for v in variants if "rank 2" not in v.name and "rank 8" not in v.name]
+        variants = [v for v in variants if "target rule" not in v.name]
     sweep: dict[str, list[tuple[float, float]]] = {}
     for label, D in motions.items():
         moved_pts = points @ D[:3, :3].T + D[:3, 3]
@@ -234,8 +263,9 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
         ref_mesh = mesh_of(model, cfg, ref_block)
         ref_gt = mesh_distance(ref_mesh, gt, samples)[0]
         for var in variants:
+            source = base if var.storage is None else stored(base, *var.storage)
             block = transform_block(
-                base,
+                source,
                 D,
                 V,
                 weighting=var.weighting,
@@ -310,7 +340,7 @@ def speed(model, quick: bool, lines: list[str]) -> None:
 
     big_map = NeuralMap(cfg, model)
     big_map.fuse(fresh_submap(big))
-    moving = Submap(7, np.eye(4), sub_block, np.eye(4), sub_block)
+    moving = fresh_submap(sub_block, 7)
 
     def fuse_remove() -> None:
         big_map.fuse(moving)
@@ -356,16 +386,18 @@ def speed(model, quick: bool, lines: list[str]) -> None:
         rate = f"{1 / wall:.1f} {unit}/s" if unit else "-"
         lines.append(f"| {name} | {size_text} | {_fmt_s(wall)} | {_fmt_s(cpu)} | {rate} | {goal} |")
     per_voxel = big_map.memory_bytes() / max(big_map.num_voxels, 1)
-    payload = model.latent_channels * 3 * 4 + model.latent_channels * 9 * 4 + 8 + 16
+    payload = model.latent_channels * 3 * 4 + 8 + 16
     sub_bytes = frame_sub.nbytes() / max(frame_sub.original.num_voxels, 1)
     lines += [
         "",
         f"Memory: {per_voxel:.0f} bytes per global-map voxel as allocated (capacity included; "
-        f"payload {payload} B: latent {model.latent_channels}x3 and Jacobian "
-        f"{model.latent_channels}x3x3 float32, float64 weight, sorted key and row index). A "
-        f"stored submap holds {sub_bytes:.0f} B per voxel (the frame above: "
-        f"{frame_sub.nbytes() / 1e6:.2f} MB for {frame_sub.original.num_voxels:,} voxels), "
-        "twice that once moved (original + placed copy).",
+        f"payload {payload} B: latent {model.latent_channels}x3 float32, float64 weight, sorted "
+        f"key and row index; no Jacobians). A stored submap holds {sub_bytes:.0f} B per voxel "
+        f"(the frame above: {frame_sub.nbytes() / 1e6:.2f} MB for "
+        f"{frame_sub.original.num_voxels:,} voxels: packed key, float32 weight, "
+        f"{nm.cfg.storage_dtype} latents at rank {min(nm.cfg.latent_rank, 16)} and Jacobians at "
+        f"rank {nm.cfg.jacobian_rank}); moving it stores nothing more (the placed block is "
+        "recomputed when it is removed).",
         "",
     ]
 

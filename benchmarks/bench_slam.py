@@ -258,7 +258,7 @@ def scenario_room() -> dict:
     )
     out["remap_vs_scratch_m"] = (distance.accuracy_m, distance.completion_m)
     out["remap_vs_scratch_median_m"] = (distance.accuracy_median_m, distance.completion_median_m)
-    moved = [s for s in pipeline.submaps.values() if s.placed is not s.original]
+    moved = [s for s in pipeline.submaps.values() if s.is_moved]
     out["moved_submap_voxels_mean"] = (
         float(np.mean([s.original.num_voxels for s in moved])) if moved else None
     )

@@ -59,6 +59,30 @@ class MapConfig(BaseModel):
             "benchmark 0.2 is worse and 0.5-0.7 are equal within 0.005 cm"
         ),
     )
+    storage_dtype: Literal["float16", "bfloat16", "float32"] = Field(
+        "float16",
+        description=(
+            "precision of the stored submap encodings (latent and Jacobian coefficients), in "
+            "memory and on disk; arithmetic is float32 either way. float16 keeps 3 more mantissa "
+            "bits than bfloat16 and the values are small (|F| < 10), so it is the default"
+        ),
+    )
+    latent_rank: int = Field(
+        16,
+        ge=1,
+        description=(
+            "channel-basis rank of a stored submap's latents (mapping/compact_block.py); the "
+            "number of latent channels (16) or more keeps every channel"
+        ),
+    )
+    jacobian_rank: int = Field(
+        4,
+        ge=1,
+        description=(
+            "channel-basis rank of a stored submap's Jacobians; they only feed the first-order "
+            "term of the transform, and 4 of 16 directions hold > 99.5 % of their energy"
+        ),
+    )
     mesh_subdivisions: int = Field(
         4,
         ge=1,

@@ -1,16 +1,21 @@
 """Saving and loading a neural map with its submaps (DESIGN 5.7).
 
-Format ``neural-remap-slam/map`` version 1: one uncompressed ``.npz`` (numpy zip) written with
-``allow_pickle=False`` and read with ``allow_pickle=False``, so loading never executes code.
+Format ``neural-remap-slam/map`` version 2: one compressed ``.npz`` (numpy zip, deflate) written
+and read with ``allow_pickle=False``, so loading never executes code. It holds what cannot be
+derived: every submap's compact original encoding (:class:`~mapping.compact_block.CompactBlock`)
+and its poses. The global map is not stored: it is the fusion of the fused submaps' placed blocks,
+rebuilt on load (equal to the saved one up to float32 rounding of the fusion order).
 
 * ``header``: a 0-d unicode array holding JSON: format, version, voxel size, the map config, the
-  model identity (:meth:`PriorModel.identity`) and latent channels, the number of submaps and, per
-  submap, its id, whether it is fused and whether its ``placed`` block is stored separately.
-* ``map_keys (M,3) int64``, ``map_latents (M,C,3) float32``, ``map_weights (M,) float64``,
-  ``map_jacobians (M,C,3,3) float32``: the global map (float64 weights as held in memory).
-* per submap ``i``: ``s{i}_T_W_A_encoded``, ``s{i}_T_W_A`` (4x4 float64) and the blocks
-  ``s{i}_original_*`` and, when it is not the original, ``s{i}_placed_*`` (keys, latents, weights,
-  jacobians).
+  model identity (:meth:`PriorModel.identity`), latent channels, storage dtype, submap count.
+* per submap (``S`` of them, in order): ``submap_ids (S,) int64``, ``submap_fused (S,) bool``,
+  ``submap_T_W_A_encoded (S,4,4)`` and ``submap_T_W_A (S,4,4)`` float64, ``submap_offsets (S+1,)
+  int64`` (rows of submap ``i`` are ``offsets[i]:offsets[i+1]`` in the voxel arrays),
+  ``latent_basis (S,C,kF)`` and ``jacobian_basis (S,C,kJ)`` float32.
+* per voxel of every submap: ``keys`` (packed int64, see :mod:`mapping.voxel_block`),
+  ``weights`` float32, ``latent_coeffs (N,kF,3)`` and ``jacobian_coeffs (N,kJ,3,3)`` in the
+  storage dtype (``float16``/``float32`` as numpy types; ``bfloat16`` as its raw ``int16`` bits).
+  A submap's latents are ``latent_basis[i] @ latent_coeffs[rows]`` (channels x 3 per voxel).
 
 Files are written to a temporary file in the target folder and moved into place.
 """
@@ -27,65 +32,99 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from mapping.compact_block import CompactBlock, storage_dtype
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
 from mapping.networks import PriorModel
-from mapping.voxel_block import VoxelBlock
+from mapping.transform import check_rigid
 
 if TYPE_CHECKING:
     from mapping.neural_map import NeuralMap, Submap
 
 FORMAT = "neural-remap-slam/map"
-VERSION = 1
-_BLOCK_FIELDS = ("keys", "latents", "weights", "jacobians")
+VERSION = 2
+_PER_VOXEL = ("keys", "weights", "latent_coeffs", "jacobian_coeffs")
+_PER_SUBMAP = ("latent_basis", "jacobian_basis")
 
 
-def _block_arrays(prefix: str, block: VoxelBlock) -> dict[str, np.ndarray]:
-    return {
-        f"{prefix}_{name}": getattr(block, name).detach().cpu().numpy() for name in _BLOCK_FIELDS
-    }
+def _to_numpy(t: torch.Tensor) -> np.ndarray:
+    t = t.detach().cpu()
+    if t.dtype == torch.bfloat16:  # numpy has no bfloat16: keep the raw bits
+        t = t.view(torch.int16)
+    return t.numpy()
 
 
-def _read_block(data: dict[str, np.ndarray], prefix: str, device: torch.device) -> VoxelBlock:
-    return VoxelBlock(*(torch.from_numpy(data[f"{prefix}_{name}"]) for name in _BLOCK_FIELDS)).to(
-        device
-    )
+def _from_numpy(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+    t = torch.from_numpy(np.ascontiguousarray(a))
+    if dtype == torch.bfloat16:
+        if t.dtype != torch.int16:
+            raise ValueError(f"bfloat16 coefficients must be stored as int16, got {t.dtype}")
+        return t.view(torch.bfloat16)
+    if t.dtype != dtype:
+        raise ValueError(f"coefficients are {t.dtype}, the header says {dtype}")
+    return t
 
 
 def save_map(neural_map: NeuralMap, path: str | Path, submaps: list[Submap]) -> None:
-    """Write ``neural_map`` and ``submaps`` to ``path`` atomically."""
+    """Write ``submaps`` with ``neural_map``'s config and model identity to ``path``, atomically."""
     path = Path(path)
     ids = [s.submap_id for s in submaps]
     if len(set(ids)) != len(ids):
         raise ValueError("save: submap ids must be unique")
-    block = neural_map.voxel_block()
-    arrays = _block_arrays("map", block)
-    arrays["map_weights"] = neural_map._weights64().cpu().numpy()
-    records = []
-    for i, s in enumerate(submaps):
-        separate = s.placed is not s.original
-        records.append({"id": int(s.submap_id), "fused": bool(s.fused), "placed_stored": separate})
-        arrays[f"s{i}_T_W_A_encoded"] = np.asarray(s.T_W_A_encoded, dtype=np.float64)
-        arrays[f"s{i}_T_W_A"] = np.asarray(s.T_W_A, dtype=np.float64)
-        arrays.update(_block_arrays(f"s{i}_original", s.original))
-        if separate:
-            arrays.update(_block_arrays(f"s{i}_placed", s.placed))
+    if {s.submap_id for s in submaps if s.fused} != neural_map.fused_ids:
+        raise ValueError("save: the submaps passed must include exactly the map's fused submaps")
+    channels = neural_map.model.latent_channels
+    dtype = storage_dtype(neural_map.cfg.storage_dtype)
+    originals = [s.original for s in submaps]
+    if any(o.latent_coeffs.dtype != dtype for o in originals):
+        raise ValueError(f"save: every submap must be stored as {neural_map.cfg.storage_dtype}")
+    counts = [o.num_voxels for o in originals]
+    arrays: dict[str, np.ndarray] = {
+        "submap_ids": np.asarray(ids, dtype=np.int64),
+        "submap_fused": np.asarray([s.fused for s in submaps], dtype=bool),
+        "submap_T_W_A_encoded": np.asarray(
+            [s.T_W_A_encoded for s in submaps], dtype=np.float64
+        ).reshape(-1, 4, 4),
+        "submap_T_W_A": np.asarray([s.T_W_A for s in submaps], dtype=np.float64).reshape(-1, 4, 4),
+        "submap_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+    }
+    ranks = {
+        "latent_basis": neural_map.cfg.latent_rank,
+        "jacobian_basis": neural_map.cfg.jacobian_rank,
+    }
+    for name in _PER_SUBMAP:
+        k = min(ranks[name], channels)
+        if any(tuple(getattr(o, name).shape) != (channels, k) for o in originals):
+            raise ValueError(f"save: every submap's {name} must be ({channels}, {k})")
+        arrays[name] = np.zeros((len(originals), channels, k), np.float32)
+        for i, o in enumerate(originals):
+            arrays[name][i] = _to_numpy(getattr(o, name))
+    k_f, k_j = (min(ranks[n], channels) for n in _PER_SUBMAP)
+    empty = {  # zero-row templates keep shapes and dtypes when there are no voxels at all
+        "keys": np.zeros(0, np.int64),
+        "weights": np.zeros(0, np.float32),
+        "latent_coeffs": _to_numpy(torch.zeros(0, k_f, 3, dtype=dtype)),
+        "jacobian_coeffs": _to_numpy(torch.zeros(0, k_j, 3, 3, dtype=dtype)),
+    }
+    for name in _PER_VOXEL:
+        parts = [_to_numpy(getattr(o, name)) for o in originals]
+        arrays[name] = np.concatenate([empty[name], *parts])
     header = {
         "format": FORMAT,
         "version": VERSION,
         "voxel_size_m": neural_map.voxel_size_m,
         "config": neural_map.cfg.model_dump(),
         "model_identity": neural_map.model.identity(),
-        "latent_channels": neural_map.model.latent_channels,
-        "num_voxels": block.num_voxels,
-        "submaps": records,
+        "latent_channels": channels,
+        "storage_dtype": neural_map.cfg.storage_dtype,
+        "num_submaps": len(submaps),
     }
     arrays["header"] = np.array(json.dumps(header))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            np.savez_compressed(f, **arrays)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -116,8 +155,9 @@ def _header(path: Path, data: dict[str, np.ndarray]) -> dict:
         raise MapFileError(f"{path}: not a {FORMAT} file")
     if header.get("version") != VERSION:
         raise MapFileError(
-            f"{path}: map format version {header.get('version')} is not supported "
-            f"(this code reads version {VERSION}); re-create the map with this version"
+            f"{path}: map format version {header.get('version')} is not supported (this code "
+            f"reads version {VERSION}); regenerate it by running `python -m slam.run` on the "
+            "sequence again"
         )
     return header
 
@@ -125,7 +165,10 @@ def _header(path: Path, data: dict[str, np.ndarray]) -> dict:
 def load_map(
     cls: type[NeuralMap], path: str | Path, model: PriorModel | None
 ) -> tuple[NeuralMap, list[Submap]]:
-    """Read a map written by :func:`save_map`; any problem is a one-line :class:`MapFileError`."""
+    """Read a map written by :func:`save_map`; any problem is a one-line :class:`MapFileError`.
+
+    The global map is rebuilt by fusing the fused submaps in the order they are stored.
+    """
     from mapping.neural_map import Submap
 
     path = Path(path)
@@ -144,30 +187,49 @@ def load_map(
             f"{path}: map was encoded with model {header.get('model_identity')} but the loaded "
             f"model is {identity}; load it with the same prior weights (mapping.weights_path)"
         )
+    if header.get("latent_channels") != neural_map.model.latent_channels:
+        raise MapFileError(f"{path}: latent size does not match the model")
     device = neural_map.device
     try:
-        block = _read_block(data, "map", device)
-        weights64 = torch.from_numpy(data["map_weights"]).to(torch.float64)
+        dtype = storage_dtype(header["storage_dtype"])
+        offsets = data["submap_offsets"]
+        n_sub = int(header["num_submaps"])
+        ids = data["submap_ids"]
+        if offsets.shape != (n_sub + 1,) or offsets[0] != 0 or np.any(np.diff(offsets) < 0):
+            raise ValueError("submap offsets are not a monotone (S+1,) array starting at 0")
+        if offsets[-1] != data["keys"].shape[0] or len(set(ids.tolist())) != n_sub:
+            raise ValueError("submap offsets, ids and voxel arrays disagree")
+        voxel = {
+            "keys": torch.from_numpy(data["keys"].astype(np.int64, copy=False)),
+            "weights": torch.from_numpy(data["weights"]).to(torch.float32),
+            "latent_coeffs": _from_numpy(data["latent_coeffs"], dtype),
+            "jacobian_coeffs": _from_numpy(data["jacobian_coeffs"], dtype),
+        }
         submaps = []
-        for i, rec in enumerate(header["submaps"]):
-            original = _read_block(data, f"s{i}_original", device)
-            placed = _read_block(data, f"s{i}_placed", device) if rec["placed_stored"] else original
+        for i in range(n_sub):
+            rows = slice(int(offsets[i]), int(offsets[i + 1]))
+            original = CompactBlock(
+                keys=voxel["keys"][rows],
+                weights=voxel["weights"][rows],
+                latent_basis=torch.from_numpy(data["latent_basis"][i]).to(torch.float32),
+                latent_coeffs=voxel["latent_coeffs"][rows],
+                jacobian_basis=torch.from_numpy(data["jacobian_basis"][i]).to(torch.float32),
+                jacobian_coeffs=voxel["jacobian_coeffs"][rows],
+            ).to(device)
             submaps.append(
                 Submap(
-                    submap_id=int(rec["id"]),
-                    T_W_A_encoded=data[f"s{i}_T_W_A_encoded"].astype(np.float64),
+                    submap_id=int(ids[i]),
+                    T_W_A_encoded=check_rigid(data["submap_T_W_A_encoded"][i], "T_W_A_encoded"),
                     original=original,
-                    T_W_A=data[f"s{i}_T_W_A"].astype(np.float64),
-                    placed=placed,
-                    fused=bool(rec["fused"]),
+                    T_W_A=check_rigid(data["submap_T_W_A"][i], "T_W_A"),
                 )
             )
-    except (KeyError, ValueError, TypeError, RuntimeError) as exc:
+        for submap, fused in zip(submaps, data["submap_fused"].tolist(), strict=True):
+            if fused:
+                neural_map.fuse(submap)
+    except (KeyError, IndexError, ValueError, TypeError, RuntimeError) as exc:
         raise MapFileError(
             f"{path}: map file content is inconsistent ({exc.__class__.__name__}: "
             f"{str(exc).splitlines()[0] if str(exc) else ''}); re-save the map"
         ) from exc
-    if block.channels != neural_map.model.latent_channels:
-        raise MapFileError(f"{path}: latent size does not match the model")
-    neural_map._restore(block, weights64, {s.submap_id for s in submaps if s.fused})
     return neural_map, submaps

@@ -235,10 +235,17 @@ DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "prior.pt"
 
 
 def load_default_prior() -> PriorModel:
-    """The shipped prior; falls back to a seeded random model when no weights are shipped yet."""
-    if DEFAULT_WEIGHTS.is_file():
-        return PriorModel.load(DEFAULT_WEIGHTS)
-    torch.manual_seed(0)
-    model = PriorModel()
-    model.metadata = {"untrained": True}
-    return model
+    """The shipped prior (``mapping/weights/prior.pt``).
+
+    A missing file is an error, never a silent random model: a map made with untrained weights
+    looks plausible and is wrong. Untrained weights are for experiments only and must be asked
+    for explicitly (``PriorModel()`` after ``torch.manual_seed``).
+    """
+    if not DEFAULT_WEIGHTS.is_file():
+        raise FileNotFoundError(
+            f"{DEFAULT_WEIGHTS}: the shipped prior weights are missing from this installation; "
+            "reinstall the package (`pip install -e .`), set mapping.weights_path, or re-create "
+            "them with `python -m mapping.train --config configs/train_prior.yaml --export "
+            f"{DEFAULT_WEIGHTS}`"
+        )
+    return PriorModel.load(DEFAULT_WEIGHTS)

@@ -1,10 +1,14 @@
 """The global neural implicit map and its submaps: encode, fuse, remove, move, query, mesh, save.
 
 A :class:`Submap` keeps its *original* encoding (on the world grid at the pose it was encoded at)
-for life. Moving it never re-encodes points: the original is transformed by
-``D = T_W_A_new inv(T_W_A_encoded)`` (:func:`mapping.transform.transform_block`) into its
-``placed`` block, which is what the global map holds while the submap is fused. Fusion and removal
-are exact weighted averages, so ``remove(fuse(map, s), s) == map`` up to float rounding.
+for life, compactly (:class:`~mapping.compact_block.CompactBlock`). Moving it never re-encodes
+points: the original is transformed by ``D = T_W_A inv(T_W_A_encoded)``
+(:func:`mapping.transform.transform_block`) into its *placed* block, which is what the global map
+holds while the submap is fused. The placed block is not stored: it is a deterministic function of
+the original and the pose, recomputed when the submap is removed, so removal subtracts exactly what
+was added. Fusion and removal are exact weighted averages in float32, so
+``remove(fuse(map, s), s) == map`` up to float32 rounding; half precision only rounds the original
+once, when it is encoded.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import numpy as np
 import torch
 import trimesh
 
+from mapping.compact_block import CompactBlock
 from mapping.config import MapConfig, resolve_device
 from mapping.encoding import encode_points
 from mapping.field import query_field
@@ -35,24 +40,27 @@ class Submap:
         T_W_A_encoded: 4x4 pose at which ``original`` was encoded (kept for life).
         original: the encoding on the world grid at ``T_W_A_encoded``; never modified.
         T_W_A: 4x4 pose the submap currently sits at.
-        placed: what is (or would be) fused into the global map at ``T_W_A``.
-        fused: whether ``placed`` is currently fused into the map.
+        fused: whether its placed block (``NeuralMap.placed``) is currently fused into the map.
     """
 
     submap_id: int
     T_W_A_encoded: np.ndarray
-    original: VoxelBlock
+    original: CompactBlock
     T_W_A: np.ndarray
-    placed: VoxelBlock
     fused: bool = False
 
+    @property
+    def is_moved(self) -> bool:
+        """Whether it sits anywhere but where it was encoded."""
+        return not np.array_equal(self.T_W_A, self.T_W_A_encoded)
+
     def nbytes(self) -> int:
-        """Bytes of the stored blocks (``placed`` counted once when it is ``original``)."""
-        extra = 0 if self.placed is self.original else self.placed.nbytes()
-        return self.original.nbytes() + extra + 2 * 16 * 8
+        """Bytes the submap keeps (its compact original and two poses)."""
+        return self.original.nbytes() + 2 * 16 * 8
 
 
 def _model_from_config(cfg: MapConfig) -> PriorModel:
+    """The prior of ``cfg``: its weights file, else the shipped prior (an error if missing)."""
     if cfg.weights_path is None:
         return load_default_prior()
     return PriorModel.load(cfg.weights_path)
@@ -110,54 +118,62 @@ class NeuralMap:
         return Submap(
             submap_id=int(submap_id),
             T_W_A_encoded=T.copy(),
-            original=block,
+            original=self.compress(block),
             T_W_A=T.copy(),
-            placed=block,
             fused=False,
         )
 
+    def compress(self, block: VoxelBlock) -> CompactBlock:
+        """A block with Jacobians in this map's storage form (ranks and dtype of the config)."""
+        cfg = self.cfg
+        return CompactBlock.compress(block, cfg.latent_rank, cfg.jacobian_rank, cfg.storage_dtype)
+
+    def placed(self, submap: Submap) -> VoxelBlock:
+        """What the submap contributes to the global map at its current pose ``T_W_A``.
+
+        Deterministic in the original and the pose, so removing a submap subtracts exactly the
+        block that fusing it added.
+        """
+        if not submap.is_moved:
+            return submap.original.decompress(with_jacobians=False)
+        return transform_block(
+            submap.original.decompress(with_jacobians=self.cfg.transform_use_jacobian),
+            submap.T_W_A @ np.linalg.inv(submap.T_W_A_encoded),
+            self.voxel_size_m,
+            neighbors=self.cfg.transform_neighbors,
+            use_jacobian=self.cfg.transform_use_jacobian,
+            weighting=self.cfg.transform_weighting,
+            sigma_vu=self.cfg.transform_sigma_vu,
+        )
+
     def fuse(self, submap: Submap) -> None:
-        """Add the submap's ``placed`` block to the global map."""
+        """Add the submap's placed block to the global map."""
         if submap.fused or submap.submap_id in self._fused_ids:
             raise ValueError(f"submap {submap.submap_id} is already fused; remove it first")
-        self._store.add(submap.placed)
+        self._store.add(self.placed(submap))
         submap.fused = True
         self._fused_ids.add(submap.submap_id)
 
     def remove(self, submap: Submap) -> None:
-        """Subtract the submap's ``placed`` block; refuses a submap that is not fused."""
+        """Subtract the submap's placed block; refuses a submap that is not fused."""
         if not submap.fused or submap.submap_id not in self._fused_ids:
             raise ValueError(
                 f"submap {submap.submap_id} is not fused in this map; cannot remove it"
             )
-        self._store.subtract(submap.placed)
+        self._store.subtract(self.placed(submap))
         submap.fused = False
         self._fused_ids.discard(submap.submap_id)
 
     def move(self, submap: Submap, T_W_A_new: np.ndarray) -> None:
         """Re-place a submap at ``T_W_A_new`` from its original encoding.
 
-        Removes it if fused, transforms ``original`` by ``T_W_A_new inv(T_W_A_encoded)`` and fuses
-        the result back if it was fused (an unfused submap stays unfused, with ``placed`` updated).
+        A fused submap is removed at its old pose and fused at the new one; an unfused one only
+        gets the new pose.
         """
         T_new = check_rigid(T_W_A_new, "T_W_A_new")
-        D = T_new @ np.linalg.inv(submap.T_W_A_encoded)
-        if np.array_equal(T_new, submap.T_W_A_encoded):
-            placed = submap.original
-        else:
-            placed = transform_block(
-                submap.original,
-                D,
-                self.voxel_size_m,
-                neighbors=self.cfg.transform_neighbors,
-                use_jacobian=self.cfg.transform_use_jacobian,
-                weighting=self.cfg.transform_weighting,
-                sigma_vu=self.cfg.transform_sigma_vu,
-            )
         was_fused = submap.fused
-        if was_fused:  # the transform succeeded: swap the placed blocks
+        if was_fused:
             self.remove(submap)
-        submap.placed = placed
         submap.T_W_A = T_new.copy()
         if was_fused:
             self.fuse(submap)
@@ -192,7 +208,7 @@ class NeuralMap:
         return block.centers(self.voxel_size_m), block.weights.cpu().numpy()
 
     def voxel_block(self) -> VoxelBlock:
-        """All voxels of the global map as a block (a copy)."""
+        """All voxels of the global map as a block (a copy, without Jacobians)."""
         return self._store.block()
 
     @property
@@ -222,12 +238,6 @@ class NeuralMap:
         from mapping.map_io import load_map
 
         return load_map(cls, path, model)
-
-    # used by map_io
-    def _restore(self, block: VoxelBlock, weights64: torch.Tensor, fused_ids: set[int]) -> None:
-        self._store.load_arrays(block, weights64)
-        self._fused_ids = set(fused_ids)
-        self._mesher.clear()
 
     def _weights64(self) -> torch.Tensor:
         return self._store.weights64()

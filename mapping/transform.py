@@ -9,8 +9,9 @@ A block encoded on the world grid is moved by ``D`` (rotation ``R``, translation
    target is ``h_i = F'_i - J'_i v_i`` (moving the reference centre by ``v`` shifts every relative
    point position by ``-v``);
 3. ``F_t = sum_i s_i h_i`` and ``w_t = sum_i s_i w_i`` over the K nearest sources with normalised
-   weights ``s``; the Jacobian of the target is carried along by the same blend of the ``J'_i``
-   (zeroth order: second derivatives are not stored).
+   weights ``s``. Only when asked (``with_jacobians``) is the Jacobian of the target carried along
+   by the same blend of the ``J'_i`` (zeroth order: second derivatives are not stored); a moved
+   block goes into the global map, which keeps no Jacobians.
 
 Weightings:
 
@@ -88,6 +89,7 @@ def transform_block(
     weighting: Literal["gaussian", "uniform"] = "gaussian",
     sigma_vu: float = 0.5,
     target_rule: Literal["cell", "radius"] | None = None,
+    with_jacobians: bool = False,
 ) -> VoxelBlock:
     """Move a block by ``T_delta`` (world to world) and re-grid it onto the world voxel grid.
 
@@ -101,10 +103,13 @@ def transform_block(
         sigma_vu: width of the gaussian weighting in voxel units.
         target_rule: ``cell`` or ``radius``; ``None`` picks ``cell`` for gaussian, ``radius`` for
             uniform (see the module docstring).
+        with_jacobians: also return the blended, conjugated Jacobians of the targets.
 
     Returns:
         The re-gridded block (keys sorted and unique).
     """
+    if block.jacobians is None and (use_jacobian or with_jacobians):
+        raise ValueError("transform_block: the block has no Jacobians (needed by use_jacobian)")
     T = check_rigid(T_delta)
     if weighting not in ("gaussian", "uniform"):
         raise ValueError(f"unknown transform weighting '{weighting}' (gaussian or uniform)")
@@ -113,7 +118,7 @@ def transform_block(
         raise ValueError(f"unknown target rule '{rule}' (cell or radius)")
     device = block.device
     if block.num_voxels == 0:
-        return block
+        return block if with_jacobians else block.without_jacobians()
     R64 = torch.as_tensor(T[:3, :3], device=device)
     t_vu = torch.as_tensor(T[:3, 3] / voxel_size_m, device=device)
     moved = (block.keys.to(torch.float64) + 0.5) @ R64.T + t_vu  # (M, 3) moved centres in vu
@@ -165,14 +170,12 @@ def transform_block(
     m = block.num_voxels
     channels = block.channels
     S = _csr(tgt_out, src_p, s, n_out, m)
-    dense = torch.cat(
-        [block.latents.reshape(m, -1), block.jacobians.reshape(m, -1), block.weights.view(m, 1)],
-        dim=1,
-    )
-    blended = S @ dense
+    columns = [block.latents.reshape(m, -1), block.weights.view(m, 1)]
+    if with_jacobians:
+        columns.append(block.jacobians.reshape(m, -1))
+    blended = S @ torch.cat(columns, dim=1)
     F = blended[:, : channels * 3]
-    J = blended[:, channels * 3 : channels * 12]
-    w = blended[:, -1].contiguous()
+    w = blended[:, channels * 3].contiguous()
     if use_jacobian:
         vp = v_src[pair]
         Sv = _csr(
@@ -185,11 +188,14 @@ def transform_block(
         J_by_axis = block.jacobians.permute(3, 0, 1, 2).reshape(3 * m, channels * 3)
         F = F - Sv @ J_by_axis
     R32 = R64.to(torch.float32)
-    # vec(R J R^T) = (R kron R) vec(J) for row-major 3x3 blocks
-    RR = torch.kron(R32, R32)
+    jacobians = None
+    if with_jacobians:
+        # vec(R J R^T) = (R kron R) vec(J) for row-major 3x3 blocks
+        J = blended[:, channels * 3 + 1 :]
+        jacobians = (J.reshape(-1, 9) @ torch.kron(R32, R32).T).view(n_out, channels, 3, 3)
     return VoxelBlock(
         keys=unpack_keys(tgt_keys[selected]),
         latents=(F.reshape(-1, 3) @ R32.T).view(n_out, channels, 3),
         weights=w,
-        jacobians=(J.reshape(-1, 9) @ RR.T).view(n_out, channels, 3, 3),
+        jacobians=jacobians,
     )

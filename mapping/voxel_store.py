@@ -1,21 +1,24 @@
 """The global sparse voxel storage with exact weighted-average fusion and removal (DESIGN 5.2).
 
-Rows of data (latent, Jacobian, weight) live in growable arrays and never move; a sorted array of
-packed int64 keys with their row numbers is the index (look-up by ``searchsorted``). Inserting
-``k`` keys merges them into the index in ``O(N log k)`` without moving any voxel data; freed rows
-are reused. Weights are kept in float64 so that fusing and removing many submaps does not leave
-float residue; a voxel whose weight falls to ``<= WEIGHT_TOLERANCE * previous weight`` is deleted.
+Rows of data (latent, weight) live in growable arrays and never move; a sorted array of packed
+int64 keys with their row numbers is the index (look-up by ``searchsorted``). Inserting ``k`` keys
+merges them into the index in ``O(N log k)`` without moving any voxel data; freed rows are reused.
+
+The store holds what decoding and meshing read: no Jacobians (only a submap's original encoding
+needs them, to be transformed). It is the accumulator of fuse and remove, so it stays float32 for
+latents and float64 for weights: removing a submap divides by ``w - w_k``, which amplifies the
+rounding of the stored value by ``w / (w - w_k)`` (up to the number of fused submaps), and in
+half precision that would leave errors of several per cent after a voxel's dominant contributor is
+removed. A voxel whose weight falls to ``<= WEIGHT_TOLERANCE * previous weight`` is deleted; every
+contribution is at least 1 (point counts, and convex blends of them), so this never drops a voxel
+that another submap still holds.
 """
 
 from __future__ import annotations
 
-import logging
-
 import torch
 
 from mapping.voxel_block import VoxelBlock, unpack_keys
-
-log = logging.getLogger(__name__)
 
 WEIGHT_TOLERANCE = 1e-6
 
@@ -46,7 +49,6 @@ class VoxelStore:
         self._keys = torch.zeros(0, dtype=torch.int64, device=device)
         self._rows = torch.zeros(0, dtype=torch.int64, device=device)
         self._latents = torch.zeros(capacity, channels, 3, device=device)
-        self._jacobians = torch.zeros(capacity, channels, 3, 3, device=device)
         self._weights = torch.zeros(capacity, dtype=torch.float64, device=device)
         self._free = torch.arange(capacity - 1, -1, -1, device=device)  # stack, top at the end
         self._dirty: list[torch.Tensor] = []
@@ -65,13 +67,12 @@ class VoxelStore:
         return torch.where(found, self._rows[pos], torch.full_like(pos, -1))
 
     def block(self) -> VoxelBlock:
-        """All voxels as a block (sorted keys), weights cast to float32."""
+        """All voxels as a block (sorted keys, no Jacobians), weights cast to float32."""
         rows = self._rows
         return VoxelBlock(
             keys=unpack_keys(self._keys),
             latents=self._latents[rows],
             weights=self._weights[rows].to(torch.float32),
-            jacobians=self._jacobians[rows],
         )
 
     def sorted_keys(self) -> torch.Tensor:
@@ -97,7 +98,6 @@ class VoxelStore:
             self._keys,
             self._rows,
             self._latents,
-            self._jacobians,
             self._weights,
             self._free,
         )
@@ -113,7 +113,7 @@ class VoxelStore:
 
     # ------------------------------------------------------------------ updates
     def add(self, block: VoxelBlock) -> None:
-        """Fuse: ``F <- (F w + F_k w_k) / (w + w_k)``, ``w <- w + w_k`` (same for Jacobians)."""
+        """Fuse: ``F <- (F w + F_k w_k) / (w + w_k)``, ``w <- w + w_k``."""
         if block.num_voxels == 0:
             return
         block, keys = _canonical(block.to(self.device))
@@ -122,76 +122,77 @@ class VoxelStore:
         n_found = int(found.sum())
         w_new = block.weights.to(torch.float64)
         if n_found == keys.shape[0]:
-            self._blend(rows, block.latents, block.jacobians, w_new)
+            self._blend(rows, block.latents, w_new)
         else:
             hit = found.nonzero().squeeze(1)
             miss = (~found).nonzero().squeeze(1)
             if n_found:
-                self._blend(rows[hit], block.latents[hit], block.jacobians[hit], w_new[hit])
+                self._blend(rows[hit], block.latents[hit], w_new[hit])
             r = self._allocate(miss.shape[0])
             self._latents[r] = block.latents[miss]
-            self._jacobians[r] = block.jacobians[miss]
             self._weights[r] = w_new[miss]
             self._insert(keys[miss], r)
         self._dirty.append(keys)
 
     def subtract(self, block: VoxelBlock) -> None:
-        """Remove: ``F <- (F w - F_k w_k) / (w - w_k)``, ``w <- w - w_k``; drop emptied voxels."""
+        """Remove: ``F <- (F w - F_k w_k) / (w - w_k)``, ``w <- w - w_k``; drop emptied voxels.
+
+        The block must be one that was fused (every key present with at least its weight);
+        anything else means broken bookkeeping and raises ``ValueError`` before changing the map.
+        """
         if block.num_voxels == 0:
             return
         block, keys = _canonical(block.to(self.device))
         rows = self.lookup(keys)
-        found = rows >= 0
-        latents, jacobians, w_k = block.latents, block.jacobians, block.weights.to(torch.float64)
-        if not bool(found.all()):
-            log.debug("remove: %d voxels of the block are not in the map", int((~found).sum()))
-            hit = found.nonzero().squeeze(1)
-            rows, latents, jacobians, w_k = rows[hit], latents[hit], jacobians[hit], w_k[hit]
-            keys = keys[hit]
+        latents, w_k = block.latents, block.weights.to(torch.float64)
+        missing = int((rows < 0).sum())
+        if missing:
+            raise ValueError(
+                f"remove: {missing} of {keys.shape[0]} voxels of the block are not in the map; "
+                "only a block that was fused can be removed"
+            )
         w_old = self._weights[rows]
+        excess = int((w_k > w_old * (1.0 + 1e-6) + 1e-6).sum())
+        if excess:
+            raise ValueError(
+                f"remove: {excess} voxels of the block weigh more than the map holds there; "
+                "only a block that was fused can be removed"
+            )
         alive = (w_old - w_k) > WEIGHT_TOLERANCE * torch.clamp(w_old, min=1.0)
         if bool(alive.all()):
-            self._blend(rows, latents, jacobians, -w_k)
+            self._blend(rows, latents, -w_k)
         else:
             live = alive.nonzero().squeeze(1)
             dead = (~alive).nonzero().squeeze(1)
-            self._blend(rows[live], latents[live], jacobians[live], -w_k[live])
+            self._blend(rows[live], latents[live], -w_k[live])
             self._delete(keys[dead], rows[dead])
         self._dirty.append(keys)
 
-    def _blend(
-        self, rows: torch.Tensor, latents: torch.Tensor, jacobians: torch.Tensor, w_k: torch.Tensor
-    ) -> None:
-        """``X <- (X w + X_k w_k) / (w + w_k)`` at ``rows``; a negative ``w_k`` removes.
+    def _blend(self, rows: torch.Tensor, latents: torch.Tensor, w_k: torch.Tensor) -> None:
+        """``F <- (F w + F_k w_k) / (w + w_k)`` at ``rows``; a negative ``w_k`` removes.
 
-        Written as ``lerp(X, X_k, w_k / (w + w_k))``; the caller guarantees ``w + w_k > 0``.
+        Written as ``lerp(F, F_k, w_k / (w + w_k))``; the caller guarantees ``w + w_k > 0``.
         """
         total = self._weights.index_select(0, rows) + w_k
         t = (w_k / total).to(torch.float32)
-        for store, new in ((self._latents, latents), (self._jacobians, jacobians)):
-            old = store.index_select(0, rows)
-            store.index_copy_(0, rows, old.lerp_(new, t.view(-1, *([1] * (new.ndim - 1)))))
+        old = self._latents.index_select(0, rows)
+        self._latents.index_copy_(0, rows, old.lerp_(latents, t.view(-1, 1, 1)))
         self._weights.index_copy_(0, rows, total)
 
-    def load_arrays(self, block: VoxelBlock, weights64: torch.Tensor) -> None:
-        """Replace the whole content (used by loading); ``block`` must have sorted unique keys."""
-        m = block.num_voxels
-        self._reset(max(m, 1024))
-        rows = self._allocate(m)
-        block = block.to(self.device)
-        self._latents[rows] = block.latents
-        self._jacobians[rows] = block.jacobians
-        self._weights[rows] = weights64.to(self.device, torch.float64)
-        self._keys = block.packed_keys()
-        self._rows = rows
-        self._dirty.append(self._keys)
+    def clear(self) -> None:
+        """Drop every voxel (the changed keys are reported by :meth:`take_dirty`)."""
+        dirty = self._keys
+        self._reset(1024)
+        self._dirty.append(dirty)
 
     # ------------------------------------------------------------------ internals
     def _allocate(self, n: int) -> torch.Tensor:
+        if n == 0:
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
         if n > self._free.shape[0]:
             self._grow(n - self._free.shape[0])
         rows = self._free[-n:].flip(0)
-        self._free = self._free[:-n] if n else self._free
+        self._free = self._free[:-n]
         return rows
 
     def _grow(self, extra: int) -> None:
@@ -204,7 +205,6 @@ class VoxelStore:
             return out
 
         self._latents = grow(self._latents)
-        self._jacobians = grow(self._jacobians)
         self._weights = grow(self._weights)
         fresh = torch.arange(new - 1, old - 1, -1, device=self.device)
         self._free = torch.cat([fresh, self._free])
@@ -230,6 +230,5 @@ class VoxelStore:
         self._keys = self._keys[keep]
         self._rows = self._rows[keep]
         self._latents[dead_rows] = 0.0
-        self._jacobians[dead_rows] = 0.0
         self._weights[dead_rows] = 0.0
         self._free = torch.cat([self._free, dead_rows])

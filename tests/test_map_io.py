@@ -1,4 +1,4 @@
-"""Saving and loading neural maps: bit-exact round trip and clear errors for bad files."""
+"""Saving and loading neural maps: exact round trip of what is stored, clear errors otherwise."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from mapping.compact_block import FIELDS
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
 from mapping.networks import PriorModel
@@ -50,22 +51,22 @@ def saved(tmp_path: Path):
     return nm, subs, path
 
 
-def test_save_load_is_bit_exact(saved) -> None:
+def test_save_load_round_trip(saved) -> None:
     nm, subs, path = saved
     loaded, loaded_subs = NeuralMap.load(path, _model())
+    # the global map is rebuilt from the submaps: equal up to float32 rounding of fusion order
     a, b = nm.voxel_block(), loaded.voxel_block()
-    for name in ("keys", "latents", "weights", "jacobians"):
-        assert torch.equal(getattr(a, name), getattr(b, name))
-    assert torch.equal(nm._weights64(), loaded._weights64())
+    assert torch.equal(a.keys, b.keys)
+    assert (a.latents - b.latents).abs().max() < 1e-6
+    assert torch.allclose(nm._weights64(), loaded._weights64(), rtol=1e-12, atol=1e-9)
     assert loaded.cfg == nm.cfg
     assert [s.submap_id for s in loaded_subs] == [10, 11, 12]
     for s, t in zip(subs, loaded_subs, strict=True):
         assert s.fused == t.fused
         assert np.array_equal(s.T_W_A, t.T_W_A) and np.array_equal(s.T_W_A_encoded, t.T_W_A_encoded)
-        for name in ("keys", "latents", "weights", "jacobians"):
+        for name in FIELDS:  # what is stored comes back bit for bit
             assert torch.equal(getattr(s.original, name), getattr(t.original, name))
-            assert torch.equal(getattr(s.placed, name), getattr(t.placed, name))
-        assert (t.placed is t.original) == (s.placed is s.original)
+        assert torch.equal(nm.placed(s).latents, loaded.placed(t).latents)
     # the loaded map keeps working: removing what was fused empties it
     loaded.remove(loaded_subs[0])
     loaded.remove(loaded_subs[1])
@@ -127,7 +128,77 @@ def test_missing_arrays_are_rejected(saved, tmp_path: Path) -> None:
     _, _, path = saved
     with zipfile.ZipFile(path) as src, zipfile.ZipFile(tmp_path / "cut.npz", "w") as dst:
         for item in src.infolist():
-            if not item.filename.startswith("s1_original_latents"):
+            if not item.filename.startswith("latent_coeffs"):
                 dst.writestr(item, src.read(item.filename))
     with pytest.raises(MapFileError, match="inconsistent"):
         NeuralMap.load(tmp_path / "cut.npz", _model())
+
+
+def _rewrite_arrays(path: Path, out: Path, **changes) -> None:
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays.update(changes)
+    np.savez_compressed(out, **arrays)
+
+
+def test_version_1_files_get_a_regenerate_hint(saved, tmp_path: Path) -> None:
+    _, _, path = saved
+    _rewrite_header(path, tmp_path / "v1.npz", version=1)
+    with pytest.raises(MapFileError, match=r"v1\.npz: map format version 1 .*python -m slam\.run"):
+        NeuralMap.load(tmp_path / "v1.npz", _model())
+
+
+@pytest.mark.parametrize("bad", [0.0, -3.0, float("nan")])
+def test_bad_weights_are_rejected_on_load(saved, tmp_path: Path, bad: float) -> None:
+    _, _, path = saved
+    with np.load(path) as npz:
+        weights = npz["weights"].copy()
+    weights[5] = bad
+    _rewrite_arrays(path, tmp_path / "w.npz", weights=weights)
+    with pytest.raises(MapFileError, match=r"w\.npz: .*weights must be finite and positive"):
+        NeuralMap.load(tmp_path / "w.npz", _model())
+
+
+def test_nan_coefficients_are_rejected_on_load(saved, tmp_path: Path) -> None:
+    _, _, path = saved
+    with np.load(path) as npz:
+        coeffs = npz["latent_coeffs"].copy()
+    coeffs[3, 0, 1] = np.nan
+    _rewrite_arrays(path, tmp_path / "nan.npz", latent_coeffs=coeffs)
+    with pytest.raises(MapFileError, match="NaN"):
+        NeuralMap.load(tmp_path / "nan.npz", _model())
+
+
+def test_empty_map_round_trips(tmp_path: Path) -> None:
+    cfg = MapConfig(device="cpu")
+    nm = NeuralMap(cfg, _model())
+    nm.save(tmp_path / "empty.npz", [])
+    loaded, subs = NeuralMap.load(tmp_path / "empty.npz", _model())
+    assert loaded.num_voxels == 0 and subs == []
+    # a submap that was encoded but never fused (and one that encoded nothing)
+    p, n = _sphere(800, (0.1, 0.2, 0.3), 4)
+    lone = nm.encode(7, p, n, np.eye(4))
+    nothing = nm.encode(8, np.zeros((0, 3)), np.zeros((0, 3)), np.eye(4))
+    nm.save(tmp_path / "unfused.npz", [lone, nothing])
+    loaded, subs = NeuralMap.load(tmp_path / "unfused.npz", _model())
+    assert loaded.num_voxels == 0
+    assert [s.fused for s in subs] == [False, False]
+    assert torch.equal(subs[0].original.keys, lone.original.keys)
+    assert subs[1].original.num_voxels == 0
+    loaded.fuse(subs[0])
+    nm.fuse(lone)
+    assert torch.equal(loaded.voxel_block().latents, nm.voxel_block().latents)
+
+
+@pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32"])
+def test_every_storage_dtype_round_trips(tmp_path: Path, dtype: str) -> None:
+    nm = NeuralMap(MapConfig(device="cpu", min_points_per_voxel=1, storage_dtype=dtype), _model())
+    p, n = _sphere(1500, (0.0, 0.0, 0.0), 5)
+    sub = nm.encode(0, p, n, np.eye(4))
+    nm.fuse(sub)
+    nm.save(tmp_path / f"{dtype}.npz", [sub])
+    loaded, subs = NeuralMap.load(tmp_path / f"{dtype}.npz", _model())
+    assert subs[0].original.latent_coeffs.dtype == getattr(torch, dtype)
+    for name in FIELDS:
+        assert torch.equal(getattr(subs[0].original, name), getattr(sub.original, name))
+    assert torch.equal(loaded.voxel_block().latents, nm.voxel_block().latents)

@@ -146,7 +146,6 @@ def test_light_voxels_are_not_decoded() -> None:
     assert not nm.query_sdf(points[:10])[2].any()
 
 
-@pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason="no shipped prior weights yet")
 def test_shipped_prior_meshes_a_box_accurately() -> None:
     box = trimesh.creation.box(extents=[0.9, 0.7, 0.5])
     points, face = trimesh.sample.sample_surface_even(box, 40000, seed=3)

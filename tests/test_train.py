@@ -94,8 +94,7 @@ def test_bad_config_file_is_a_one_line_error(tmp_path):
 
 
 def test_shipped_weights_reproduce_their_recorded_heldout_metric():
-    if not DEFAULT_WEIGHTS.is_file():
-        pytest.skip(f"{DEFAULT_WEIGHTS} not shipped yet; run `python -m mapping.train`")
+    assert DEFAULT_WEIGHTS.is_file(), f"{DEFAULT_WEIGHTS} is missing from the installed package"
     model = PriorModel.load(DEFAULT_WEIGHTS).eval()
     # the first 64 held-out patches (the full 256 are in metadata["heldout"]; same seeds)
     recorded = model.metadata["heldout_quick"]
@@ -108,3 +107,11 @@ def test_shipped_weights_reproduce_their_recorded_heldout_metric():
     untrained = evaluate(PriorModel(model.cfg).eval(), batches, recorded["near_vu"])
     assert measured["mae_clamp_vu"] < 0.8 * untrained["mae_clamp_vu"]
     assert measured["sign_accuracy"] > untrained["sign_accuracy"] + 0.15
+
+
+def test_missing_shipped_prior_is_an_error_not_a_random_model(tmp_path, monkeypatch):
+    from mapping import networks
+
+    monkeypatch.setattr(networks, "DEFAULT_WEIGHTS", tmp_path / "prior.pt")
+    with pytest.raises(FileNotFoundError, match=r"prior\.pt: the shipped prior weights are"):
+        networks.load_default_prior()
