@@ -134,9 +134,22 @@ def fresh_submap(block: VoxelBlock, submap_id: int = 0) -> Submap:
     return Submap(submap_id, np.eye(4), compact, np.eye(4))
 
 
-def stored(block: VoxelBlock, dtype: str, jacobian_rank: int) -> VoxelBlock:
+# (latent dtype, latent rank, Jacobian rank, Jacobian storage) of a submap's stored original
+STORAGE_VARIANTS = [
+    ("float16 latents rank 4, int8 Jacobians rank 4 (default)", ("float16", 4, 4, "int8")),
+    ("float16 latents rank 16, float16 Jacobians rank 16", ("float16", 16, 16, "float16")),
+    ("bfloat16 latents rank 4, int8 Jacobians rank 4", ("bfloat16", 4, 4, "int8")),
+    ("float16 latents rank 3, int8 Jacobians rank 3", ("float16", 3, 3, "int8")),
+    ("float16 latents rank 4, int8 Jacobians rank 2", ("float16", 4, 2, "int8")),
+]
+
+
+def stored(
+    block: VoxelBlock, dtype: str, latent_rank: int, jacobian_rank: int, jacobian_storage: str
+) -> VoxelBlock:
     """``block`` as a submap keeps it (``CompactBlock``), decompressed for the transform."""
-    return CompactBlock.compress(block, block.channels, jacobian_rank, dtype).decompress()
+    compact = CompactBlock.compress(block, latent_rank, jacobian_rank, dtype, jacobian_storage)
+    return compact.decompress()
 
 
 def mesh_of(model: PriorModel, cfg: MapConfig, block) -> trimesh.Trimesh:
@@ -177,7 +190,7 @@ class Variant:
     use_jacobian: bool
     sigma_vu: float = 0.5
     target_rule: str | None = None
-    storage: tuple[str, int] | None = None  # (dtype, Jacobian rank) of the stored original
+    storage: tuple[str, int, int, str] | None = None  # see STORAGE_VARIANTS
 
 
 def timed(fn, repeats: int) -> tuple[float, float]:
@@ -226,20 +239,9 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
     )
     variants = [
         Variant("ours (gaussian sigma 0.5 vu, Jacobian), float32 original", "gaussian", True),
-        Variant(
-            "ours, stored original float16, Jacobian rank 4 (default)",
-            "gaussian",
-            True,
-            storage=("float16", 4),
-        ),
         *(
-            Variant(
-                f"ours, stored {dtype}, Jacobian rank {rank}",
-                "gaussian",
-                True,
-                storage=(dtype, rank),
-            )
-            for dtype, rank in (("bfloat16", 4), ("float16", 2), ("float16", 8))
+            Variant(f"ours, stored {label}", "gaussian", True, storage=storage)
+            for label, storage in STORAGE_VARIANTS
         ),
         Variant("ours without Jacobian", "gaussian", False),
         Variant(
@@ -249,7 +251,7 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
     ]
     if quick:
         motions.pop("(c) 3 deg + 2.7 cm")
-        variants = [v for v in variants if "rank 2" not in v.name and "rank 8" not in v.name]
+        variants = [v for v in variants if "default" in v.name or v.storage is None]
         variants = [v for v in variants if "target rule" not in v.name]
     sweep: dict[str, list[tuple[float, float]]] = {}
     for label, D in motions.items():

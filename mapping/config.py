@@ -67,20 +67,28 @@ class MapConfig(BaseModel):
             "bits than bfloat16 and the values are small (|F| < 10), so it is the default"
         ),
     )
+    jacobian_storage: Literal["int8", "float16", "bfloat16", "float32"] = Field(
+        "int8",
+        description=(
+            "format of the stored Jacobian coefficients: int8 with one scale per basis direction "
+            "(default; the two-path transform benchmark is unchanged by it) or a float format"
+        ),
+    )
     latent_rank: int = Field(
-        16,
+        4,
         ge=1,
         description=(
             "channel-basis rank of a stored submap's latents (mapping/compact_block.py); the "
-            "number of latent channels (16) or more keeps every channel"
+            "number of latent channels (16) or more keeps every channel. Rank 4 changed neither "
+            "mesh accuracy nor transform fidelity on the benchmark room (benchmarks/bench_mapping)"
         ),
     )
     jacobian_rank: int = Field(
         4,
         ge=1,
         description=(
-            "channel-basis rank of a stored submap's Jacobians; they only feed the first-order "
-            "term of the transform, and 4 of 16 directions hold > 99.5 % of their energy"
+            "channel-basis rank of a stored submap's Jacobians (they only feed the transform's "
+            "first-order term); 4 matches full rank on the two-path benchmark, 2 does not"
         ),
     )
     mesh_subdivisions: int = Field(

@@ -11,11 +11,13 @@ rebuilt on load (equal to the saved one up to float32 rounding of the fusion ord
 * per submap (``S`` of them, in order): ``submap_ids (S,) int64``, ``submap_fused (S,) bool``,
   ``submap_T_W_A_encoded (S,4,4)`` and ``submap_T_W_A (S,4,4)`` float64, ``submap_offsets (S+1,)
   int64`` (rows of submap ``i`` are ``offsets[i]:offsets[i+1]`` in the voxel arrays),
-  ``latent_basis (S,C,kF)`` and ``jacobian_basis (S,C,kJ)`` float32.
+  ``latent_basis (S,C,kF)``, ``jacobian_basis (S,C,kJ)`` and ``jacobian_scales (S,kJ)`` float32.
 * per voxel of every submap: ``keys`` (packed int64, see :mod:`mapping.voxel_block`),
-  ``weights`` float32, ``latent_coeffs (N,kF,3)`` and ``jacobian_coeffs (N,kJ,3,3)`` in the
-  storage dtype (``float16``/``float32`` as numpy types; ``bfloat16`` as its raw ``int16`` bits).
-  A submap's latents are ``latent_basis[i] @ latent_coeffs[rows]`` (channels x 3 per voxel).
+  ``weights`` float32, ``latent_coeffs (N,kF,3)`` in the header's ``storage_dtype`` and
+  ``jacobian_coeffs (N,kJ,3,3)`` in its ``jacobian_storage`` (``int8``, ``float16`` and
+  ``float32`` as numpy types; ``bfloat16`` as its raw ``int16`` bits). A submap's latents are
+  ``latent_basis[i] @ latent_coeffs[rows]`` (channels x 3 per voxel), its Jacobians
+  ``(jacobian_basis[i] * jacobian_scales[i]) @ jacobian_coeffs[rows]``.
 
 Files are written to a temporary file in the target folder and moved into place.
 """
@@ -44,7 +46,7 @@ if TYPE_CHECKING:
 FORMAT = "neural-remap-slam/map"
 VERSION = 2
 _PER_VOXEL = ("keys", "weights", "latent_coeffs", "jacobian_coeffs")
-_PER_SUBMAP = ("latent_basis", "jacobian_basis")
+_PER_SUBMAP = ("latent_basis", "jacobian_basis", "jacobian_scales")
 
 
 def _to_numpy(t: torch.Tensor) -> np.ndarray:
@@ -73,11 +75,18 @@ def save_map(neural_map: NeuralMap, path: str | Path, submaps: list[Submap]) -> 
         raise ValueError("save: submap ids must be unique")
     if {s.submap_id for s in submaps if s.fused} != neural_map.fused_ids:
         raise ValueError("save: the submaps passed must include exactly the map's fused submaps")
+    cfg = neural_map.cfg
     channels = neural_map.model.latent_channels
-    dtype = storage_dtype(neural_map.cfg.storage_dtype)
+    dtype = storage_dtype(cfg.storage_dtype)
+    jac_dtype = storage_dtype(cfg.jacobian_storage)
     originals = [s.original for s in submaps]
-    if any(o.latent_coeffs.dtype != dtype for o in originals):
-        raise ValueError(f"save: every submap must be stored as {neural_map.cfg.storage_dtype}")
+    if any(
+        o.latent_coeffs.dtype != dtype or o.jacobian_coeffs.dtype != jac_dtype for o in originals
+    ):
+        raise ValueError(
+            f"save: every submap must be stored as this map's {cfg.storage_dtype} latents and "
+            f"{cfg.jacobian_storage} Jacobians"
+        )
     counts = [o.num_voxels for o in originals]
     arrays: dict[str, np.ndarray] = {
         "submap_ids": np.asarray(ids, dtype=np.int64),
@@ -88,23 +97,23 @@ def save_map(neural_map: NeuralMap, path: str | Path, submaps: list[Submap]) -> 
         "submap_T_W_A": np.asarray([s.T_W_A for s in submaps], dtype=np.float64).reshape(-1, 4, 4),
         "submap_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
     }
-    ranks = {
-        "latent_basis": neural_map.cfg.latent_rank,
-        "jacobian_basis": neural_map.cfg.jacobian_rank,
+    k_f, k_j = min(cfg.latent_rank, channels), min(cfg.jacobian_rank, channels)
+    shapes = {
+        "latent_basis": (channels, k_f),
+        "jacobian_basis": (channels, k_j),
+        "jacobian_scales": (k_j,),
     }
-    for name in _PER_SUBMAP:
-        k = min(ranks[name], channels)
-        if any(tuple(getattr(o, name).shape) != (channels, k) for o in originals):
-            raise ValueError(f"save: every submap's {name} must be ({channels}, {k})")
-        arrays[name] = np.zeros((len(originals), channels, k), np.float32)
+    for name, shape in shapes.items():
+        if any(tuple(getattr(o, name).shape) != shape for o in originals):
+            raise ValueError(f"save: every submap's {name} must be {shape}")
+        arrays[name] = np.zeros((len(originals), *shape), np.float32)
         for i, o in enumerate(originals):
             arrays[name][i] = _to_numpy(getattr(o, name))
-    k_f, k_j = (min(ranks[n], channels) for n in _PER_SUBMAP)
     empty = {  # zero-row templates keep shapes and dtypes when there are no voxels at all
         "keys": np.zeros(0, np.int64),
         "weights": np.zeros(0, np.float32),
         "latent_coeffs": _to_numpy(torch.zeros(0, k_f, 3, dtype=dtype)),
-        "jacobian_coeffs": _to_numpy(torch.zeros(0, k_j, 3, 3, dtype=dtype)),
+        "jacobian_coeffs": _to_numpy(torch.zeros(0, k_j, 3, 3, dtype=jac_dtype)),
     }
     for name in _PER_VOXEL:
         parts = [_to_numpy(getattr(o, name)) for o in originals]
@@ -116,7 +125,8 @@ def save_map(neural_map: NeuralMap, path: str | Path, submaps: list[Submap]) -> 
         "config": neural_map.cfg.model_dump(),
         "model_identity": neural_map.model.identity(),
         "latent_channels": channels,
-        "storage_dtype": neural_map.cfg.storage_dtype,
+        "storage_dtype": cfg.storage_dtype,
+        "jacobian_storage": cfg.jacobian_storage,
         "num_submaps": len(submaps),
     }
     arrays["header"] = np.array(json.dumps(header))
@@ -192,6 +202,7 @@ def load_map(
     device = neural_map.device
     try:
         dtype = storage_dtype(header["storage_dtype"])
+        jac_dtype = storage_dtype(header["jacobian_storage"])
         offsets = data["submap_offsets"]
         n_sub = int(header["num_submaps"])
         ids = data["submap_ids"]
@@ -203,7 +214,7 @@ def load_map(
             "keys": torch.from_numpy(data["keys"].astype(np.int64, copy=False)),
             "weights": torch.from_numpy(data["weights"]).to(torch.float32),
             "latent_coeffs": _from_numpy(data["latent_coeffs"], dtype),
-            "jacobian_coeffs": _from_numpy(data["jacobian_coeffs"], dtype),
+            "jacobian_coeffs": _from_numpy(data["jacobian_coeffs"], jac_dtype),
         }
         submaps = []
         for i in range(n_sub):
@@ -215,6 +226,7 @@ def load_map(
                 latent_coeffs=voxel["latent_coeffs"][rows],
                 jacobian_basis=torch.from_numpy(data["jacobian_basis"][i]).to(torch.float32),
                 jacobian_coeffs=voxel["jacobian_coeffs"][rows],
+                jacobian_scales=torch.from_numpy(data["jacobian_scales"][i]).to(torch.float32),
             ).to(device)
             submaps.append(
                 Submap(

@@ -126,7 +126,9 @@ class NeuralMap:
     def compress(self, block: VoxelBlock) -> CompactBlock:
         """A block with Jacobians in this map's storage form (ranks and dtype of the config)."""
         cfg = self.cfg
-        return CompactBlock.compress(block, cfg.latent_rank, cfg.jacobian_rank, cfg.storage_dtype)
+        return CompactBlock.compress(
+            block, cfg.latent_rank, cfg.jacobian_rank, cfg.storage_dtype, cfg.jacobian_storage
+        )
 
     def placed(self, submap: Submap) -> VoxelBlock:
         """What the submap contributes to the global map at its current pose ``T_W_A``.

@@ -32,7 +32,7 @@ def block() -> VoxelBlock:
 
 @pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32"])
 def test_full_rank_round_trip_is_within_storage_rounding(block, dtype) -> None:
-    compact = CompactBlock.compress(block, 16, 16, dtype)
+    compact = CompactBlock.compress(block, 16, 16, dtype, jacobian_storage=dtype)
     back = compact.decompress()
     assert torch.equal(back.keys, block.keys) and torch.equal(back.weights, block.weights)
     u = UNIT_ROUNDOFF[dtype]
@@ -41,13 +41,25 @@ def test_full_rank_round_trip_is_within_storage_rounding(block, dtype) -> None:
         assert ((got - want).abs() <= u * want.abs() + 6e-8).all()
 
 
+def test_int8_jacobians_are_within_half_a_step(block) -> None:
+    compact = CompactBlock.compress(block, 16, 16, "float32")
+    assert compact.jacobian_coeffs.dtype == torch.int8
+    steps = compact.jacobian_scales  # identity basis at full rank: one step per channel
+    err = (compact.decompress().jacobians - block.jacobians).abs()
+    assert (err <= 0.5 * steps.view(1, -1, 1, 1) * (1 + 1e-5)).all()
+    # the step is the channel's peak / 127: nothing saturates
+    peak = block.jacobians.abs().amax(dim=(0, 2, 3))
+    assert torch.allclose(steps, peak / 127)
+
+
 def test_rank_reduction_keeps_the_leading_channel_energy(block) -> None:
     """The basis is the optimal one: the error is exactly the discarded eigenvalue energy."""
     J = block.jacobians.double()
     samples = J.permute(1, 0, 2, 3).reshape(16, -1)
     eigenvalues = torch.linalg.eigvalsh(samples @ samples.T).flip(0)
     for rank in (2, 4, 8):
-        back = CompactBlock.compress(block, 16, rank, "float32").decompress().jacobians.double()
+        compact = CompactBlock.compress(block, 16, rank, "float32", jacobian_storage="float32")
+        back = compact.decompress().jacobians.double()
         residual = float(((back - J) ** 2).sum())
         assert residual == pytest.approx(float(eigenvalues[rank:].sum()), rel=1e-3, abs=1e-9)
     # what the default keeps on a real encoding
@@ -64,8 +76,8 @@ def test_compression_commutes_with_rotation(block) -> None:
             b.keys, b.latents @ R.T, b.weights, torch.einsum("ia,mcab,jb->mcij", R, b.jacobians, R)
         )
 
-    a = rotate(CompactBlock.compress(block, 16, 4, "float32").decompress())
-    b = CompactBlock.compress(rotate(block), 16, 4, "float32").decompress()
+    a = rotate(CompactBlock.compress(block, 4, 4, "float32", "float32").decompress())
+    b = CompactBlock.compress(rotate(block), 4, 4, "float32", "float32").decompress()
     assert (a.latents - b.latents).abs().max() < 1e-5
     assert (a.jacobians - b.jacobians).abs().max() < 1e-4
 
