@@ -142,9 +142,15 @@ def collect_metrics(
     metrics["num_submaps"] = len(pipeline.submaps)
     metrics["loops"] = loop_summary(pipeline)
     metrics["remap"] = remap_summary(pipeline)
+    submaps = list(pipeline.submaps.values())
+    stored_voxels = sum(s.original.num_voxels for s in submaps)
     metrics["map"] = {
         "voxels": int(pipeline.map.num_voxels),
         "memory_bytes": int(pipeline.map.memory_bytes()),
+        "submap_voxels": int(stored_voxels),
+        "submap_bytes": int(sum(s.nbytes() for s in submaps)),
+        # how many times each global voxel is stored among the submaps (submap overlap)
+        "overlap": stored_voxels / max(pipeline.map.num_voxels, 1),
     }
     gt = pipeline.gt_poses()
     slam = pipeline.slam_poses()

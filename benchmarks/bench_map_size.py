@@ -1,0 +1,271 @@
+"""Map size and memory against the raw points the map replaces, before and after a change.
+
+    python -m benchmarks.bench_map_size [--baseline-rev REV] [--scenarios demo 7scenes]
+                                        [--out benchmarks/results/map_size.md]
+
+Every scenario runs ``python -m slam.run ... --no-viz`` in its own process, once with this
+checkout and, with ``--baseline-rev``, once with an older revision checked out into a temporary
+git worktree (the "before" column), so that peak RSS is each process's own. Reported per run:
+
+* ``map.npz`` size; voxels stored in submaps, bytes per stored submap voxel (the arrays of the
+  submaps' originals, uncompressed), global voxels and the overlap factor (stored / global);
+* peak RSS of the run process, frames/s, ATE and mesh accuracy (nothing may be traded silently);
+* the raw-data baseline: the same submaps' points, replayed through the keyframer with the run's
+  odometry poses and voxel-downsampled to V/4, as float32 (12 B a point; 24 B with normals): what a
+  system that re-fuses raw points after loop closure would have to keep.
+
+Scenarios: ``demo`` (the generated room, configs/demo.yaml) and ``7scenes`` (real redkitchen
+seq-01 frames 0-399, configs/7scenes.yaml; skipped when ../shared/data is absent).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import logging
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slam.atomic_io import write_text_atomic
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+RESULTS = REPO / "benchmarks" / "results" / "map_size.md"
+SCENARIOS: dict[str, list[str]] = {
+    "demo": ["demo"],
+    "7scenes": [
+        "7scenes",
+        "seq-01",
+        "--root",
+        str(DATA / "7scenes_redkitchen"),
+        "--frames",
+        "0:400",
+    ],
+}
+log = logging.getLogger("benchmarks.bench_map_size")
+
+
+def run_slam(checkout: Path, args: list[str], out: Path) -> dict[str, Any]:
+    """``slam.run`` from ``checkout`` in a child process: its metrics, wall time and peak RSS."""
+    env = dict(os.environ, PYTHONPATH=str(checkout), PYTHONUNBUFFERED="1")
+    command = [sys.executable, "-m", "slam.run", *args, "--no-viz", "--out", str(out)]
+    log.info("%s: %s", checkout, shlex.join(command))
+    start = time.perf_counter()
+    with open(out.parent / f"{out.name}.log", "w") as log_file:
+        child = subprocess.Popen(command, cwd=checkout, env=env, stdout=log_file, stderr=log_file)
+        _, status, usage = os.wait4(child.pid, 0)
+    wall = time.perf_counter() - start
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"slam.run failed in {checkout}; see {out.parent / out.name}.log")
+    metrics = json.loads((out / "metrics.json").read_text())
+    return {"metrics": metrics, "wall_s": wall, "peak_rss_mb": usage.ru_maxrss / 1024}
+
+
+def map_file_stats(path: Path) -> dict[str, Any]:
+    """Size and content of a ``map.npz`` of format version 1 (before) or 2 (lean)."""
+    with np.load(path, allow_pickle=False) as npz:
+        header = json.loads(str(npz["header"]))
+        names = npz.files
+        if header["version"] == 1:
+            submap_arrays = [n for n in names if n.startswith("s") and "_original_" in n]
+            voxels = sum(npz[n].shape[0] for n in names if n.endswith("_original_keys"))
+            placed = sum(npz[n].nbytes for n in names if "_placed_" in n)
+        else:
+            submap_arrays = [n for n in names if not n.startswith("submap_") and n != "header"]
+            voxels = int(npz["keys"].shape[0])
+            placed = 0
+        submap_bytes = sum(npz[n].nbytes for n in submap_arrays)
+    with zipfile.ZipFile(path) as archive:
+        members = {i.filename.removesuffix(".npy"): i.compress_size for i in archive.infolist()}
+    return {
+        "version": header["version"],
+        "file_mb": path.stat().st_size / 1e6,
+        "submap_voxels": voxels,
+        "bytes_per_submap_voxel": submap_bytes / max(voxels, 1),
+        "file_bytes_per_submap_voxel": path.stat().st_size / max(voxels, 1),
+        "placed_copies_mb": placed / 1e6,
+        "largest_members": sorted(members.items(), key=lambda kv: -kv[1])[:4],
+    }
+
+
+def raw_baseline(run_dir: Path) -> dict[str, Any]:
+    """Points of the run's submaps at V/4, replayed through the keyframer with its odometry."""
+    from slam.builders import build_source
+    from slam.config import load_run_config
+    from slam.submaps import Keyframer, voxel_subsample
+    from slam.trajectory_io import read_kitti
+
+    cfg = load_run_config(run_dir / "config.yaml")
+    poses = read_kitti(run_dir / "poses_odometry.kitti.txt")
+    source = build_source(cfg)
+    if source.sensor != "rgbd":
+        raise ValueError("the keyframer replay reproduces RGB-D submaps only (LiDAR deskews)")
+    cfg.submaps.keep_keyframe_images = False
+    keyframer = Keyframer(cfg.submaps)
+    quarter = cfg.mapping.voxel_size_m / 4
+    counts: list[int] = []
+    for frame, T_W_S in zip(source, poses, strict=True):
+        closed, _, _ = keyframer.add(frame, T_W_S)
+        if closed is not None:
+            counts.append(len(voxel_subsample(closed.points_A, quarter)))
+    last = keyframer.finish()
+    if last is not None:
+        counts.append(len(voxel_subsample(last.points_A, quarter)))
+    points = int(sum(counts))
+    return {
+        "submaps": len(counts),
+        "points": points,
+        "points_mb": 12 * points / 1e6,
+        "points_normals_mb": 24 * points / 1e6,
+    }
+
+
+def measure(checkout: Path, name: str, work: Path, with_raw: bool) -> dict[str, Any]:
+    out = work / f"{name}-{checkout.name}"
+    result = run_slam(checkout, SCENARIOS[name], out)
+    result["map"] = map_file_stats(out / "map.npz")
+    if with_raw:
+        result["raw"] = raw_baseline(out)
+    return result
+
+
+def _metric(metrics: dict[str, Any], *keys: str) -> float | None:
+    value: Any = metrics
+    for key in keys:
+        if not isinstance(value, dict) or key not in value:
+            return None
+        value = value[key]
+    return value
+
+
+def _cm(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.2f}"
+
+
+def table(name: str, runs: dict[str, dict[str, Any]]) -> list[str]:
+    """One Markdown table, a column per run (before / after)."""
+    labels = list(runs)
+    rows: list[tuple[str, list[str]]] = []
+
+    def row(title: str, fn) -> None:
+        rows.append((title, [fn(runs[label]) for label in labels]))
+
+    row("`map.npz` [MB]", lambda r: f"{r['map']['file_mb']:.1f}")
+    row("submaps", lambda r: str(r["metrics"]["num_submaps"]))
+    row("voxels stored in submaps", lambda r: f"{r['map']['submap_voxels']:,}")
+    row(
+        "bytes per stored submap voxel (arrays / on disk)",
+        lambda r: (
+            f"{r['map']['bytes_per_submap_voxel']:.0f} / "
+            f"{r['map']['file_bytes_per_submap_voxel']:.0f}"
+        ),
+    )
+    row("placed copies in the file [MB]", lambda r: f"{r['map']['placed_copies_mb']:.1f}")
+    row("global map voxels", lambda r: f"{r['metrics']['map']['voxels']:,}")
+    row(
+        "overlap (stored / global voxels)",
+        lambda r: f"{r['map']['submap_voxels'] / max(r['metrics']['map']['voxels'], 1):.2f}",
+    )
+    row("peak RSS of the run [MB]", lambda r: f"{r['peak_rss_mb']:.0f}")
+    row("wall time of the run [s]", lambda r: f"{r['wall_s']:.0f}")
+    row(
+        "frames/s (as the run reports it)",
+        lambda r: f"{_metric(r['metrics'], 'timing', 'frames_per_s') or 0:.1f}",
+    )
+    row(
+        "ATE odometry -> SLAM [cm]",
+        lambda r: (
+            f"{_cm(_metric(r['metrics'], 'trajectory', 'odometry', 'ate_rmse_m'))} -> "
+            f"{_cm(_metric(r['metrics'], 'trajectory', 'slam', 'ate_rmse_m'))}"
+        ),
+    )
+    row("mesh accuracy [cm]", lambda r: _cm(_metric(r["metrics"], "mesh", "accuracy_m")))
+    lines = [
+        f"### {name}",
+        "",
+        "| | " + " | ".join(labels) + " |",
+        "|---|" + "---:|" * len(labels),
+    ]
+    lines += [f"| {title} | " + " | ".join(cells) + " |" for title, cells in rows]
+    raw = runs[labels[-1]].get("raw")
+    if raw is not None:
+        ours = runs[labels[-1]]["map"]["file_mb"]
+        lines += [
+            "",
+            f"Raw-data baseline (the same {raw['submaps']} submaps' points at V/4, float32): "
+            f"{raw['points']:,} points = **{raw['points_mb']:.1f} MB** "
+            f"({raw['points_normals_mb']:.1f} MB with normals). `map.npz` "
+            f"({labels[-1]}) is {ours / raw['points_mb']:.2f}x the points alone.",
+        ]
+    return [*lines, ""]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--baseline-rev", help="git revision to measure as 'before'")
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
+    parser.add_argument("--out", type=Path, default=RESULTS, help="Markdown section to write")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if "7scenes" in args.scenarios and not (DATA / "7scenes_redkitchen").is_dir():
+        log.warning("skipping 7scenes: %s is absent", DATA / "7scenes_redkitchen")
+        args.scenarios.remove("7scenes")
+    revision = subprocess.run(
+        ["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True, text=True
+    ).stdout.strip()
+    load = os.getloadavg()[0]
+    lines = [
+        "## Map size and memory (lean map)",
+        "",
+        f"- Command: `python -m benchmarks.bench_map_size {shlex.join(sys.argv[1:])}`",
+        f"- Date: {dt.datetime.now().isoformat(timespec='seconds')}; revision {revision}"
+        + (f"; before = `{args.baseline_rev}`" if args.baseline_rev else ""),
+        f"- Machine: {platform.platform()}, {os.cpu_count()} CPUs, Python "
+        f"{platform.python_version()}; 1-min load average at start {load:.1f} (a shared "
+        "machine: wall times and frames/s are lower bounds)",
+        "- Each run is `python -m slam.run ... --no-viz` in its own process; peak RSS is that "
+        "process's maximum resident set size.",
+        "",
+    ]
+    with tempfile.TemporaryDirectory(prefix="bench_map_size-") as tmp:
+        work = Path(tmp)
+        checkouts = {"after": REPO}
+        if args.baseline_rev:
+            before = work / "before"
+            subprocess.run(
+                ["git", "worktree", "add", "--detach", str(before), args.baseline_rev],
+                cwd=REPO,
+                check=True,
+                capture_output=True,
+            )
+            checkouts = {f"before ({args.baseline_rev})": before, "after": REPO}
+        try:
+            for name in args.scenarios:
+                runs = {}
+                for label, checkout in checkouts.items():
+                    runs[label] = measure(checkout, name, work, with_raw=label == "after")
+                    log.info("%s %s: %s", name, label, json.dumps(runs[label]["map"]))
+                lines += table(name, runs)
+        finally:
+            if args.baseline_rev:
+                subprocess.run(
+                    ["git", "worktree", "remove", "--force", str(work / "before")], cwd=REPO
+                )
+    text = "\n".join(lines) + "\n"
+    write_text_atomic(args.out, text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
