@@ -14,8 +14,13 @@ git worktree (the "before" column), so that peak RSS is each process's own. Repo
   odometry poses and voxel-downsampled to V/4, as float32 (12 B a point; 24 B with normals): what a
   system that re-fuses raw points after loop closure would have to keep.
 
-Scenarios: ``demo`` (the generated room, configs/demo.yaml) and ``7scenes`` (real redkitchen
-seq-01 frames 0-399, configs/7scenes.yaml; skipped when ../shared/data is absent).
+Scenarios: ``demo`` (the generated room, configs/demo.yaml), ``7scenes`` (real redkitchen
+seq-01 frames 0-399, configs/7scenes.yaml; skipped when ../shared/data is absent), and
+``kitti-1000`` / ``kitti-full``: a 64-beam LiDAR (2048 azimuth steps, ~126k points a scan)
+simulated along all 4,541 poses of the real KITTI 00 trajectory (frontends/generate, cached),
+run with configs/kitti.yaml on its first 1,000 frames or on all of them. The parent samples the
+child's peak RSS (``VmHWM``) as the run's trajectory file grows, which gives peak RSS as a
+function of sequence length.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from slam.atomic_io import write_text_atomic
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 RESULTS = REPO / "benchmarks" / "results" / "map_size.md"
+RSS_CHECKPOINTS = (500, 1000, 2000, 3000, 4000)
 SCENARIOS: dict[str, list[str]] = {
     "demo": ["demo"],
     "7scenes": [
@@ -52,7 +58,47 @@ SCENARIOS: dict[str, list[str]] = {
         "--frames",
         "0:400",
     ],
+    "kitti-1000": ["kitti", "00", "--frames", "0:1000"],  # --root added by kitti_root()
+    "kitti-full": ["kitti", "00"],
 }
+
+
+def kitti_root() -> Path:
+    """The generated full-length KITTI-00-trajectory sequence (generated once, then cached)."""
+    from frontends.sources import make_source
+
+    source = make_source(
+        "generated",
+        kind="lidar",
+        trajectory="kitti",
+        kitti_poses=DATA / "kitti" / "poses" / "00.txt",
+        kitti_calib=DATA / "kitti" / "sequences" / "00" / "calib.txt",
+        start=0,
+        num_frames=4541,
+        step=1,
+        azimuth_steps=2048,
+    )
+    return Path(source.sequence_dir).parents[1]
+
+
+def _vm_hwm_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def _frames_written(run_dir: Path) -> int:
+    try:
+        with open(run_dir / "poses_odometry.kitti.txt", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return 0
+
+
 log = logging.getLogger("benchmarks.bench_map_size")
 
 
@@ -62,14 +108,25 @@ def run_slam(checkout: Path, args: list[str], out: Path) -> dict[str, Any]:
     command = [sys.executable, "-m", "slam.run", *args, "--no-viz", "--out", str(out)]
     log.info("%s: %s", checkout, shlex.join(command))
     start = time.perf_counter()
+    rss_at: dict[int, float] = {}
     with open(out.parent / f"{out.name}.log", "w") as log_file:
         child = subprocess.Popen(command, cwd=checkout, env=env, stdout=log_file, stderr=log_file)
-        _, status, usage = os.wait4(child.pid, 0)
+        while True:
+            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
+            if pid:
+                break
+            frames, peak = _frames_written(out), _vm_hwm_mb(child.pid)
+            for checkpoint in RSS_CHECKPOINTS:
+                if frames >= checkpoint and checkpoint not in rss_at and peak is not None:
+                    rss_at[checkpoint] = peak
+            time.sleep(1.0)
     wall = time.perf_counter() - start
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"slam.run failed in {checkout}; see {out.parent / out.name}.log")
     metrics = json.loads((out / "metrics.json").read_text())
-    return {"metrics": metrics, "wall_s": wall, "peak_rss_mb": usage.ru_maxrss / 1024}
+    peak = usage.ru_maxrss / 1024
+    rss_at[metrics["num_frames"]] = peak
+    return {"metrics": metrics, "wall_s": wall, "peak_rss_mb": peak, "rss_at_frames": rss_at}
 
 
 def map_file_stats(path: Path) -> dict[str, Any]:
@@ -133,7 +190,10 @@ def raw_baseline(run_dir: Path) -> dict[str, Any]:
 
 def measure(checkout: Path, name: str, work: Path, with_raw: bool) -> dict[str, Any]:
     out = work / f"{name}-{checkout.name}"
-    result = run_slam(checkout, SCENARIOS[name], out)
+    args = SCENARIOS[name]
+    if name.startswith("kitti"):
+        args = [*args, "--root", str(kitti_root())]
+    result = run_slam(checkout, args, out)
     result["map"] = map_file_stats(out / "map.npz")
     if with_raw:
         result["raw"] = raw_baseline(out)
@@ -178,6 +238,10 @@ def table(name: str, runs: dict[str, dict[str, Any]]) -> list[str]:
         lambda r: f"{r['map']['submap_voxels'] / max(r['metrics']['map']['voxels'], 1):.2f}",
     )
     row("peak RSS of the run [MB]", lambda r: f"{r['peak_rss_mb']:.0f}")
+    row(
+        "peak RSS after N frames [MB]",
+        lambda r: ", ".join(f"{n}: {mb:.0f}" for n, mb in sorted(r["rss_at_frames"].items())),
+    )
     row("wall time of the run [s]", lambda r: f"{r['wall_s']:.0f}")
     row(
         "frames/s (as the run reports it)",
@@ -214,7 +278,16 @@ def table(name: str, runs: dict[str, dict[str, Any]]) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--baseline-rev", help="git revision to measure as 'before'")
-    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
+    parser.add_argument(
+        "--scenarios", nargs="+", default=["demo", "7scenes"], choices=list(SCENARIOS)
+    )
+    parser.add_argument(
+        "--after-only",
+        nargs="*",
+        default=[],
+        choices=list(SCENARIOS),
+        help="scenarios measured with this checkout only (no 'before' run)",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS, help="Markdown section to write")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -254,7 +327,10 @@ def main(argv: list[str] | None = None) -> None:
             for name in args.scenarios:
                 runs = {}
                 for label, checkout in checkouts.items():
-                    runs[label] = measure(checkout, name, work, with_raw=label == "after")
+                    if label != "after" and name in args.after_only:
+                        continue
+                    rgbd = not name.startswith("kitti")
+                    runs[label] = measure(checkout, name, work, with_raw=rgbd and label == "after")
                     log.info("%s %s: %s", name, label, json.dumps(runs[label]["map"]))
                 lines += table(name, runs)
         finally:

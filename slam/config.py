@@ -122,6 +122,17 @@ class SubmapConfig(_Strict):
         30.0, gt=0, description="close the submap when the sensor turned this much from the anchor"
     )
     max_frames: int = Field(30, ge=1, description="close the submap after this many frames")
+    max_surface_views: float | None = Field(
+        None,
+        gt=1.0,
+        description=(
+            "close the submap once the surface it covers (distinct cells of 4 x map_voxel_m) "
+            "exceeds this multiple of the largest surface one of its frames saw. Consecutive "
+            "submaps share about one view of surface, so this bounds the storage overlap factor "
+            "near 1 + 1/max_surface_views however slowly the sensor moves, where a frame count "
+            "stores a lingering camera's view again every max_frames frames. None: off"
+        ),
+    )
     min_range_m: float = Field(0.1, ge=0, description="points nearer to the sensor are dropped")
     max_range_m: float = Field(8.0, gt=0, description="points farther from the sensor are dropped")
     map_voxel_m: float = Field(

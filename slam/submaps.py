@@ -2,9 +2,14 @@
 
 A submap is opened by a frame (its *anchor*, ``T_W_A`` = that frame's pose) and closed when the
 sensor has travelled, turned or counted past the limits of :class:`~slam.config.SubmapConfig`
-relative to the anchor. Points of every frame are moved into the anchor frame ``A`` with the
-odometry pose relative to the anchor and kept voxel-downsampled; a closed submap is what the
-neural map encodes once and later moves as a whole, and what loop closure matches.
+relative to the anchor, or (``max_surface_views``) when the submap covers a given multiple of the
+largest surface one of its frames saw: every submap is stored for life, and each boundary between
+submaps stores about one view of surface twice, so closing by new surface rather than by time
+bounds the map's storage overlap.
+
+Points of every frame are moved into the anchor frame ``A`` with the odometry pose relative to the
+anchor and kept voxel-downsampled; a closed submap is what the neural map encodes once and later
+moves as a whole, and what loop closure matches.
 """
 
 from __future__ import annotations
@@ -16,6 +21,9 @@ import numpy as np
 from frontends.frame import Frame
 from slam.config import SubmapConfig
 from slam.normals import estimate_normals
+
+SURFACE_CELL_FACTOR = 4
+"""Surface coverage (``max_surface_views``) is counted in cells of this many ``map_voxel_m``."""
 
 
 def rotation_angle_rad(R: np.ndarray) -> float:
@@ -119,6 +127,8 @@ class Keyframer:
         self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._has_normals = True
         self._accumulated = 0
+        self._surface_keys = np.zeros(0, dtype=np.int64)
+        self._view_surface = 0
 
     @property
     def current(self) -> SubmapRecord | None:
@@ -133,6 +143,9 @@ class Keyframer:
             return True
         if np.linalg.norm(T_A_S[:3, 3]) > c.max_distance_m:
             return True
+        if c.max_surface_views is not None and self._view_surface > 0:
+            if len(self._surface_keys) > c.max_surface_views * self._view_surface:
+                return True
         return np.degrees(rotation_angle_rad(T_A_S[:3, :3])) > c.max_rotation_deg
 
     def add(
@@ -191,6 +204,8 @@ class Keyframer:
         self._chunks = []
         self._accumulated = 0
         self._has_normals = True
+        self._surface_keys = np.zeros(0, dtype=np.int64)
+        self._view_surface = 0
 
     def _frame_points(self, frame: Frame) -> tuple[np.ndarray, np.ndarray | None]:
         points = np.asarray(frame.points, dtype=np.float64)
@@ -215,10 +230,18 @@ class Keyframer:
         points_A, normals_A, viewpoint_A = voxel_downsample(
             self.cfg.map_voxel_m, points_A, normals_A, viewpoint_A
         )
+        if self.cfg.max_surface_views is not None:
+            self._track_surface(points_A)
         self._chunks.append((points_A, normals_A, viewpoint_A))
         self._accumulated += len(points_A)
         if len(self._chunks) > 1 and self._accumulated > self.cfg.compact_every_points:
             self._compact()
+
+    def _track_surface(self, points_A: np.ndarray) -> None:
+        """Grow the set of surface cells the submap covers, and its largest single view."""
+        cells = np.unique(voxel_keys(points_A, SURFACE_CELL_FACTOR * self.cfg.map_voxel_m))
+        self._surface_keys = np.union1d(self._surface_keys, cells)
+        self._view_surface = max(self._view_surface, len(cells))
 
     def _compact(self) -> None:
         if not self._chunks:
