@@ -279,8 +279,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--baseline-rev", help="git revision to measure as 'before'")
     parser.add_argument(
-        "--scenarios", nargs="+", default=["demo", "7scenes"], choices=list(SCENARIOS)
+        "--scenarios",
+        nargs="+",
+        choices=list(SCENARIOS),
+        help="default: demo, 7scenes and kitti-full (--quick: demo)",
     )
+    parser.add_argument("--quick", action="store_true", help="the demo scenario only")
     parser.add_argument(
         "--after-only",
         nargs="*",
@@ -291,6 +295,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=RESULTS, help="Markdown section to write")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.scenarios is None:
+        args.scenarios = ["demo"] if args.quick else ["demo", "7scenes", "kitti-full"]
     if "7scenes" in args.scenarios and not (DATA / "7scenes_redkitchen").is_dir():
         log.warning("skipping 7scenes: %s is absent", DATA / "7scenes_redkitchen")
         args.scenarios.remove("7scenes")
