@@ -174,7 +174,48 @@ def open_dataloader(
             return _NpyFolder(path)
         from kiss_icp.datasets import dataset_factory
 
-        return dataset_factory(dataloader, path, sequence=sequence, topic=topic)
+        dataset = dataset_factory(dataloader, path, sequence=sequence, topic=topic)
+    if dataloader == "mcap":
+        dataset.read_point_cloud = _with_field_constants(dataset.read_point_cloud)
+    return dataset
+
+
+POINT_FIELD_TYPES = {
+    "INT8": 1,
+    "UINT8": 2,
+    "INT16": 3,
+    "UINT16": 4,
+    "INT32": 5,
+    "UINT32": 6,
+    "FLOAT32": 7,
+    "FLOAT64": 8,
+}
+"""The datatype constants of ``sensor_msgs/PointField``."""
+
+
+def _with_field_constants(read_point_cloud):
+    """KISS-ICP 1.3 names a PointField's datatype by searching ``vars(field)`` for the constants;
+    mcap-ros2-support decodes messages into ``__slots__`` classes, where ``vars`` is empty. Hand
+    the reader a plain copy of the message whose fields carry the constants."""
+    from types import SimpleNamespace
+
+    def read(msg):
+        fields = [
+            SimpleNamespace(
+                name=f.name,
+                offset=f.offset,
+                datatype=f.datatype,
+                count=f.count,
+                **POINT_FIELD_TYPES,
+            )
+            for f in msg.fields
+        ]
+        names = ("header", "height", "width", "is_bigendian", "point_step", "row_step", "data")
+        plain = SimpleNamespace(fields=fields, **{n: getattr(msg, n) for n in names})
+        plain.is_dense = getattr(msg, "is_dense", True)
+        return read_point_cloud(plain)
+
+    return read
 
 
 @register_source("lidar")
