@@ -282,7 +282,7 @@ def render_mesh(
     figure.set_dpi(dpi)
     axes = figure.add_subplot()
     collection = PolyCollection(
-        triangles[:, :, :2], facecolors=colors, edgecolors=colors, linewidths=0.1
+        triangles[:, :, :2], facecolors=colors, edgecolors=colors, linewidths=0.1, antialiased=False
     )
     axes.add_collection(collection)
     if len(triangles):

@@ -145,13 +145,22 @@ def test_ply_folder_runs_end_to_end(tmp_path: Path, street_scans) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
-def test_ros2_bag_runs_end_to_end(tmp_path: Path, street_scans, storage: str) -> None:
+@pytest.mark.parametrize(
+    ("dataloader", "storage"), [("rosbag", "sqlite3"), ("rosbag", "mcap"), ("mcap", "mcap")]
+)
+def test_ros2_bag_runs_end_to_end(
+    tmp_path: Path, street_scans, dataloader: str, storage: str
+) -> None:
     scans, gt = street_scans
     bag = tmp_path / "recording"
     _write_ros2_bag(bag, scans, storage)
+    if dataloader == "mcap":
+        pytest.importorskip("mcap_ros2", reason='the mcap extra: pip install -e ".[mcap]"')
+        (path,) = bag.glob("*.mcap")  # the standalone MCAP file
+    else:
+        path = bag  # the ROS2 bag folder
     out = tmp_path / "run"
-    metrics = _run(["lidar", str(bag), "--dataloader", "rosbag", "--topic", TOPIC], out)
+    metrics = _run(["lidar", str(path), "--dataloader", dataloader, "--topic", TOPIC], out)
     assert metrics["num_frames"] == NUM_SCANS
     assert "trajectory" not in metrics  # a bag carries no ground truth
     stamps = np.loadtxt(out / "poses_slam.tum.txt")[:, 0]
