@@ -628,6 +628,13 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             f"mesh     accuracy {cm(mesh['accuracy_m'])}, completion {cm(mesh['completion_m'])}, "
             f"ratio {100 * (mesh['completion_ratio'] or 0):.1f}% (culling {mesh.get('culling')})"
         )
+    unculled = metrics.get("mesh_unculled")
+    if unculled:
+        ratio = 100 * (unculled["completion_ratio"] or 0)
+        lines.append(
+            f"         unculled ({unculled.get('culling')}): completion "
+            f"{cm(unculled['completion_m'])}, ratio {ratio:.1f}%"
+        )
     for plot in (metrics.get("evaluation") or {}).get("plots", []):
         lines.append(f"plot     {plot}")
     return lines

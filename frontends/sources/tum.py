@@ -86,6 +86,7 @@ def tum_intrinsics_for(sequence: str) -> Intrinsics:
     match = _TUM_CAMERA.search(sequence.lower())
     return TUM_CAMERA_INTRINSICS[f"freiburg{match.group(1)}"] if match else TUM_INTRINSICS
 
+
 ICL_INTRINSICS_RAW = Intrinsics(fx=481.2, fy=-480.0, cx=319.5, cy=239.5, width=640, height=480)
 """ICL-NUIM's published intrinsics (POV-Ray convention, negative fy)."""
 
