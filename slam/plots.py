@@ -301,4 +301,16 @@ def render_mesh(
     if title:
         axes.set_title(title, fontsize=9)
     figure.set_dpi(dpi)
-    return _save(figure, path)
+    return _palette_png(_save(figure, path))
+
+
+def _palette_png(path: Path, colors: int = 256) -> Path:
+    """Re-save a PNG with a palette of ``colors`` (a third of the size for shaded renders)."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        small = image.convert("RGB").quantize(colors=colors)
+    tmp = path.with_name(f".{path.name}.tmp")
+    small.save(tmp, format="PNG", optimize=True)
+    os.replace(tmp, path)
+    return path

@@ -468,6 +468,12 @@ def _length(value: float | None) -> str:
     return f"{value * 100:.1f} cm" if value < 1.0 else f"{value:.2f} m"
 
 
+_UNCULLED = {
+    "frustum": "all ground truth in a camera's view, occluded surfaces too",
+    "none": "the whole ground truth",
+}
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """The short summary printed at the end of a run."""
     timing = metrics["timing"]
@@ -509,7 +515,7 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         unculled = metrics.get("mesh_unculled")
         if unculled:
             lines.append(
-                f"  unculled (all ground truth in view, occluded and unobserved surfaces too): "
+                f"  unculled ({_UNCULLED.get(unculled.get('culling'), unculled.get('culling'))}): "
                 f"completion {_length(unculled['completion_m'])}, ratio "
                 f"{100 * unculled['completion_ratio']:.0f}%"
             )

@@ -162,7 +162,10 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
         changed["trajectory"]["slam"]["ate_rmse_m"]
         > after["trajectory"]["slam"]["ate_rmse_m"] + 0.03
     )
-    assert _close(changed["trajectory"]["odometry"], after["trajectory"]["odometry"], rel=1e-9)
+    for key in ("ate_rmse_m", "rpe_trans_rmse_m"):  # the odometry file was not touched
+        assert math.isclose(
+            changed["trajectory"]["odometry"][key], after["trajectory"]["odometry"][key]
+        )
     assert changed["mesh"]["num_pred_faces"] == len(half.faces)
     assert changed["mesh"]["completion_m"] > after["mesh"]["completion_m"]
     assert changed["mesh"]["accuracy_m"] != after["mesh"]["accuracy_m"]
