@@ -158,20 +158,29 @@ def mesh_errors(
 def observed_face_mask(
     gt_mesh: trimesh.Trimesh, observed_points: np.ndarray, distance_m: float
 ) -> tuple[trimesh.Trimesh, np.ndarray]:
-    """Subdivide ``gt_mesh`` (edges <= distance / 2) and mark faces whose centroid lies within
-    ``distance_m`` of an observed point. Returns ``(subdivided mesh, mask)``."""
+    """Subdivide ``gt_mesh`` (edges <= distance / 2) where it comes near ``observed_points`` and
+    mark the faces whose centroid lies within ``distance_m`` of one. Returns ``(mesh, mask)``:
+    the same surface as ``gt_mesh`` (faces far from every observation are kept whole, unmarked)."""
     from scipy.spatial import cKDTree
 
+    observed_points = np.asarray(observed_points, dtype=np.float64).reshape(-1, 3)
+    if len(observed_points) == 0:
+        return gt_mesh, np.zeros(len(gt_mesh.faces), dtype=bool)
+    tree = cKDTree(observed_points)
+    centers = np.asarray(gt_mesh.triangles_center)
+    radius = np.linalg.norm(np.asarray(gt_mesh.triangles) - centers[:, None], axis=2).max(axis=1)
+    nearest, _ = tree.query(centers, workers=-1)
+    near = nearest <= distance_m + radius
     vertices, faces = trimesh.remesh.subdivide_to_size(
-        gt_mesh.vertices, gt_mesh.faces, max_edge=distance_m / 2.0, max_iter=12
+        gt_mesh.vertices, gt_mesh.faces[near], max_edge=distance_m / 2.0, max_iter=12
     )
     fine = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    if len(observed_points) == 0:
-        return fine, np.zeros(len(fine.faces), dtype=bool)
-    distance, _ = cKDTree(observed_points).query(
-        fine.triangles_center, distance_upper_bound=distance_m, workers=-1
-    )
-    return fine, np.isfinite(distance)
+    distance, _ = tree.query(fine.triangles_center, distance_upper_bound=distance_m, workers=-1)
+    far = trimesh.Trimesh(vertices=gt_mesh.vertices, faces=gt_mesh.faces[~near], process=False)
+    mask = np.concatenate([np.isfinite(distance), np.zeros(len(far.faces), dtype=bool)])
+    if len(far.faces) == 0:
+        return fine, mask
+    return trimesh.util.concatenate([fine, far]), mask
 
 
 VIEW_RAY_STEP_PX = 4
@@ -192,8 +201,6 @@ def camera_observed_face_mask(
     ground-truth mesh (first hit only, so occluded surface is not counted, nor surface beyond
     ``max_depth_m``); faces of the mesh subdivided to ``distance_m / 2`` are observed when their
     centroid lies within ``distance_m`` of a hit. Returns ``(subdivided mesh, mask)``."""
-    from scipy.spatial import cKDTree
-
     K, width, height = cameras
     poses = np.asarray(T_W_C, dtype=np.float64)
     poses = poses[np.unique(np.linspace(0, len(poses) - 1, VIEW_CAMERAS_MAX).round().astype(int))]
@@ -211,17 +218,7 @@ def camera_observed_face_mask(
         origins, directions, multiple_hits=False
     )
     depth = np.linalg.norm(locations - origins[ray_ids], axis=1)
-    hits = locations[depth <= max_depth_m]
-    vertices, faces = trimesh.remesh.subdivide_to_size(
-        gt_mesh.vertices, gt_mesh.faces, max_edge=distance_m / 2.0, max_iter=12
-    )
-    fine = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    if len(hits) == 0:
-        return fine, np.zeros(len(fine.faces), dtype=bool)
-    distance, _ = cKDTree(hits).query(
-        fine.triangles_center, distance_upper_bound=distance_m, workers=-1
-    )
-    return fine, np.isfinite(distance)
+    return observed_face_mask(gt_mesh, locations[depth <= max_depth_m], distance_m)
 
 
 def mesh_sections(

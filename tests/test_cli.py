@@ -163,10 +163,12 @@ def test_serve_streams_to_the_web_viewer_and_stops_cleanly(tmp_path: Path):
     web_port, grpc_port = _free_port(), _free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     command = [
-        sys.executable, "-m", "slam.run", "generated-lidar", "--frames", "0:10", "--serve",
+        sys.executable, "-m", "slam.run", "generated-lidar", "--frames", "0:4", "--serve",
         "--no-progress", "--out", str(tmp_path / "run"),
         "--set", f"viz.serve_web_port={web_port}", "--set", f"viz.serve_grpc_port={grpc_port}",
         "--set", "submaps.max_map_points=2000", "--set", "loop_closure.enabled=false",
+        "--set", "output.write_map=false", "--set", "viz.mesh_every_submaps=1000",
+        "--set", "output.mesh_samples=1000",
     ]  # fmt: skip
     process = subprocess.Popen(
         command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True

@@ -105,6 +105,8 @@ def _run(args: list[str], out: Path) -> dict:
         "mapping.device=cpu",
         "--set",
         "output.write_map=false",
+        "--set",
+        "output.mesh_samples=2000",
     ]
     result = subprocess.run(command, capture_output=True, text=True, cwd=REPO_ROOT, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
