@@ -46,6 +46,19 @@ def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
         else:
             kwargs.update(width=g.width, height=g.height, loader_options={"depth_options": depth})
         return kwargs
+    if src.dataset == "lidar":
+        lidar = src.lidar
+        return {
+            "root": src.root,
+            "dataloader": lidar.dataloader,
+            "sequence": lidar.sequence,
+            "topic": lidar.topic,
+            "frames": frames,
+            "gt_poses": lidar.gt_poses,
+            "nominal_rate_hz": lidar.nominal_rate_hz,
+            "max_range_m": lidar.max_range_m,
+            "max_time_difference_s": src.tum.max_time_difference_s,
+        }
     kwargs = {"root": src.root, "sequence": src.sequence, "frames": frames}
     if src.dataset == "kitti":
         kwargs.update(
@@ -53,11 +66,13 @@ def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
             max_range_m=src.kitti.max_range_m,
         )
     elif src.dataset in ("tum", "icl"):
-        kwargs.update(
-            max_difference=src.tum.max_time_difference_s,
-            drop_frames_without_gt=src.tum.drop_frames_without_gt,
-            depth_options=depth,
-        )
+        kwargs.update(max_difference=src.tum.max_time_difference_s, depth_options=depth)
+        if src.dataset == "tum":
+            intrinsics = src.tum.intrinsics
+            kwargs.update(
+                intrinsics=None if intrinsics is None else intrinsics.model_dump(),
+                depth_scale=src.tum.depth_scale,
+            )
     else:
         kwargs["depth_options"] = depth
     return kwargs
@@ -112,6 +127,13 @@ def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
         options["rrd_path"] = viz.rrd_path or default_rrd
     elif viz.mode == "spawn":
         options["spawn"] = True
+    elif viz.mode == "serve":
+        options.update(
+            rrd_path=viz.rrd_path or default_rrd,
+            serve_port=viz.serve_grpc_port,
+            web_port=viz.serve_web_port,
+            serve_bind_ip=viz.serve_bind_ip,
+        )
     else:
         if not viz.connect_url:
             raise ValueError("viz.mode 'connect' needs viz.connect_url")

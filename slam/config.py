@@ -32,11 +32,22 @@ class KittiOptions(_Strict):
     """Options of the KITTI source."""
 
     correct_vertical_angle: bool = Field(
-        True, description="apply KISS-ICP's 0.22 deg vertical-angle correction of KITTI scans"
+        True, description="apply KISS-ICP's 0.205 deg vertical-angle correction of KITTI scans"
     )
     max_range_m: float | None = Field(
         None, description="drop points farther than this when loading (None: keep all)"
     )
+
+
+class CameraIntrinsics(_Strict):
+    """Pinhole intrinsics of the depth/colour images, in pixels."""
+
+    fx: float = Field(gt=0, description="focal length along x (pixels)")
+    fy: float = Field(gt=0, description="focal length along y (pixels)")
+    cx: float = Field(description="principal point x (pixels)")
+    cy: float = Field(description="principal point y (pixels)")
+    width: int = Field(640, ge=1, description="image width (pixels)")
+    height: int = Field(480, ge=1, description="image height (pixels)")
 
 
 class TumOptions(_Strict):
@@ -45,8 +56,45 @@ class TumOptions(_Strict):
     max_time_difference_s: float = Field(
         0.02, gt=0, description="largest colour/depth/ground-truth timestamp gap when pairing"
     )
-    drop_frames_without_gt: bool = Field(
-        True, description="leave out frames without a ground-truth pose (as TUM's evaluation)"
+    intrinsics: CameraIntrinsics | None = Field(
+        None,
+        description="TUM: camera intrinsics (None: the folder's intrinsics.txt, else the "
+        "published calibration of freiburg1/2/3 picked by the sequence name, else 525/525)",
+    )
+    depth_scale: float | None = Field(
+        None, gt=0, description="TUM: depth PNG units per metre (None: intrinsics.txt, else 5000)"
+    )
+
+
+class LidarOptions(_Strict):
+    """Options of the ``lidar`` source (a kiss_icp.datasets dataloader)."""
+
+    dataloader: str = Field(
+        "generic",
+        description="kiss_icp dataloader: generic, rosbag, mcap, ouster, nuscenes, mulran, ncd, "
+        "helipr, boreas, apollo, nclt, kitti, kitti_raw, or npy (a folder of .npy scans)",
+    )
+    sequence: str | None = Field(
+        None, description="sequence name for kitti, kitti_raw, nuscenes and helipr"
+    )
+    topic: str | None = Field(
+        None, description="PointCloud2 topic of a bag/MCAP file (needed when it has several)"
+    )
+    gt_poses: Path | None = Field(
+        None,
+        description="ground truth when the dataloader has none: KITTI rows (one per scan) or a "
+        "TUM trajectory (associated by timestamp), sensor frame",
+    )
+    nominal_rate_hz: float = Field(
+        10.0, gt=0, description="scan rate for timestamps when the dataloader gives none"
+    )
+    max_range_m: float | None = Field(
+        None, gt=0, description="drop points farther than this when loading (None: keep all)"
+    )
+    scale_from_first_scan: bool = Field(
+        False,
+        description="set the ranges, submap length and voxel sizes that the config leaves unset "
+        "from the extent of the first scan (slam/lidar_scale.py)",
     )
 
 
@@ -55,7 +103,7 @@ class SourceConfig(_Strict):
 
     dataset: str = Field(
         "generated",
-        description="source registry name: kitti, tum, icl, replica, 7scenes or generated",
+        description="source registry name: kitti, tum, icl, replica, 7scenes, lidar or generated",
     )
     sequence: str | None = Field(
         None, description="sequence name inside the dataset root (e.g. '00', 'lr-kt3', 'seq-01')"
@@ -71,6 +119,9 @@ class SourceConfig(_Strict):
     )
     kitti: KittiOptions = Field(default_factory=KittiOptions, description="KITTI options")
     tum: TumOptions = Field(default_factory=TumOptions, description="TUM / ICL-NUIM options")
+    lidar: LidarOptions = Field(
+        default_factory=LidarOptions, description="options of the 'lidar' source"
+    )
 
 
 class GeneratedConfig(_Strict):
@@ -346,13 +397,31 @@ class RemapConfig(_Strict):
 class VizConfig(_Strict):
     """Where the Rerun recording goes and how much it holds."""
 
-    mode: Literal["rrd", "spawn", "connect", "none"] = Field(
-        "rrd", description="write an .rrd file, spawn a viewer, connect to one, or log nothing"
+    mode: Literal["rrd", "spawn", "connect", "serve", "none"] = Field(
+        "rrd",
+        description="write an .rrd file, spawn a viewer, connect to one, serve the web viewer "
+        "over HTTP (and write the .rrd), or log nothing",
     )
     rrd_path: Path | None = Field(
         None, description="recording file (default: recording.rrd in the run folder)"
     )
     connect_url: str | None = Field(None, description="viewer URL for mode 'connect'")
+    serve_grpc_port: int = Field(
+        9876, ge=1, le=65535, description="mode 'serve': port of the gRPC server viewers read"
+    )
+    serve_web_port: int = Field(
+        9090, ge=1, le=65535, description="mode 'serve': port of the web viewer page (HTTP)"
+    )
+    serve_bind_ip: str = Field(
+        "127.0.0.1",
+        description="mode 'serve': address both servers listen on (localhost: reach them "
+        "through an SSH port forward; 0.0.0.0 exposes them to the network)",
+    )
+    serve_linger_s: float | None = Field(
+        None,
+        ge=0,
+        description="mode 'serve': keep serving this long after the run ends (None: until Ctrl-C)",
+    )
     scan_every: int = Field(1, ge=1, description="log every n-th scan")
     mesh_every_submaps: int = Field(
         1, ge=1, description="extract and log the mesh every n-th closed submap"

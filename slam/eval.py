@@ -1,15 +1,19 @@
 """``python -m slam.eval RUN_DIR``: recompute the metrics of a finished run and draw its plots.
 
-    python -m slam.eval RUN_DIR [--gt-poses FILE] [--gt-mesh FILE] [--cull-unobserved]
+    python -m slam.eval RUN_DIR [--gt-poses FILE] [--gt-mesh FILE] [--culling observed|view]
+    python -m slam.eval RUN_DIR --figures DIR     # also the README pictures (PNG) into DIR
     python -m slam.eval transform --dataset demo [--root DIR] [--frames A:B:STEP]   (see
         slam/transform_experiment.py)
 
 What is recomputed, with the same functions the run used (``slam.metrics``, ``slam.run_metrics``):
 
 - trajectory, for ``odometry`` and ``slam`` (loop-closed): ATE RMSE after SE(3) Umeyama alignment,
-  RPE (consecutive frames), KITTI relative error;
+  RPE (consecutive frames), KITTI relative error, over the frames that have a ground-truth pose;
 - mesh (``mesh.ply``, moved into the ground-truth world by the SLAM trajectory's alignment):
   accuracy, completion and completion ratio (< 5 cm).
+
+Trajectory files are in the dataset's own frame (for ICL-NUIM the loader's mirrored world is
+mirrored back when writing them); they are compared with ground truth in that frame.
 
 Where the ground truth comes from, first match wins:
 
@@ -19,21 +23,23 @@ Where the ground truth comes from, first match wins:
 - mesh: ``--gt-mesh``, then ``mesh.gt_mesh`` of the run's ``metrics.json``, then the source's
   ``gt_mesh_path``.
 
-Culling of ground truth the run never saw (completion only; accuracy always uses the whole surface):
+Culling of ground truth the run never saw (completion only; accuracy always uses the whole
+surface), as the run does (``slam.run_metrics``):
 
-- default, as the run does: RGB-D runs keep the ground-truth faces whose centroid lies in the view
-  frustum of at least one ground-truth camera (``slam.metrics.mesh.visible_face_mask``); LiDAR runs
-  keep everything;
-- ``--cull-unobserved``: the ground-truth mesh is subdivided until no edge is longer than half the
-  cull distance, and a face is kept only if its centroid lies within ``--cull-distance-m``
-  (default: one map voxel) of an *observed* point: the centre of a voxel of the run's saved map
-  (a voxel exists only where points were fused), moved into the ground-truth world. The surface
-  inside an observed voxel is at most 0.87 voxel from its centre, so one voxel keeps all of it.
+- ``observed`` (default): the ground-truth mesh is subdivided until no edge is longer than half
+  the cull distance, and a face is kept only if its centroid lies within ``--cull-distance-m``
+  (default: one map voxel) of the centre of a voxel of the run's saved map (a voxel exists only
+  where points were fused), moved into the ground-truth world; ``mesh_unculled`` holds the
+  looser ``view`` numbers;
+- ``view``: RGB-D runs keep the faces in the view frustum of a ground-truth camera, LiDAR runs
+  the faces within the submap range of the trajectory.
 
 Outputs, next to the run: ``metrics.json`` (updated atomically; timing, loop and memory entries of
 the run are kept) and ``plots/``: ``trajectories.png`` (top-down, with accepted loop edges from
 ``loops.csv``), ``translation_error.png``, ``mesh_error_histogram.png`` and ``mesh_error.ply``
-(the mesh coloured by distance to ground truth, blue 0 to red >= 10 cm).
+(the mesh coloured by distance to ground truth, blue 0 to red >= 10 cm). ``--figures DIR`` adds
+small PNGs for documentation (``slam.figures``): the top-down trajectories with loop edges, the
+mesh coloured by its error and a shaded snapshot of the mesh, rendered offscreen.
 """
 
 from __future__ import annotations
@@ -53,6 +59,9 @@ import trimesh
 
 from frontends.errors import DatasetError
 from frontends.frame import Intrinsics
+from slam.run_metrics import observed_face_mask
+
+__all__ = ["EvalError", "evaluate_run", "observed_face_mask", "read_gt_poses"]
 
 logger = logging.getLogger("slam.eval")
 
@@ -109,8 +118,8 @@ def read_run_trajectories(run_dir: Path) -> RunTrajectories:
 def read_gt_poses(path: Path, timestamps: np.ndarray, num_frames: int) -> np.ndarray:
     """Ground-truth poses for the run's frames from a KITTI (one per frame) or TUM file.
 
-    TUM poses are associated with the run's timestamps (nearest within 20 ms); every frame needs
-    one.
+    TUM poses are associated with the run's timestamps (nearest within 20 ms); frames without one
+    get a row of NaN (they are not scored), and at least two frames need one.
     """
     from slam.trajectory_io import read_kitti, read_tum
 
@@ -134,13 +143,18 @@ def read_gt_poses(path: Path, timestamps: np.ndarray, num_frames: int) -> np.nda
     )
     nearest = np.where(len(stamps) == 1, 0, nearest)
     gap = np.abs(stamps[nearest] - timestamps)
-    if np.any(gap > TUM_MAX_DT_S):
-        first = int(np.argmax(gap > TUM_MAX_DT_S))
+    missing = gap > TUM_MAX_DT_S
+    if np.count_nonzero(~missing) < 2:
+        first = int(np.argmax(missing))
         raise EvalError(
             f"{path}: no ground-truth pose within {TUM_MAX_DT_S * 1e3:.0f} ms of frame {first} "
             f"(t = {timestamps[first]:.6f}); pass the ground truth of this sequence"
         )
-    return poses[nearest]
+    if missing.any():
+        logger.warning("%s: %d frames have no ground-truth pose; not scored", path, missing.sum())
+    out = poses[nearest].copy()
+    out[missing] = np.nan
+    return out
 
 
 def _load_run_config(run_dir: Path):
@@ -148,6 +162,20 @@ def _load_run_config(run_dir: Path):
 
     path = Path(run_dir) / "config.yaml"
     return load_run_config(path) if path.is_file() else None
+
+
+def _to_loader_frame(cfg, poses: np.ndarray) -> np.ndarray:
+    """Poses in the dataset's frame (as files hold them) -> the loader's frame (mesh, map, source
+    ground truth). The conversion is a reflection ``M T M``, its own inverse."""
+    if cfg is None:
+        return poses
+    from frontends.sources.base import source_class
+
+    try:
+        cls = source_class(cfg.source.dataset)
+    except DatasetError:
+        return poses
+    return cls.to_dataset_frame(poses)
 
 
 def _source_ground_truth(cfg) -> GroundTruth:
@@ -187,6 +215,8 @@ def find_ground_truth(
                 gt.poses = read_gt_poses(run_dir / name, trajectories.timestamps, n)
                 gt.poses_from = str(run_dir / name)
                 break
+    if gt.poses is not None:
+        gt.poses = _to_loader_frame(cfg, gt.poses)
     recorded_mesh = (run_metrics.get("mesh") or {}).get("gt_mesh")
     if gt_mesh_path is not None:
         gt.mesh_path = Path(gt_mesh_path)
@@ -216,34 +246,12 @@ def find_ground_truth(
 
 def trajectory_section(trajectories: RunTrajectories, gt_poses: np.ndarray) -> dict[str, Any]:
     """``metrics.json["trajectory"]``: the same numbers ``slam.run_metrics`` writes."""
-    from slam.metrics.trajectory import kitti_lengths_within, trajectory_metrics
+    from slam.run_metrics import trajectory_section as section
 
-    lengths = kitti_lengths_within(gt_poses)
-    return {
-        "odometry": trajectory_metrics(
-            trajectories.odometry, gt_poses, kitti_lengths_m=lengths
-        ).as_dict(),
-        "slam": trajectory_metrics(trajectories.slam, gt_poses, kitti_lengths_m=lengths).as_dict(),
-    }
-
-
-def observed_face_mask(
-    gt_mesh: trimesh.Trimesh, observed_points: np.ndarray, distance_m: float
-) -> tuple[trimesh.Trimesh, np.ndarray]:
-    """Subdivide ``gt_mesh`` (edges <= distance / 2) and mark faces whose centroid lies within
-    ``distance_m`` of an observed point. Returns ``(subdivided mesh, mask)``."""
-    from scipy.spatial import cKDTree
-
-    vertices, faces = trimesh.remesh.subdivide_to_size(
-        gt_mesh.vertices, gt_mesh.faces, max_edge=distance_m / 2.0, max_iter=12
-    )
-    fine = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    if len(observed_points) == 0:
-        return fine, np.zeros(len(fine.faces), dtype=bool)
-    distance, _ = cKDTree(observed_points).query(
-        fine.triangles_center, distance_upper_bound=distance_m, workers=-1
-    )
-    return fine, np.isfinite(distance)
+    result = section(trajectories.odometry, trajectories.slam, gt_poses)
+    if result is None:
+        raise EvalError("fewer than two frames have a ground-truth pose; nothing to score")
+    return result
 
 
 def load_map_voxels(run_dir: Path) -> tuple[np.ndarray, float, dict[int, np.ndarray]]:
@@ -267,60 +275,49 @@ def mesh_section(
     T_gt_W: np.ndarray,
     num_samples: int,
     *,
-    cull_unobserved: bool,
+    culling: str,
     cull_distance_m: float | None,
     lidar_range_m: float | None = None,
-) -> tuple[dict[str, Any], trimesh.Trimesh, np.ndarray | None]:
-    """``metrics.json["mesh"]`` plus the ground-truth mesh and face mask used for completion."""
-    from slam.metrics.mesh import mesh_metrics
-    from slam.run_metrics import mesh_errors
+) -> dict[str, Any]:
+    """``metrics.json``'s ``mesh`` (and ``mesh_unculled``) sections, computed as the run does
+    (:func:`slam.run_metrics.mesh_sections`); private ``_gt``/``_mask`` entries for plotting."""
+    from slam.run_metrics import mesh_sections
 
-    gt_mesh = trimesh.load(gt.mesh_path, force="mesh", process=False)
-    if not cull_unobserved:
-        # The same culling as the run itself (slam.run_metrics.collect_metrics).
-        from slam.metrics.mesh import visible_face_mask
-        from slam.run_metrics import near_trajectory_mask
+    cameras = None
+    if gt.intrinsics is not None:
+        cameras = (gt.intrinsics.K, gt.intrinsics.width, gt.intrinsics.height)
+    from slam.run_metrics import cull_distance
 
-        cameras = None
-        if gt.intrinsics is not None:
-            cameras = (gt.intrinsics.K, gt.intrinsics.width, gt.intrinsics.height)
-        range_m = None if cameras is not None else lidar_range_m
-        section = mesh_errors(
-            mesh, gt.mesh_path, T_gt_W, num_samples, gt.poses, cameras, lidar_range_m=range_m
-        )
-        mask = None
-        if section["completion_seen_only"]:
-            if cameras is not None:
-                poses = gt.poses[:: max(1, len(gt.poses) // 200)]
-                mask = visible_face_mask(gt_mesh, poses, *cameras)
-                section["culling"] = "frustum"
-            else:
-                mask = near_trajectory_mask(gt_mesh, gt.poses[:, :3, 3], range_m)
-                section["culling"] = f"within {range_m} m of the trajectory"
+    observed, distance_m = None, cull_distance_m or 0.0
+    if culling == "observed" and cameras is not None:
+        distance_m = cull_distance_m if cull_distance_m is not None else cull_distance(True, 0.0)
+    elif culling == "observed":
+        try:
+            observed, voxel_size_m, _ = load_map_voxels(run_dir)
+        except EvalError as exc:
+            logger.warning("%s; completion over surfaces in range instead", exc)
         else:
-            section["culling"] = "none"
-        return section, gt_mesh, mask
+            distance_m = cull_distance_m if cull_distance_m is not None else voxel_size_m
 
-    centers_W, voxel_size_m, _ = load_map_voxels(run_dir)
-    distance_m = cull_distance_m if cull_distance_m is not None else voxel_size_m
-    centers_gt = centers_W @ T_gt_W[:3, :3].T + T_gt_W[:3, 3]
-    fine, mask = observed_face_mask(gt_mesh, centers_gt, distance_m)
-    if not mask.any():
+    scored = np.isfinite(gt.poses).all(axis=(1, 2))
+    sections = mesh_sections(
+        mesh,
+        gt.mesh_path,
+        T_gt_W,
+        num_samples,
+        gt.poses[scored],
+        observed_points_W=observed,
+        cull_distance_m=distance_m,
+        cameras=cameras,
+        lidar_range_m=None if cameras is not None else lidar_range_m,
+        observe=culling == "observed",
+    )
+    if culling == "observed" and "mesh_unculled" not in sections:
         raise EvalError(
             f"{run_dir}: no ground-truth face lies within {distance_m} m of the map; the run's "
             "frame does not match the ground truth, or pass a larger --cull-distance-m"
         )
-    pred = mesh.copy()
-    pred.apply_transform(T_gt_W)
-    section = mesh_metrics(pred, fine, num_samples=num_samples, gt_face_mask=mask).as_dict()
-    section.update(
-        gt_mesh=str(gt.mesh_path),
-        completion_visible_only=True,
-        culling="observed",
-        cull_distance_m=distance_m,
-        observed_gt_area_fraction=float(fine.area_faces[mask].sum() / fine.area),
-    )
-    return section, fine, mask
+    return sections
 
 
 def loop_edges(run_dir: Path, anchors_W: dict[int, np.ndarray]) -> np.ndarray:
@@ -355,8 +352,10 @@ def draw_plots(
     gt_face_mask: np.ndarray | None,
     T_gt_W: np.ndarray,
     threshold_m: float,
+    figures_dir: Path | None = None,
 ) -> list[Path]:
-    """All plots of a run into ``RUN_DIR/plots``."""
+    """All plots of a run into ``RUN_DIR/plots`` (and the documentation figures into
+    ``figures_dir``)."""
     from slam import plots
     from slam.metrics.mesh import surface_distances
 
@@ -368,11 +367,12 @@ def draw_plots(
         logger.warning("loop edges not drawn: %s", exc)
         anchors = {}
     edges_W = loop_edges(run_dir, anchors)
+    scored = None if gt.poses is None else np.isfinite(gt.poses).all(axis=(1, 2))
     if gt.poses is not None:
         named = {
-            "gt": gt.poses,
-            "odometry": _aligned(trajectories.odometry, gt.poses),
-            "slam": T_gt_W @ trajectories.slam,
+            "gt": gt.poses[scored],
+            "odometry": _aligned(trajectories.odometry[scored], gt.poses[scored]),
+            "slam": T_gt_W @ trajectories.slam[scored],
         }
         edges = edges_W @ T_gt_W[:3, :3].T + T_gt_W[:3, 3] if len(edges_W) else edges_W
     else:
@@ -385,9 +385,9 @@ def draw_plots(
         )
     )
     if gt.poses is not None:
-        times = trajectories.timestamps - trajectories.timestamps[0]
+        times = (trajectories.timestamps - trajectories.timestamps[0])[scored]
         errors = {
-            name: np.linalg.norm(named[name][:, :3, 3] - gt.poses[:, :3, 3], axis=1)
+            name: np.linalg.norm(named[name][:, :3, 3] - named["gt"][:, :3, 3], axis=1)
             for name in ("odometry", "slam")
         }
         written.append(plots.plot_translation_error(out / "translation_error.png", times, errors))
@@ -414,6 +414,76 @@ def draw_plots(
                 out / "mesh_error.ply", pred, vertex_distances, max_m=MESH_ERROR_MAX_M
             )
         )
+    if figures_dir is not None:
+        figure_mesh, distances_m = None, None
+        if mesh is not None and len(mesh.faces):
+            figure_mesh = mesh.copy()
+            if gt.poses is not None:
+                figure_mesh.apply_transform(T_gt_W)
+            if gt_mesh is not None:
+                distances_m = surface_distances(figure_mesh.vertices, gt_mesh)
+        written += write_figures(
+            Path(figures_dir),
+            named,
+            edges,
+            figure_mesh,
+            distances_m,
+            sensor=gt.sensor or "lidar",
+            name=Path(run_dir).name,
+        )
+    return written
+
+
+def up_axis_of(poses: np.ndarray, sensor: str) -> str:
+    """The signed world axis closest to "up": the mean sensor z axis for LiDAR, minus the mean
+    camera y axis for RGB-D (images have y down)."""
+    poses = np.asarray(poses)
+    up = poses[:, :3, 2].mean(axis=0) if sensor == "lidar" else -poses[:, :3, 1].mean(axis=0)
+    axis = int(np.argmax(np.abs(up)))
+    return ("+" if up[axis] >= 0 else "-") + "xyz"[axis]
+
+
+def write_figures(
+    out: Path,
+    trajectories: dict[str, np.ndarray],
+    loop_edges_gt: np.ndarray,
+    mesh: trimesh.Trimesh | None,
+    vertex_distances_m: np.ndarray | None,
+    *,
+    sensor: str,
+    name: str,
+) -> list[Path]:
+    """Small PNGs for documentation: ``trajectory.png`` (top-down, loop edges), ``mesh.png``
+    (shaded snapshot) and ``mesh_error.png`` (mesh coloured by distance to ground truth)."""
+    from slam import plots
+
+    written = [
+        plots.plot_trajectories_top_down(
+            out / "trajectory.png",
+            trajectories,
+            loop_edges=loop_edges_gt,
+            title=f"{name}: trajectories and loop closures",
+            size_in=(5.0, 4.2),
+            dpi=100,
+        )
+    ]
+    if mesh is None:
+        return written
+    up = up_axis_of(trajectories.get("slam", next(iter(trajectories.values()))), sensor)
+    written.append(plots.render_mesh(out / "mesh.png", mesh, up_axis=up, title=f"{name}: mesh"))
+    if vertex_distances_m is not None:
+        vertex_colors = plots.distance_colors(vertex_distances_m, MESH_ERROR_MAX_M)
+        face_colors = vertex_colors[np.asarray(mesh.faces)].mean(axis=1).astype(np.uint8)
+        written.append(
+            plots.render_mesh(
+                out / "mesh_error.png",
+                mesh,
+                face_colors=face_colors,
+                up_axis=up,
+                title=f"{name}: distance to ground truth",
+                colorbar=("m", MESH_ERROR_MAX_M),
+            )
+        )
     return written
 
 
@@ -422,17 +492,22 @@ def evaluate_run(
     *,
     gt_poses_path: Path | None = None,
     gt_mesh_path: Path | None = None,
-    cull_unobserved: bool = False,
+    culling: str = "observed",
     cull_distance_m: float | None = None,
     num_samples: int | None = None,
     make_plots: bool = True,
+    figures_dir: Path | None = None,
     write: bool = True,
 ) -> dict[str, Any]:
     """Recompute the metrics of ``run_dir`` (see the module docstring); returns ``metrics.json``'s
-    new content and, with ``write``, writes it."""
+    new content and, with ``write``, writes it. ``figures_dir``: also write the documentation
+    figures there (:mod:`slam.figures`)."""
     from slam.metrics.trajectory import align_se3
     from slam.outputs import RunOutputs
+    from slam.run_metrics import public
 
+    if culling not in ("observed", "view"):
+        raise EvalError(f"culling '{culling}': choose 'observed' or 'view'")
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise EvalError(f"{run_dir}: run folder not found; pass the folder a run wrote")
@@ -445,6 +520,8 @@ def evaluate_run(
             raise EvalError(f"{metrics_path}: not valid JSON; delete it and re-evaluate") from None
     cfg = _load_run_config(run_dir)
     trajectories = read_run_trajectories(run_dir)
+    trajectories.odometry = _to_loader_frame(cfg, trajectories.odometry)
+    trajectories.slam = _to_loader_frame(cfg, trajectories.slam)
     gt = find_ground_truth(
         run_dir,
         trajectories,
@@ -454,11 +531,15 @@ def evaluate_run(
         gt_mesh_path=gt_mesh_path,
     )
     metrics = dict(run_metrics)
+    for stale in ("trajectory", "mesh", "mesh_unculled"):
+        metrics.pop(stale, None)
     T_gt_W = np.eye(4)
-    if gt.poses is not None and len(gt.poses) >= 2:
+    if gt.poses is not None and np.isfinite(gt.poses).all(axis=(1, 2)).sum() >= 2:
         metrics["trajectory"] = trajectory_section(trajectories, gt.poses)
-        T_gt_W = align_se3(trajectories.slam, gt.poses)
+        scored = np.isfinite(gt.poses).all(axis=(1, 2))
+        T_gt_W = align_se3(trajectories.slam[scored], gt.poses[scored])
     else:
+        gt.poses = None
         logger.warning("%s: no ground-truth poses; trajectory metrics skipped", run_dir)
 
     mesh = None
@@ -470,13 +551,13 @@ def evaluate_run(
         if num_samples is None:
             num_samples = cfg.output.mesh_samples if cfg is not None else 200_000
         try:
-            metrics["mesh"], gt_mesh, mask = mesh_section(
+            sections = mesh_section(
                 run_dir,
                 mesh,
                 gt,
                 T_gt_W,
                 num_samples,
-                cull_unobserved=cull_unobserved,
+                culling=culling,
                 cull_distance_m=cull_distance_m,
                 lidar_range_m=(
                     cfg.submaps.max_range_m if cfg is not None and gt.sensor == "lidar" else None
@@ -484,11 +565,14 @@ def evaluate_run(
             )
         except ValueError as exc:
             logger.warning("mesh metrics skipped: %s", exc)
+        else:
+            gt_mesh, mask = sections["mesh"]["_gt"], sections["mesh"]["_mask"]
+            metrics.update({name: public(value) for name, value in sections.items()})
     elif mesh is not None:
         logger.warning("%s: no ground-truth mesh or poses; mesh metrics skipped", run_dir)
 
     plot_files: list[Path] = []
-    if make_plots:
+    if make_plots or figures_dir is not None:
         threshold = float((metrics.get("mesh") or {}).get("threshold_m") or 0.05)
         plot_files = draw_plots(
             run_dir,
@@ -499,16 +583,24 @@ def evaluate_run(
             gt_face_mask=mask,
             T_gt_W=T_gt_W,
             threshold_m=threshold,
+            figures_dir=figures_dir,
         )
     metrics["evaluation"] = {
         "gt_poses": gt.poses_from or None,
         "gt_mesh": str(gt.mesh_path) if gt.mesh_path else None,
         "culling": (metrics.get("mesh") or {}).get("culling"),
-        "plots": [str(p.relative_to(run_dir)) for p in plot_files],
+        "plots": [_relative(p, run_dir) for p in plot_files],
     }
     if write:
         RunOutputs(run_dir).write_metrics(metrics)
     return metrics
+
+
+def _relative(path: Path, run_dir: Path) -> str:
+    try:
+        return str(Path(path).relative_to(run_dir))
+    except ValueError:
+        return str(path)
 
 
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
@@ -536,6 +628,13 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             f"mesh     accuracy {cm(mesh['accuracy_m'])}, completion {cm(mesh['completion_m'])}, "
             f"ratio {100 * (mesh['completion_ratio'] or 0):.1f}% (culling {mesh.get('culling')})"
         )
+    unculled = metrics.get("mesh_unculled")
+    if unculled:
+        ratio = 100 * (unculled["completion_ratio"] or 0)
+        lines.append(
+            f"         unculled ({unculled.get('culling')}): completion "
+            f"{cm(unculled['completion_m'])}, ratio {ratio:.1f}%"
+        )
     for plot in (metrics.get("evaluation") or {}).get("plots", []):
         lines.append(f"plot     {plot}")
     return lines
@@ -551,9 +650,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--gt-poses", type=Path, help="ground-truth trajectory (KITTI or TUM)")
     parser.add_argument("--gt-mesh", type=Path, help="ground-truth mesh (PLY/OBJ, GT world frame)")
     parser.add_argument(
-        "--cull-unobserved",
-        action="store_true",
-        help="completion only over ground truth within --cull-distance-m of the map's voxels",
+        "--culling",
+        choices=["observed", "view"],
+        default="observed",
+        help="completion over ground truth within --cull-distance-m of the map's voxels "
+        "(observed, as the run) or over everything in view / LiDAR range",
+    )
+    parser.add_argument(
+        "--figures",
+        type=Path,
+        metavar="DIR",
+        help="also write small documentation PNGs (trajectories with loops, mesh coloured by "
+        "error, mesh snapshot) into DIR",
     )
     parser.add_argument(
         "--cull-distance-m", type=float, help="culling distance (default: one map voxel)"
@@ -578,10 +686,11 @@ def main(argv: list[str] | None = None) -> int:
             args.run_dir,
             gt_poses_path=args.gt_poses,
             gt_mesh_path=args.gt_mesh,
-            cull_unobserved=args.cull_unobserved,
+            culling=args.culling,
             cull_distance_m=args.cull_distance_m,
             num_samples=args.samples,
             make_plots=not args.no_plots,
+            figures_dir=args.figures,
         )
     except (EvalError, DatasetError, FileNotFoundError, ValueError) as exc:
         if args.debug:

@@ -289,6 +289,16 @@ class SlamPipeline:
             return None
         return np.array(self._gt)
 
+    def gt_poses_where_known(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(N, 4, 4) ground truth with NaN rows where a frame has none, and the (N,) mask of the
+        frames that have one; None when no frame has ground truth."""
+        if not any(g is not None for g in self._gt):
+            return None
+        mask = np.array([g is not None for g in self._gt])
+        poses = np.full((len(self._gt), 4, 4), np.nan)
+        poses[mask] = np.array([g for g in self._gt if g is not None])
+        return poses, mask
+
     def accepted_loops(self) -> list[LoopCandidate]:
         return [c for c in self.loop_candidates if c.accepted]
 

@@ -62,13 +62,16 @@ def plot_trajectories_top_down(
     *,
     loop_edges: np.ndarray | None = None,
     title: str = "",
+    size_in: tuple[float, float] = (7.0, 6.0),
+    dpi: int = 120,
 ) -> Path:
     """Top-down view of trajectories (``gt``, ``odometry``, ``slam`` or any name) and accepted
     loop edges, given as (M, 2, 3) world positions, drawn on the ``slam`` trajectory."""
     named = {name: _positions(poses) for name, poses in trajectories.items() if len(poses)}
     reference = named.get("gt", next(iter(named.values()), np.zeros((1, 3))))
     a, b = top_down_axes(reference)
-    figure = _new_figure(7.0, 6.0)
+    figure = _new_figure(*size_in)
+    figure.set_dpi(dpi)
     axes = figure.add_subplot()
     for name, positions in named.items():
         style = dict(TRAJECTORY_STYLES.get(name, {"label": name, "linewidth": 1.2}))
@@ -199,5 +202,115 @@ def write_error_colored_mesh(
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_bytes(trimesh.exchange.ply.export_ply(colored, encoding="binary"))
+    os.replace(tmp, path)
+    return path
+
+
+UP_VECTORS: dict[str, np.ndarray] = {
+    "+x": np.array([1.0, 0.0, 0.0]),
+    "-x": np.array([-1.0, 0.0, 0.0]),
+    "+y": np.array([0.0, 1.0, 0.0]),
+    "-y": np.array([0.0, -1.0, 0.0]),
+    "+z": np.array([0.0, 0.0, 1.0]),
+    "-z": np.array([0.0, 0.0, -1.0]),
+}
+
+
+def _view_basis(up: np.ndarray, elevation_deg: float, azimuth_deg: float) -> np.ndarray:
+    """Rows ``right, screen_up, towards_viewer`` of an orthographic camera looking down at
+    ``elevation_deg`` from ``azimuth_deg`` around the world's ``up``."""
+    up = up / np.linalg.norm(up)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    east = np.cross(helper, up)
+    east /= np.linalg.norm(east)
+    north = np.cross(up, east)
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    horizontal = np.cos(az) * east + np.sin(az) * north
+    towards_viewer = np.cos(el) * horizontal + np.sin(el) * up
+    right = np.cross(up, towards_viewer)
+    right /= np.linalg.norm(right)
+    screen_up = np.cross(towards_viewer, right)
+    return np.stack([right, screen_up, towards_viewer])
+
+
+def render_mesh(
+    path: Path,
+    mesh: trimesh.Trimesh,
+    *,
+    face_colors: np.ndarray | None = None,
+    up_axis: str = "+z",
+    elevation_deg: float = 60.0,
+    azimuth_deg: float = -60.0,
+    title: str = "",
+    colorbar: tuple[str, float] | None = None,
+    size_in: tuple[float, float] = (5.0, 4.0),
+    dpi: int = 100,
+) -> Path:
+    """A shaded offscreen snapshot of ``mesh`` (orthographic, painter's algorithm on an Agg
+    canvas: no display, no GPU).
+
+    Faces turned away from the viewer are culled, which opens rooms and streets from above (the
+    "doll's house" view); the remaining faces are drawn far to near with Lambertian shading.
+    ``face_colors`` (F, 3 or 4) uint8 colour each face (default: light grey); ``colorbar =
+    (label, max)`` adds a jet colour bar from 0 to ``max``.
+    """
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.collections import PolyCollection
+    from matplotlib.colors import Normalize
+
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces)
+    basis = _view_basis(UP_VECTORS[up_axis], elevation_deg, azimuth_deg)
+    normals = np.asarray(mesh.face_normals, dtype=np.float64)
+    facing = normals @ basis[2]
+    if np.count_nonzero(facing > 0) < 0.2 * len(faces):  # winding opposite to the convention
+        facing = -facing
+    keep = facing > 0
+    screen = vertices @ basis.T
+    triangles = screen[faces[keep]]
+    order = np.argsort(triangles[:, :, 2].mean(axis=1))  # far to near
+    triangles = triangles[order]
+    shade = (0.35 + 0.65 * np.clip(facing[keep][order], 0.0, 1.0))[:, None]
+    if face_colors is None:
+        base = np.full((len(order), 3), 0.82)
+    else:
+        base = np.asarray(face_colors)[keep][order][:, :3] / 255.0
+    colors = np.clip(base * shade, 0.0, 1.0)
+
+    figure = _new_figure(*size_in)
+    figure.set_dpi(dpi)
+    axes = figure.add_subplot()
+    collection = PolyCollection(
+        triangles[:, :, :2], facecolors=colors, edgecolors=colors, linewidths=0.1, antialiased=False
+    )
+    axes.add_collection(collection)
+    if len(triangles):
+        low, high = (
+            triangles[:, :, :2].reshape(-1, 2).min(0),
+            triangles[:, :, :2].reshape(-1, 2).max(0),
+        )
+        axes.set_xlim(low[0], high[0])
+        axes.set_ylim(low[1], high[1])
+    axes.set_aspect("equal")
+    axes.set_axis_off()
+    if colorbar is not None:
+        label, max_value = colorbar
+        mappable = ScalarMappable(norm=Normalize(0.0, max_value), cmap=colormaps["jet"])
+        figure.colorbar(mappable, ax=axes, shrink=0.7, label=label)
+    if title:
+        axes.set_title(title, fontsize=9)
+    figure.set_dpi(dpi)
+    return _palette_png(_save(figure, path))
+
+
+def _palette_png(path: Path, colors: int = 256) -> Path:
+    """Re-save a PNG with a palette of ``colors`` (a third of the size for shaded renders)."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        small = image.convert("RGB").quantize(colors=colors)
+    tmp = path.with_name(f".{path.name}.tmp")
+    small.save(tmp, format="PNG", optimize=True)
     os.replace(tmp, path)
     return path

@@ -76,6 +76,9 @@ class RerunLogger(Logger):
         rrd_path: write the recording to this file (parent folders are created).
         spawn: start a local viewer and stream to it.
         connect_url: stream to a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
+        serve_port: host a gRPC server on this port (``rr.GrpcServerSink``, buffering the whole
+            recording for late viewers) and Rerun's web viewer on ``web_port`` over HTTP, both
+            bound to ``serve_bind_ip``; ``viewer_url`` is the page to open.
         scan_max_points: scans are randomly subsampled to at most this many points.
         map_max_voxels: voxel centres are randomly subsampled to at most this many.
         mesh_max_faces: meshes with more faces are decimated by vertex clustering (display only).
@@ -105,6 +108,9 @@ class RerunLogger(Logger):
         rrd_path: Path | str | None = None,
         spawn: bool = False,
         connect_url: str | None = None,
+        serve_port: int | None = None,
+        web_port: int = 9090,
+        serve_bind_ip: str = "127.0.0.1",
         scan_max_points: int = 3000,
         map_max_voxels: int = 20_000,
         mesh_max_faces: int = 60_000,
@@ -122,8 +128,10 @@ class RerunLogger(Logger):
     ) -> None:
         import rerun as rr
 
-        if rrd_path is None and not spawn and connect_url is None:
-            raise ValueError("RerunLogger needs a sink: pass rrd_path, spawn=True or connect_url")
+        if rrd_path is None and not spawn and connect_url is None and serve_port is None:
+            raise ValueError(
+                "RerunLogger needs a sink: pass rrd_path, spawn=True, connect_url or serve_port"
+            )
         if up_axis not in UP_AXES:
             raise ValueError(f"up_axis must be one of {sorted(UP_AXES)}, got {up_axis!r}")
         self.scan_max_points = scan_max_points
@@ -168,7 +176,17 @@ class RerunLogger(Logger):
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
         if connect_url is not None:
             sinks.append(rr.GrpcSink(connect_url))
+        self.viewer_url: str | None = None
+        server = None
+        if serve_port is not None:
+            server = rr.GrpcServerSink(bind_ip=serve_bind_ip, port=int(serve_port))
+            sinks.append(server)
         self.rec.set_sinks(*sinks, default_blueprint=default_blueprint(self._camera_view))
+        if server is not None:
+            from urllib.parse import quote
+
+            rr.serve_web_viewer(web_port=int(web_port), open_browser=False, connect_to=server.uri)
+            self.viewer_url = f"http://{serve_bind_ip}:{web_port}/?url={quote(server.uri, safe='')}"
 
         view = {
             "+z": rr.ViewCoordinates.RIGHT_HAND_Z_UP,

@@ -46,6 +46,20 @@ def test_kitti_ground_truth_needs_one_pose_per_frame(tmp_path: Path) -> None:
         read_gt_poses(tmp_path / "gt.txt", np.arange(6.0), 6)
 
 
+def test_trajectory_metrics_score_only_frames_with_ground_truth() -> None:
+    from slam.run_metrics import trajectory_section
+
+    gt = _poses(10)
+    estimate = gt.copy()
+    estimate[4, 0, 3] += 5.0  # a wild estimate, but frame 4 has no ground truth
+    gt_missing = gt.copy()
+    gt_missing[4] = np.nan
+    section = trajectory_section(estimate, estimate, gt_missing)
+    assert section["frames_scored"] == 9 and section["frames_without_gt"] == 1
+    assert section["slam"]["ate_rmse_m"] < 1e-9
+    assert trajectory_section(estimate, estimate, gt)["slam"]["ate_rmse_m"] > 1.0
+
+
 def test_observed_face_mask_keeps_the_observed_half() -> None:
     # A 4 m x 4 m floor made of two big triangles; observations cover x < 0 only.
     floor = trimesh.Trimesh(
@@ -107,6 +121,7 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
     assert _close(before["trajectory"], after["trajectory"], rel=1e-6)
     # Mesh numbers after a PLY round trip of the mesh: the same samples up to float rounding.
     assert _close(before["mesh"], after["mesh"], rel=1e-3)
+    assert _close(before["mesh_unculled"], after["mesh_unculled"], rel=1e-3)
     for key in ("timing", "loops", "remap", "memory"):
         assert after[key] == before[key]
 
@@ -119,13 +134,41 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
         assert len(colored.faces) == before["mesh"]["num_pred_faces"]
     assert set(after["evaluation"]["plots"]) >= {"plots/trajectories.png"}
 
-    culled = evaluate_run(copy, cull_unobserved=True, make_plots=False, write=False)
-    assert culled["mesh"]["culling"] == "observed"
-    assert 0.0 < culled["mesh"]["observed_gt_area_fraction"] <= 1.0
+    # Completion over observed surface (the run's default) is reported next to the unculled one.
+    assert after["mesh"]["culling"].startswith("observed")
+    assert 0.0 < after["mesh"]["observed_gt_area_fraction"] < 1.0
+    assert after["mesh"]["completion_m"] < after["mesh_unculled"]["completion_m"]
+    in_view = evaluate_run(copy, culling="view", make_plots=False, write=False)
+    assert in_view["mesh"]["culling"] == "frustum" and "mesh_unculled" not in in_view
+    assert _close(in_view["mesh"], before["mesh_unculled"], rel=1e-3)
     # Accuracy is measured against the whole ground truth in both cases.
     assert math.isclose(
-        culled["mesh"]["accuracy_m"], after["mesh"]["accuracy_m"], rel_tol=0.1, abs_tol=2e-3
+        in_view["mesh"]["accuracy_m"], after["mesh"]["accuracy_m"], rel_tol=0.1, abs_tol=2e-3
     )
+
+    # The numbers are recomputed from the files, not copied: change the inputs and they change.
+    from slam.trajectory_io import read_tum
+
+    stamps, slam = read_tum(copy / "poses_slam.tum.txt")
+    drifted = slam.copy()
+    drifted[:, 0, 3] += np.linspace(0.0, 0.2, len(slam))  # 20 cm of drift along x
+    write_tum(copy / "poses_slam.tum.txt", drifted, stamps)
+    write_kitti(copy / "poses_slam.kitti.txt", drifted)
+    mesh = trimesh.load(copy / "mesh.ply", process=False)
+    half = trimesh.Trimesh(mesh.vertices, mesh.faces[: len(mesh.faces) // 2], process=False)
+    half.export(copy / "mesh.ply")
+    changed = evaluate_run(copy, make_plots=False, write=False)
+    assert (
+        changed["trajectory"]["slam"]["ate_rmse_m"]
+        > after["trajectory"]["slam"]["ate_rmse_m"] + 0.03
+    )
+    for key in ("ate_rmse_m", "rpe_trans_rmse_m"):  # the odometry file was not touched
+        assert math.isclose(
+            changed["trajectory"]["odometry"][key], after["trajectory"]["odometry"][key]
+        )
+    assert changed["mesh"]["num_pred_faces"] == len(half.faces)
+    assert changed["mesh"]["completion_m"] > after["mesh"]["completion_m"]
+    assert changed["mesh"]["accuracy_m"] != after["mesh"]["accuracy_m"]
 
 
 def test_transform_experiment_outputs_summarize_per_variant(tmp_path: Path) -> None:

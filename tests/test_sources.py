@@ -232,6 +232,53 @@ def test_tum_layout(tmp_path):
     np.testing.assert_allclose(source.gt_poses, gt[expected_rows], atol=1e-6)
 
 
+def test_tum_intrinsics_follow_the_camera_and_can_be_overridden(tmp_path):
+    from frontends.sources.tum import tum_intrinsics_for
+
+    # The published colour calibrations of the three TUM cameras, picked by the sequence name.
+    assert tum_intrinsics_for("rgbd_dataset_freiburg1_desk").fx == 517.3
+    assert tum_intrinsics_for("freiburg2_xyz").cy == 249.7
+    assert tum_intrinsics_for("fr3_office").fy == 539.2
+    assert tum_intrinsics_for("my_recording").fx == 525.0
+    make_tum(tmp_path / "rgbd_dataset_freiburg3_long_office_household")
+    source = make_source("tum", root=tmp_path, sequence="freiburg3_long_office_household")
+    assert (source.intrinsics.fx, source.intrinsics.cx) == (535.4, 320.1)
+    own = {"fx": 600.0, "fy": 601.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
+    source = make_source(
+        "tum", root=tmp_path, sequence="freiburg3_long_office_household", intrinsics=own
+    )
+    assert source.intrinsics.fy == 601.0
+
+
+def test_tum_frames_without_ground_truth_are_fed_not_scored(tmp_path):
+    folder = tmp_path / "rgbd_dataset_freiburg2_xyz"
+    make_tum(folder)
+    rows = (folder / "groundtruth.txt").read_text().splitlines()
+    # Drop the ground truth within 20 ms of the third frame (t = 100.0667): rows k = 6..9 at
+    # t = 99.99 + k / 100 (line k + 1, after the comment line).
+    (folder / "groundtruth.txt").write_text("\n".join(rows[:7] + rows[11:]) + "\n")
+    source = make_source("tum", root=tmp_path, sequence="freiburg2_xyz")
+    assert len(source) == 4
+    assert source[2].T_W_S_gt is None and np.isnan(source.gt_poses[2]).all()
+    assert np.isfinite(source.gt_poses[[0, 1, 3]]).all()
+
+
+def test_rgbd_image_folder_with_intrinsics_file(tmp_path):
+    """The documented image-folder layout: rgb/<t>.png, depth/<t>.png, intrinsics.txt."""
+    folder = tmp_path / "my_rgbd"
+    for i in range(3):
+        write_rgb(folder / "rgb" / f"{i / 10:.1f}.png", shape=(240, 320))
+        write_depth(folder / "depth" / f"{i / 10:.1f}.png", np.full((240, 320), 1.5), 1000)
+    (folder / "intrinsics.txt").write_text(
+        "# fx fy cx cy width height depth_scale\n300 300 160 120 320 240 1000\n"
+    )
+    source = make_source("tum", root=tmp_path, sequence="my_rgbd")
+    assert len(source) == 3 and source.gt_poses is None
+    assert source.intrinsics.fx == 300.0 and source.depth_scale == 1000.0
+    np.testing.assert_allclose(source[1].depth, 1.5)
+    assert source[2].timestamp == pytest.approx(0.2)
+
+
 def test_tum_associations_file_and_missing_image(tmp_path):
     folder = tmp_path / "seq"
     make_tum(folder)
@@ -296,11 +343,13 @@ def test_icl_tum_release_layout(tmp_path):
     (folder / "associations.txt").write_text("\n".join(lines) + "\n")
     (tmp_path / "livingRoom1.gt.freiburg").write_text("\n".join(gt_lines) + "\n")
     source = make_source("icl", root=tmp_path, sequence="lr-kt1n")
-    assert len(source) == 3
+    assert len(source) == 4  # frame 0 has no ground truth: it is still fed, just not scored
+    assert source[0].T_W_S_gt is None and np.isnan(source.gt_poses[0]).all()
     assert source.intrinsics.fy == 480.0 and source.intrinsics.fx == 481.2
-    np.testing.assert_allclose(source.gt_poses, FLIP_Y @ np.stack(poses) @ FLIP_Y, atol=1e-6)
-    assert source[0].timestamp == 1.0
-    np.testing.assert_allclose(np.linalg.det(source.gt_poses[:, :3, :3]), 1.0, atol=1e-6)
+    np.testing.assert_allclose(source.gt_poses[1:], FLIP_Y @ np.stack(poses) @ FLIP_Y, atol=1e-6)
+    np.testing.assert_allclose(source[1].T_W_S_gt, source.gt_poses[1])
+    assert source[1].timestamp == 1.0
+    np.testing.assert_allclose(np.linalg.det(source.gt_poses[1:, :3, :3]), 1.0, atol=1e-6)
 
 
 def test_icl_small_layout_count_mismatch(tmp_path):

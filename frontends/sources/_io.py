@@ -299,6 +299,9 @@ class RgbdSource(Source):
                 "remove this frame or widen min_depth_m/max_depth_m",
             )
         gt = self._raw_gt_poses()
+        T_W_S_gt = None if gt is None else gt[raw_index].copy()
+        if T_W_S_gt is not None and not np.isfinite(T_W_S_gt).all():
+            T_W_S_gt = None  # this frame has no ground-truth pose
         return Frame(
             index=raw_index,
             timestamp=files.timestamp,
@@ -308,7 +311,7 @@ class RgbdSource(Source):
             depth=depth,
             rgb=rgb,
             intrinsics=self.intrinsics,
-            T_W_S_gt=None if gt is None else gt[raw_index].copy(),
+            T_W_S_gt=T_W_S_gt,
         )
 
     def _check_shape(self, path: Path, shape: tuple[int, ...]) -> None:

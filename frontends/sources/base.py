@@ -30,6 +30,7 @@ _SOURCE_MODULES: dict[str, str] = {
     "replica": "frontends.sources.replica",
     "7scenes": "frontends.sources.sevenscenes",
     "generated": "frontends.sources.generated",
+    "lidar": "frontends.sources.lidar",
 }
 
 
@@ -41,6 +42,10 @@ class Source(ABC):
     """
 
     sensor: ClassVar[SensorKind]
+
+    dataset_mirror: ClassVar[np.ndarray | None] = None
+    """A 4x4 reflection ``M`` when the loader works in a mirrored copy of the dataset's frames
+    (ICL-NUIM); poses are written back in the dataset's frame as ``M T M``."""
 
     def __init__(self, name: str, frames: slice | None = None) -> None:
         self.name = name
@@ -56,7 +61,8 @@ class Source(ABC):
         """Load frame ``raw_index`` (index into the unsliced sequence)."""
 
     def _raw_gt_poses(self) -> np.ndarray | None:
-        """(N_raw, 4, 4) ground-truth T_W_S of every frame on disk, or None."""
+        """(N_raw, 4, 4) ground-truth T_W_S of every frame on disk (rows of NaN for frames
+        without one), or None."""
         return None
 
     @property
@@ -87,9 +93,16 @@ class Source(ABC):
 
     @property
     def gt_poses(self) -> np.ndarray | None:
-        """(N, 4, 4) ground-truth T_W_S of the selected frames, or None."""
+        """(N, 4, 4) ground-truth T_W_S of the selected frames, or None. Frames without a
+        ground-truth pose have a row of NaN: score only ``np.isfinite(gt).all(axis=(1, 2))``."""
         raw = self._raw_gt_poses()
         return None if raw is None else raw[self.indices]
+
+    @classmethod
+    def to_dataset_frame(cls, poses: np.ndarray) -> np.ndarray:
+        """Poses (N, 4, 4) of the loader's world and sensor frames in the dataset's own frames."""
+        mirror = cls.dataset_mirror
+        return np.asarray(poses) if mirror is None else mirror @ np.asarray(poses) @ mirror
 
     @property
     def gt_mesh_path(self) -> Path | None:
@@ -107,11 +120,16 @@ def register_source(name: str) -> Callable[[type[Source]], type[Source]]:
     return wrap
 
 
-def make_source(name: str, **kwargs) -> Source:
-    """Build the source registered as ``name`` (keyword arguments go to its constructor)."""
+def source_class(name: str) -> type[Source]:
+    """The class registered as ``name`` (imports its module)."""
     module = _SOURCE_MODULES.get(name)
     if module is None:
         known = ", ".join(sorted(_SOURCE_MODULES))
         raise DatasetError(f"unknown source '{name}'; choose one of: {known}")
     importlib.import_module(module)
-    return SOURCES[name](**kwargs)
+    return SOURCES[name]
+
+
+def make_source(name: str, **kwargs) -> Source:
+    """Build the source registered as ``name`` (keyword arguments go to its constructor)."""
+    return source_class(name)(**kwargs)

@@ -9,9 +9,14 @@ TUM layout (one folder per sequence)::
 
 Colour and depth are paired as TUM's ``associate.py`` pairs them (nearest within
 ``max_difference`` seconds, greedily unique) unless ``associations.txt`` exists; frames are then
-paired with ground truth the same way. When a ground-truth file exists, frames without a pose
-within ``max_difference`` are left out (as TUM's evaluation leaves them out) unless
-``drop_frames_without_gt=False``, in which case the source reports no ground truth at all.
+paired with ground truth the same way. Every frame is fed to the pipeline whether or not it has
+a ground-truth pose: frames without a pose within ``max_difference`` get ``T_W_S_gt = None`` (a
+row of NaN in ``gt_poses``) and are left out of the scores only.
+
+TUM intrinsics: the folder's ``intrinsics.txt`` (``fx fy cx cy width height depth_scale``, as
+written by ``python -m frontends.generate``) when present, else the published calibration of the
+camera named in the sequence (``freiburg1``/``fr1``, ``freiburg2``, ``freiburg3``), else TUM's
+ROS default 525/525/319.5/239.5; an explicit ``intrinsics`` argument wins over all of them.
 
 ICL-NUIM ("icl"): sequences ``lr-kt0..3`` (living room) and ``of-kt0..3`` (office), with a
 trailing ``n`` for the noisy variant, are looked up as the folder names of the public releases
@@ -27,8 +32,10 @@ makes overlapping frames agree (checked on real frames, see tests/test_sources.p
 published poses belong to camera coordinates with y pointing up. We normalise to the usual
 right-handed camera (fy=+480, y down): points become ``F p`` with ``F = diag(1, -1, 1)`` and the
 ground truth becomes ``F T F``. This is the same rigid geometry seen in a world frame mirrored in
-y; the world is therefore the mirror image of ICL-NUIM's, which matters only when comparing with
-the ICL-NUIM surface model (mirror it with ``F`` too).
+y; the world is therefore the mirror image of ICL-NUIM's. Trajectories are written back in the
+dataset's own frame (``IclSource.dataset_mirror``: ``F T F`` again), so evo compares them with
+the release's ``*.gt.freiburg`` files directly; the mesh stays in the mirrored world (mirror it
+with ``F`` to compare with the ICL-NUIM surface model).
 """
 
 from __future__ import annotations
@@ -61,6 +68,24 @@ log = logging.getLogger(__name__)
 
 TUM_INTRINSICS = Intrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
 """TUM's recommended default intrinsics for the ROS-registered 640x480 images."""
+
+TUM_CAMERA_INTRINSICS: dict[str, Intrinsics] = {
+    "freiburg1": Intrinsics(fx=517.3, fy=516.5, cx=318.6, cy=255.3, width=640, height=480),
+    "freiburg2": Intrinsics(fx=520.9, fy=521.0, cx=325.1, cy=249.7, width=640, height=480),
+    "freiburg3": Intrinsics(fx=535.4, fy=539.2, cx=320.1, cy=247.6, width=640, height=480),
+}
+"""The published colour-camera calibrations of the TUM RGB-D benchmark (depth is registered to
+colour), by the camera named in the sequence folder."""
+
+_TUM_CAMERA = re.compile(r"(?:freiburg|fr)([123])(?![0-9])")
+
+
+def tum_intrinsics_for(sequence: str) -> Intrinsics:
+    """The published intrinsics of the TUM camera named in ``sequence`` (``freiburg2_xyz``,
+    ``rgbd_dataset_freiburg3_office``, ``fr1_desk``), else TUM's ROS default 525/525."""
+    match = _TUM_CAMERA.search(sequence.lower())
+    return TUM_CAMERA_INTRINSICS[f"freiburg{match.group(1)}"] if match else TUM_INTRINSICS
+
 
 ICL_INTRINSICS_RAW = Intrinsics(fx=481.2, fy=-480.0, cx=319.5, cy=239.5, width=640, height=480)
 """ICL-NUIM's published intrinsics (POV-Ray convention, negative fy)."""
@@ -151,10 +176,10 @@ def pair_with_ground_truth(
     pairs: _Pairing,
     gt_file: Path | None,
     max_difference: float,
-    drop_frames_without_gt: bool,
     gt_transform: np.ndarray | None = None,
 ) -> tuple[_Pairing, np.ndarray | None]:
-    """Attach ground truth to frames by timestamp (see module doc); returns (pairs, poses)."""
+    """Attach ground truth to frames by timestamp; every frame is kept, frames without a pose
+    within ``max_difference`` get a row of NaN. Returns (pairs, (N, 4, 4) poses or None)."""
     if gt_file is None:
         return pairs, None
     gt_stamps, gt_poses = read_tum_trajectory(gt_file)
@@ -168,22 +193,19 @@ def pair_with_ground_truth(
             "use the ground truth of this sequence",
         )
     missing = len(pairs.stamps) - len(matches)
-    if missing and not drop_frames_without_gt:
-        log.warning("%s: %d frames lack ground truth; reporting none", name, missing)
-        return pairs, None
     if missing:
         log.warning(
-            "%s: %d of %d frames have no ground-truth pose within %g; left out",
+            "%s: %d of %d frames have no ground-truth pose within %g; they are processed but "
+            "not scored",
             name,
             missing,
             len(pairs.stamps),
             max_difference,
         )
-    keep = [i for i, _ in matches]
-    kept = _Pairing(
-        pairs.stamps[keep], [pairs.rgb[i] for i in keep], [pairs.depth[i] for i in keep]
-    )
-    return kept, gt_poses[[j for _, j in matches]]
+    poses = np.full((len(pairs.stamps), 4, 4), np.nan)
+    for i, j in matches:
+        poses[i] = gt_poses[j]
+    return pairs, poses
 
 
 class _PairedSource(RgbdSource):
@@ -223,12 +245,12 @@ def _find_sequence_folder(root: Path, candidates: list[str], what: str) -> Path:
     )
 
 
-def _folder_intrinsics(folder: Path) -> Intrinsics:
-    """Intrinsics stored beside the images by the sequence generator, else TUM's defaults."""
+def _folder_intrinsics(folder: Path) -> tuple[Intrinsics, float] | None:
+    """``intrinsics.txt`` beside the images (intrinsics, depth scale), or None."""
     from frontends.generate.writers import INTRINSICS_FILE, read_intrinsics
 
     path = folder / INTRINSICS_FILE
-    return read_intrinsics(path)[0] if path.is_file() else TUM_INTRINSICS
+    return read_intrinsics(path) if path.is_file() else None
 
 
 @register_source("tum")
@@ -240,10 +262,10 @@ class TumSource(_PairedSource):
         sequence: folder name, e.g. ``rgbd_dataset_freiburg1_desk`` or ``freiburg1_desk``.
         frames: optional slice of frames.
         intrinsics: camera intrinsics. Default: the folder's ``intrinsics.txt`` when present (as
-            written by ``python -m frontends.generate``), else TUM's 525/525/319.5/239.5.
-        depth_scale: depth PNG units per metre (TUM: 5000).
+            written by ``python -m frontends.generate``), else the published freiburg1/2/3
+            calibration named by ``sequence``, else TUM's 525/525/319.5/239.5.
+        depth_scale: depth PNG units per metre (None: ``intrinsics.txt``'s, else TUM's 5000).
         max_difference: association window in seconds (TUM's associate.py default 0.02).
-        drop_frames_without_gt: leave out frames without a ground-truth pose (see module doc).
         depth_options: how depth is lifted to points.
     """
 
@@ -254,17 +276,19 @@ class TumSource(_PairedSource):
         frames: slice | None = None,
         *,
         intrinsics: Intrinsics | dict | None = None,
-        depth_scale: float = 5000.0,
+        depth_scale: float | None = None,
         max_difference: float = 0.02,
-        drop_frames_without_gt: bool = True,
         depth_options: DepthOptions | dict | None = None,
     ) -> None:
         root = Path(root).expanduser()
         folder = _find_sequence_folder(
             root, [sequence, f"rgbd_dataset_{sequence}"], "TUM sequence folders (rgb.txt, depth/)"
         )
+        stored = _folder_intrinsics(folder)
+        if depth_scale is None:
+            depth_scale = stored[1] if stored is not None else 5000.0
         if intrinsics is None:
-            intrinsics = _folder_intrinsics(folder)
+            intrinsics = stored[0] if stored is not None else tum_intrinsics_for(folder.name)
         elif isinstance(intrinsics, dict):
             intrinsics = Intrinsics(**intrinsics)
         if intrinsics.fy <= 0 or intrinsics.fx <= 0:
@@ -280,7 +304,6 @@ class TumSource(_PairedSource):
                 read_tum_pairs(folder, max_difference),
                 gt_file if gt_file.is_file() else None,
                 max_difference,
-                drop_frames_without_gt,
             )
         )
 
@@ -326,7 +349,6 @@ class IclSource(_PairedSource):
             name.
         frames: optional slice of frames.
         max_difference: association window in (file) timestamp units.
-        drop_frames_without_gt: leave out frames without a ground-truth pose.
         depth_options: how depth is lifted to points.
 
     Timestamps are the release's (frame numbers), not seconds; ground truth follows the sign
@@ -334,6 +356,7 @@ class IclSource(_PairedSource):
     """
 
     depth_scale = 5000.0
+    dataset_mirror = FLIP_Y
     intrinsics = Intrinsics(
         fx=ICL_INTRINSICS_RAW.fx,
         fy=-ICL_INTRINSICS_RAW.fy,
@@ -350,7 +373,6 @@ class IclSource(_PairedSource):
         frames: slice | None = None,
         *,
         max_difference: float = 0.02,
-        drop_frames_without_gt: bool = True,
         depth_options: DepthOptions | dict | None = None,
     ) -> None:
         root = Path(root).expanduser()
@@ -369,7 +391,6 @@ class IclSource(_PairedSource):
                 read_tum_pairs(folder, max_difference),
                 gt_file,
                 max_difference,
-                drop_frames_without_gt,
                 gt_transform=FLIP_Y,
             )
         )

@@ -1,0 +1,88 @@
+"""Sensor-agnostic LiDAR settings: ranges, submap length and voxel sizes from the first scan.
+
+A 16-beam indoor scanner and a 128-beam car LiDAR need settings an order of magnitude apart.
+``configs/lidar.yaml`` leaves the scale-dependent fields unset and turns on
+``source.lidar.scale_from_first_scan``; :func:`scale_config` then sets every such field that the
+config files and ``--set`` left unset from the extent ``R`` of the first scan (the 90th
+percentile of its point ranges). The factors reproduce the hand-tuned KITTI settings
+(``configs/kitti.yaml``) for ``R`` of about 30 m:
+
+=====================================================  =======================
+field                                                  value
+=====================================================  =======================
+odometry.kiss_icp.max_range_m                          max point range (>= 2 R)
+submaps.max_range_m, submaps.max_distance_m            R
+mapping.voxel_size_m                                   R / 30
+submaps.map_voxel_m                                    voxel / 3
+submaps.loop_voxel_m, overlap and inlier distances     voxel / 2
+submaps.normal_radius_m                                1.5 voxel
+loop_closure.min_travel_m                              3 R
+loop_closure.lidar.proximity_radius_m                  0.7 R
+loop_closure.lidar.icp_max_correspondence_m            1.5 voxel
+=====================================================  =======================
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from pydantic import BaseModel
+
+from slam.config import RunConfig
+
+logger = logging.getLogger(__name__)
+
+EXTENT_PERCENTILE = 90.0
+
+
+def scan_extent_m(points: np.ndarray) -> tuple[float, float]:
+    """(90th percentile, maximum) of the point ranges of a scan, in metres."""
+    ranges = np.linalg.norm(np.asarray(points, dtype=np.float64), axis=1)
+    ranges = ranges[np.isfinite(ranges) & (ranges > 0)]
+    if len(ranges) == 0:
+        raise ValueError("the first scan holds no valid point")
+    return float(np.percentile(ranges, EXTENT_PERCENTILE)), float(ranges.max())
+
+
+def _set_unset(model: BaseModel, field: str, value: float, changed: dict[str, float], path: str):
+    if field not in model.model_fields_set:
+        setattr(model, field, float(value))
+        changed[f"{path}.{field}"] = float(value)
+
+
+def scale_config(cfg: RunConfig, first_scan: np.ndarray) -> dict[str, float]:
+    """Fill the scale-dependent fields ``cfg`` leaves unset (in place); returns what was set."""
+    extent, farthest = scan_extent_m(first_scan)
+    voxel = extent / 30.0
+    changed: dict[str, float] = {}
+    kiss = cfg.odometry.kiss_icp
+    _set_unset(kiss, "max_range_m", max(farthest, 2.0 * extent), changed, "odometry.kiss_icp")
+    submaps = cfg.submaps
+    for field, value in (
+        ("max_range_m", extent),
+        ("max_distance_m", extent),
+        ("map_voxel_m", voxel / 3.0),
+        ("loop_voxel_m", voxel / 2.0),
+        ("normal_radius_m", 1.5 * voxel),
+    ):
+        _set_unset(submaps, field, value, changed, "submaps")
+    _set_unset(cfg.mapping, "voxel_size_m", voxel, changed, "mapping")
+    _set_unset(cfg.loop_closure, "min_travel_m", 3.0 * extent, changed, "loop_closure")
+    lidar = cfg.loop_closure.lidar
+    for field, value in (
+        ("proximity_radius_m", 0.7 * extent),
+        ("icp_max_correspondence_m", 1.5 * voxel),
+        ("density_map_resolution_m", voxel / 2.0),
+        ("overlap_voxel_m", voxel),
+        ("inlier_distance_m", voxel / 2.0),
+    ):
+        _set_unset(lidar, field, value, changed, "loop_closure.lidar")
+    logger.info(
+        "LiDAR scale from the first scan: extent %.1f m (p%.0f), farthest %.1f m; set %s",
+        extent,
+        EXTENT_PERCENTILE,
+        farthest,
+        ", ".join(f"{k}={v:.3g}" for k, v in changed.items()),
+    )
+    return changed
