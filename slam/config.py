@@ -226,7 +226,7 @@ class LidarLoopConfig(_Strict):
 
 
 class RgbdLoopConfig(_Strict):
-    """RGB-D loop closure: pose proximity + ORB, PnP-RANSAC, refined by cv2.Odometry."""
+    """RGB-D loop closure: pose proximity + ORB, PnP-RANSAC, cv2.Odometry, dense ICP."""
 
     candidate_radius_m: float = Field(
         2.0, gt=0, description="reference anchors within this distance of the query are candidates"
@@ -250,6 +250,69 @@ class RgbdLoopConfig(_Strict):
     )
     max_refine_disagreement_deg: float = Field(
         5.0, gt=0, description="reject when cv2.Odometry rotates the PnP pose more than this"
+    )
+    odometry_inlier_distance_m: float = Field(
+        0.03,
+        gt=0,
+        description="cv2.Odometry quality: a reference depth pixel moved into the query view "
+        "agrees with the query depth within this distance",
+    )
+    min_odometry_inlier_fraction: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="cv2.Odometry quality: reject when fewer of the overlapping depth pixels agree",
+    )
+    max_odometry_residual_m: float = Field(
+        0.02,
+        gt=0,
+        description="cv2.Odometry quality: reject when the median depth disagreement of the "
+        "overlapping pixels is larger",
+    )
+    refine: bool = Field(
+        True,
+        description="refine every verified edge by point-to-plane ICP between the two submaps' "
+        "clouds (the edge then depends on depth only) and check that registration too",
+    )
+    refine_voxel_m: float = Field(
+        0.03, gt=0, description="voxel size the submap clouds are thinned to for the refinement"
+    )
+    refine_max_points: int = Field(
+        8000, ge=100, description="at most this many points per cloud in the refinement"
+    )
+    refine_max_distances_m: list[float] = Field(
+        default_factory=lambda: [0.1, 0.05, 0.025],
+        min_length=1,
+        description="coarse-to-fine correspondence gates of the refinement ICP",
+    )
+    refine_min_inlier_fraction: float = Field(
+        0.3,
+        gt=0,
+        le=1,
+        description="reject when fewer query points than this lie within the finest gate",
+    )
+    refine_max_rmse_m: float = Field(
+        0.012, gt=0, description="reject when the point-to-plane RMSE of those inliers is larger"
+    )
+    refine_max_correction_m: float = Field(
+        0.1, gt=0, description="reject when the refinement moves the edge further than this"
+    )
+    refine_max_correction_deg: float = Field(
+        5.0, gt=0, description="reject when the refinement rotates the edge more than this"
+    )
+    refine_min_eigenvalue: float = Field(
+        0.005,
+        ge=0,
+        description="reject when the smallest eigenvalue of the refinement's normalised "
+        "Hessian (rotation scaled by the cloud's RMS radius; about the fraction of points "
+        "constraining the weakest direction) is below this: a flat or degenerate cost",
+    )
+    covariance_factor: float = Field(
+        10.0,
+        gt=0,
+        description="the loop covariance is this factor times the ICP estimate sigma^2 H^-1 "
+        "(neighbouring residuals are correlated and the clouds carry odometry drift, so the raw "
+        "estimate is over-confident)",
     )
     min_depth_m: float = Field(0.1, ge=0, description="valid depth range, lower bound")
     max_depth_m: float = Field(8.0, gt=0, description="valid depth range, upper bound")
@@ -292,6 +355,19 @@ class PoseGraphConfig(_Strict):
     )
     loop_translation_sigma_m: float = Field(0.05, gt=0, description="loop edge translation sigma")
     loop_rotation_sigma_rad: float = Field(0.01, gt=0, description="loop edge rotation sigma")
+    use_edge_covariances: bool = Field(
+        True,
+        description="loop edges that come with a covariance from their registration use it "
+        "(plus the floor below) instead of the loop sigmas",
+    )
+    loop_min_sigma_m: float = Field(
+        0.005,
+        ge=0,
+        description="translation sigma added (in quadrature) to a registration covariance",
+    )
+    loop_min_sigma_rad: float = Field(
+        0.002, ge=0, description="rotation sigma added (in quadrature) to a registration covariance"
+    )
     loop_kernel: Literal["cauchy", "none"] = Field(
         "cauchy", description="robust kernel of loop edges"
     )

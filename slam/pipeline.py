@@ -182,7 +182,10 @@ class SlamPipeline:
         for candidate in candidates:
             if candidate.accepted and candidate.T_Ai_Aj is not None:
                 edge = self.graph.add_loop(
-                    candidate.reference_id, candidate.query_id, candidate.T_Ai_Aj
+                    candidate.reference_id,
+                    candidate.query_id,
+                    candidate.T_Ai_Aj,
+                    covariance=candidate.covariance,
                 )
                 candidate.graph_inlier = edge.inlier
                 added = True
