@@ -61,6 +61,7 @@ def _summary(pipeline, wall_s: float, gt: np.ndarray) -> dict[str, Any]:
             {
                 "i": c.reference_id,
                 "j": c.query_id,
+                "frames": [int(a), int(b)],
                 "error_m": error_m,
                 "error_deg": error_deg,
                 "kept": bool(c.graph_inlier),
@@ -68,6 +69,19 @@ def _summary(pipeline, wall_s: float, gt: np.ndarray) -> dict[str, Any]:
             }
         )
     rejected: dict[str, int] = {}
+    candidates = [
+        {
+            "i": c.reference_id,
+            "j": c.query_id,
+            "frames": [
+                pipeline.submap_frames(c.reference_id)[0],
+                pipeline.submap_frames(c.query_id)[0],
+            ],
+            "reason": c.reason,
+            "scores": {k: float(v) for k, v in c.scores.items()},
+        }
+        for c in pipeline.loop_candidates
+    ]
     for c in pipeline.loop_candidates:
         if not c.accepted:
             stage = c.reason.split(" ")[0] if c.reason else "?"
@@ -81,6 +95,7 @@ def _summary(pipeline, wall_s: float, gt: np.ndarray) -> dict[str, Any]:
         "verified": len(loops),
         "kept": sum(1 for e in loops if e["kept"]),
         "rejected_by_stage": rejected,
+        "all_candidates": candidates,
         "loops": loops,
         "ate_odometry_m": ate_rmse(odometry, gt),
         "ate_slam_m": ate_rmse(slam, gt),

@@ -218,10 +218,30 @@ class LidarLoopConfig(_Strict):
         description="accept when this fraction of the query cloud (above the ground) are inliers",
     )
     max_icp_correction_m: float = Field(
-        5.0, gt=0, description="reject when ICP moves the candidate pose by more than this"
+        5.0,
+        gt=0,
+        description="reject a map_closures candidate when ICP moves its pose by more than this "
+        "(a wrong 2D match); proximity candidates are judged by the result only (their "
+        "correction is the drift)",
     )
     max_icp_correction_deg: float = Field(
-        15.0, gt=0, description="reject when ICP rotates the candidate pose by more than this"
+        15.0,
+        gt=0,
+        description="reject a map_closures candidate when ICP rotates its pose by more than this",
+    )
+    min_hessian_eigenvalue: float = Field(
+        0.002,
+        ge=0,
+        description="reject when the smallest eigenvalue of the point-to-plane Hessian at the "
+        "ICP result (per inlier, rotation scaled by the reference cloud's RMS radius; about the "
+        "fraction of correspondences constraining the weakest direction) is below this: a flat "
+        "or degenerate cost, e.g. a featureless straight street",
+    )
+    covariance_factor: float = Field(
+        10.0,
+        gt=0,
+        description="the loop covariance is this factor times sigma^2 H^-1 of that Hessian "
+        "(sigma: point-to-plane RMSE of the inliers)",
     )
 
 
@@ -251,23 +271,23 @@ class RgbdLoopConfig(_Strict):
     max_refine_disagreement_deg: float = Field(
         5.0, gt=0, description="reject when cv2.Odometry rotates the PnP pose more than this"
     )
-    odometry_inlier_distance_m: float = Field(
+    depth_inlier_distance_m: float = Field(
         0.03,
         gt=0,
-        description="cv2.Odometry quality: a reference depth pixel moved into the query view "
-        "agrees with the query depth within this distance",
+        description="depth agreement: a reference depth pixel moved into the query view agrees "
+        "with the query depth within this distance",
     )
-    min_odometry_inlier_fraction: float = Field(
+    min_depth_agreement: float = Field(
         0.5,
         gt=0,
         le=1,
-        description="cv2.Odometry quality: reject when fewer of the overlapping depth pixels agree",
+        description="cv2.Odometry's pose, and the final edge, need at least this fraction of the "
+        "overlapping depth pixels to agree",
     )
-    max_odometry_residual_m: float = Field(
+    max_depth_residual_m: float = Field(
         0.02,
         gt=0,
-        description="cv2.Odometry quality: reject when the median depth disagreement of the "
-        "overlapping pixels is larger",
+        description="... and a median depth disagreement of the overlapping pixels below this",
     )
     refine: bool = Field(
         True,
@@ -306,6 +326,18 @@ class RgbdLoopConfig(_Strict):
         description="reject when the smallest eigenvalue of the refinement's normalised "
         "Hessian (rotation scaled by the cloud's RMS radius; about the fraction of points "
         "constraining the weakest direction) is below this: a flat or degenerate cost",
+    )
+    proximity_candidates: int = Field(
+        2,
+        ge=0,
+        description="also try this many nearest older anchors (within candidate_radius_m) by "
+        "dense refinement alone from their current relative estimate (0: ORB candidates only)",
+    )
+    proximity_max_angle_deg: float = Field(
+        45.0,
+        gt=0,
+        le=180,
+        description="proximity candidates: largest angle between the two keyframes' optical axes",
     )
     covariance_factor: float = Field(
         10.0,
@@ -357,8 +389,18 @@ class PoseGraphConfig(_Strict):
     loop_rotation_sigma_rad: float = Field(0.01, gt=0, description="loop edge rotation sigma")
     use_edge_covariances: bool = Field(
         True,
-        description="loop edges that come with a covariance from their registration use it "
-        "(plus the floor below) instead of the loop sigmas",
+        description="odometry and loop edges that come with a covariance from their "
+        "registration use it (plus the floors below) instead of the configured sigmas",
+    )
+    odometry_min_sigma_m: float = Field(
+        0.002,
+        ge=0,
+        description="translation sigma added (in quadrature) to an odometry covariance",
+    )
+    odometry_min_sigma_rad: float = Field(
+        0.001,
+        ge=0,
+        description="rotation sigma added (in quadrature) to an odometry covariance",
     )
     loop_min_sigma_m: float = Field(
         0.005,

@@ -9,14 +9,20 @@ query anchor, ranked by the number of ORB matches that pass Lowe's ratio test. V
 3. ``cv2.Odometry`` (RGB + depth): the reference frame is warped into the query view with the
    PnP pose and the dense odometry estimates the remaining correction, which must succeed, stay
    small, and pass a registration check of its own: reference depth pixels moved into the query
-   view with the result must agree with the query depth (inlier fraction and median residual
-   of the overlapping pixels), so an odometry that barely moves from a wrong PnP pose fails;
+   view with the result must agree with the query depth (:func:`depth_agreement`: fraction and
+   median residual of the overlapping pixels), so an odometry that barely moves from a wrong PnP
+   pose fails. A result that fails is never used: without refinement the candidate is rejected;
+   with refinement the ICP below starts from the PnP pose instead (measured on 7-Scenes, where
+   colour is not registered to depth: cv2.Odometry's loop poses agree with only 16-35 % of the
+   depth pixels and are ~3 deg off, while ICP from there reaches 80 %, as much as the ground
+   truth);
 4. dense refinement: point-to-plane ICP between the two submaps' clouds (the whole submap, not
    only the keyframe), from the cv2.Odometry pose. It must converge with enough inliers, a small
    residual, a small correction and a well-conditioned cost (smallest eigenvalue of the
    normalised Hessian). The ICP pose is the loop edge, so the edge depends on depth geometry
    only (7-Scenes colour is not registered to depth), and its covariance comes from the ICP
-   Hessian and residual (:meth:`slam.registration.IcpResult.covariance`).
+   Hessian and residual (``IcpResult.covariance`` in :mod:`frontends.odometry.point_to_plane`).
+   The refined pose must also pass the keyframes' depth agreement check.
 
 Rejection reasons start with the stage that rejected: ``matches``, ``pnp``, ``3d``, ``odometry``,
 ``refine``.
@@ -31,9 +37,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.frame import Frame
+from frontends.odometry.point_to_plane import IcpResult, point_to_plane_icp
 from slam.config import LoopClosureConfig, RgbdLoopConfig
 from slam.loops import LoopCandidate, LoopDetector, relative_motion
-from slam.registration import IcpResult, point_to_plane_icp
 from slam.submaps import SubmapRecord, transform_points, voxel_downsample
 
 logger = logging.getLogger(__name__)
@@ -231,46 +237,79 @@ class RgbdVerifier:
                 np.linalg.inv(T_Sj_Si),
                 scores,
             )
-        refined, delta = self._refine(reference, query, T_Sj_Si)
-        if refined is None:
-            return False, "odometry: cv2.Odometry failed", np.linalg.inv(T_Sj_Si), scores
-        delta_m, delta_deg = relative_motion(np.eye(4), delta)
-        scores["refine_correction_m"] = delta_m
-        scores["refine_correction_deg"] = delta_deg
-        if delta_m > c.max_refine_disagreement_m or delta_deg > c.max_refine_disagreement_deg:
-            return (
-                False,
-                f"odometry: disagrees with pnp by {delta_m:.3f} m / {delta_deg:.1f} deg",
-                np.linalg.inv(T_Sj_Si),
-                scores,
-            )
-        fraction, median = depth_agreement(reference, query, refined, c.odometry_inlier_distance_m)
-        scores["odometry_inlier_fraction"] = fraction
-        scores["odometry_residual_m"] = median
-        if not fraction >= c.min_odometry_inlier_fraction:
-            return (
-                False,
-                f"odometry: depth agreement {fraction:.2f} < {c.min_odometry_inlier_fraction:.2f}",
-                np.linalg.inv(refined),
-                scores,
-            )
-        if not median <= c.max_odometry_residual_m:
-            return (
-                False,
-                f"odometry: depth residual {median:.3f} m > {c.max_odometry_residual_m:.3f} m",
-                np.linalg.inv(refined),
-                scores,
-            )
-        T_Si_Sj = np.linalg.inv(refined)
+        refined, odometry_reason = self._odometry_stage(reference, query, T_Sj_Si, scores)
+        if odometry_reason is None:
+            T_Si_Sj = np.linalg.inv(refined)
+        elif c.refine and reference.cloud is not None and query.cloud is not None:
+            # cv2.Odometry's pose failed its own check, so it is not used: the dense refinement
+            # starts from the PnP pose and its result must pass the same depth check.
+            scores["odometry_rejected"] = 1.0
+            T_Si_Sj = np.linalg.inv(T_Sj_Si)
+        else:
+            return False, odometry_reason, np.linalg.inv(T_Sj_Si), scores
         if not c.refine:
             return True, "accepted", T_Si_Sj, scores
+        return self.verify_dense(reference, query, T_Si_Sj, scores)
+
+    def verify_dense(
+        self,
+        reference: KeyframeFeatures,
+        query: KeyframeFeatures,
+        T_Si_Sj_guess: np.ndarray,
+        scores: dict[str, float] | None = None,
+    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
+        """Dense refinement from a guess and its checks (ICP quality, keyframe depth agreement).
+
+        Sets :attr:`last_covariance` when accepted.
+        """
+        c = self.cfg
+        self.last_covariance = None
+        scores = {} if scores is None else scores
+        T_Si_Sj = T_Si_Sj_guess
         if reference.cloud is None or query.cloud is None:
             return False, "refine: no cloud with normals to refine on", T_Si_Sj, scores
         accepted, reason, T_dense, result = self.refine(reference.cloud, query.cloud, T_Si_Sj)
         scores.update(refine_scores(result, T_Si_Sj, reference.cloud.radius_m))
-        if accepted:
-            self.last_covariance = result.covariance(c.covariance_factor)
-        return accepted, reason, T_dense, scores
+        if not accepted:
+            return False, reason, T_dense, scores
+        fraction, median = depth_agreement(
+            reference, query, np.linalg.inv(T_dense), c.depth_inlier_distance_m
+        )
+        scores["final_depth_agreement"] = fraction
+        scores["final_depth_residual_m"] = median
+        if not (fraction >= c.min_depth_agreement and median <= c.max_depth_residual_m):
+            reason = f"refine: keyframe depth agreement {fraction:.2f}, residual {median:.3f} m"
+            return False, reason, T_dense, scores
+        self.last_covariance = result.covariance(c.covariance_factor)
+        return True, "accepted", T_dense, scores
+
+    def _odometry_stage(
+        self,
+        reference: KeyframeFeatures,
+        query: KeyframeFeatures,
+        T_Sj_Si: np.ndarray,
+        scores: dict[str, float],
+    ) -> tuple[np.ndarray, str | None]:
+        """cv2.Odometry from the PnP pose and its checks: ``(refined T_Sj_Si, None)`` or
+        ``(PnP pose, reason)``. Its own quality: the depth agreement of the refined pose."""
+        c = self.cfg
+        refined, delta = self._refine(reference, query, T_Sj_Si)
+        if refined is None:
+            return T_Sj_Si, "odometry: cv2.Odometry failed"
+        delta_m, delta_deg = relative_motion(np.eye(4), delta)
+        scores["refine_correction_m"] = delta_m
+        scores["refine_correction_deg"] = delta_deg
+        if delta_m > c.max_refine_disagreement_m or delta_deg > c.max_refine_disagreement_deg:
+            return T_Sj_Si, f"odometry: disagrees with pnp by {delta_m:.3f} m / {delta_deg:.1f} deg"
+        fraction, median = depth_agreement(reference, query, refined, c.depth_inlier_distance_m)
+        scores["odometry_depth_agreement"] = fraction
+        scores["odometry_depth_residual_m"] = median
+        if not fraction >= c.min_depth_agreement:
+            reason = f"odometry: depth agreement {fraction:.2f} < {c.min_depth_agreement:.2f}"
+            return T_Sj_Si, reason
+        if not median <= c.max_depth_residual_m:
+            return T_Sj_Si, f"odometry: depth residual {median:.3f} m > {c.max_depth_residual_m} m"
+        return refined, None
 
     def refine(
         self, reference: RefineCloud, query: RefineCloud, T_Si_Sj_guess: np.ndarray
@@ -402,7 +441,15 @@ def depth_agreement(
 
 
 class RgbdLoopDetector(LoopDetector):
-    """Pose-proximity + ORB candidates between keyframes, verified by :class:`RgbdVerifier`."""
+    """Pose-proximity + ORB candidates between keyframes, verified by :class:`RgbdVerifier`.
+
+    With ``proximity_candidates > 0`` and refinement on, the nearest older anchors that ORB did not
+    close (within ``candidate_radius_m`` and ``proximity_max_angle_deg`` of viewing direction) are
+    also tried by the dense refinement alone, starting from their current relative estimate (the
+    drift between them is what the loop corrects; ICP's correction limit and the keyframe depth
+    agreement reject a guess that is too far off). This finds revisits whose colour does not
+    match well enough for PnP (7-Scenes: colour not registered to depth, motion blur).
+    """
 
     def __init__(self, cfg: LoopClosureConfig) -> None:
         self.cfg = cfg
@@ -445,6 +492,43 @@ class RgbdLoopDetector(LoopDetector):
             candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "orb")
             candidate.covariance = self._verifier.last_covariance if accepted else None
             candidates.append(candidate)
+        candidates += self._proximity(j, query, submap, T_W_A_estimates, candidates)
         self._features[j] = query
         self._travelled[j] = submap.travelled_m
+        return candidates
+
+    def _proximity(
+        self,
+        j: int,
+        query: KeyframeFeatures,
+        submap: SubmapRecord,
+        T_W_A: dict[int, np.ndarray],
+        done: list[LoopCandidate],
+    ) -> list[LoopCandidate]:
+        c = self.cfg
+        if c.rgbd.proximity_candidates == 0 or not c.rgbd.refine or j not in T_W_A:
+            return []
+        closed = {cand.reference_id for cand in done if cand.accepted}
+        near = []
+        for i in self._features:
+            if i in closed or i not in T_W_A or j - i < c.min_submap_separation:
+                continue
+            if submap.travelled_m - self._travelled[i] < c.min_travel_m:
+                continue
+            guess = np.linalg.inv(T_W_A[i]) @ T_W_A[j]
+            distance, angle = relative_motion(np.eye(4), guess)
+            # Angle between the optical axes: views that look elsewhere do not overlap.
+            axis_deg = float(np.degrees(np.arccos(np.clip(guess[2, 2], -1.0, 1.0))))
+            if distance <= c.rgbd.candidate_radius_m and axis_deg <= c.rgbd.proximity_max_angle_deg:
+                near.append((distance + 0.01 * angle, i, guess))
+        near.sort(key=lambda item: item[0])
+        candidates = []
+        for _, i, guess in near[: c.rgbd.proximity_candidates]:
+            accepted, reason, T_Ai_Aj, scores = self._verifier.verify_dense(
+                self._features[i], query, guess
+            )
+            logger.debug("loop %d-%d (proximity): %s %s", i, j, reason, scores)
+            candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "proximity")
+            candidate.covariance = self._verifier.last_covariance if accepted else None
+            candidates.append(candidate)
         return candidates

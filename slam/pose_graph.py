@@ -1,11 +1,14 @@
 """GTSAM pose graph over submap anchors.
 
 One node per submap anchor ``T_W_A``. Consecutive anchors are tied by odometry factors; loop
-closures are ``BetweenFactorPose3``. Edge noise: an edge that comes with a covariance from its
-registration (the dense loop refinement: ``factor * sigma^2 H^-1``, see
-:mod:`slam.registration`) uses it, widened by a floor of ``loop_min_sigma_{m,rad}`` so that a
-very confident ICP cannot pin the graph; other edges use the configured sigmas (odometry: growing
-with the distance travelled and the angle turned).
+closures are ``BetweenFactorPose3``. Edge noise (``use_edge_covariances``): an edge that comes
+with a covariance from its registration uses it, plus a floor (``loop_min_sigma_*``,
+``odometry_min_sigma_*``) added in quadrature so that a very confident ICP cannot pin the graph.
+Loop covariances come from the dense loop refinement or the LiDAR ICP (``factor * sigma^2 H^-1``
+of the point-to-plane cost, :mod:`frontends.odometry.point_to_plane`); odometry covariances from
+the RGB-D odometry's per-frame registration Hessians, chained from one anchor to the next. Edges
+without one use the configured sigmas (odometry: growing with the distance travelled and the
+angle turned).
 
 Robust back-ends (``online_gnc``), each consistent from the first loop to the final estimate:
 
@@ -112,12 +115,16 @@ class PoseGraph:
         )
         return _sigmas(sigma_r, sigma_t)
 
-    def add_anchor(self, node_id: int, T_W_A_odometry: np.ndarray) -> None:
+    def add_anchor(
+        self, node_id: int, T_W_A_odometry: np.ndarray, covariance: np.ndarray | None = None
+    ) -> None:
         """Add the anchor of a new submap with its odometry pose.
 
         The first anchor is fixed by a tight prior (it defines the world frame). Every later anchor
         gets an odometry factor from the previous one, measured by the odometry poses, and is
         initialised at the current estimate of the previous anchor composed with that measurement.
+        ``covariance``: 6x6 (``[rot, trans]``) of that motion from the odometry's registrations,
+        or None for the configured sigmas.
         """
         if node_id in self._odometry_anchor:
             raise ValueError(f"anchor {node_id} already in the pose graph")
@@ -132,7 +139,7 @@ class PoseGraph:
             T_prev_cur = np.linalg.inv(self._odometry_anchor[prev]) @ T_W_A_odometry
             distance = float(np.linalg.norm(T_prev_cur[:3, 3]))
             angle = rotation_angle_rad(T_prev_cur[:3, :3])
-            noise = gtsam.noiseModel.Diagonal.Sigmas(self.odometry_sigmas(distance, angle))
+            noise = self._odometry_noise(distance, angle, covariance)
             factor = gtsam.BetweenFactorPose3(prev, node_id, _pose3(T_prev_cur), noise)
             new_values.insert(node_id, _pose3(self.pose(prev) @ T_prev_cur))
         self._chain.append(factor)
@@ -142,6 +149,18 @@ class PoseGraph:
         new_factors.add(factor)
         self._isam.update(new_factors, new_values)
         self._estimate = self._isam.calculateEstimate()
+
+    def _odometry_noise(
+        self, distance_m: float, angle_rad: float, covariance: np.ndarray | None
+    ) -> gtsam.noiseModel.Base:
+        c = self.cfg
+        if covariance is not None and c.use_edge_covariances:
+            covariance = np.asarray(covariance, dtype=np.float64)
+            if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+                raise ValueError("odometry covariance must be a finite 6x6 matrix")
+            floor = _sigmas(c.odometry_min_sigma_rad, c.odometry_min_sigma_m) ** 2
+            return gtsam.noiseModel.Gaussian.Covariance(covariance + np.diag(floor))
+        return gtsam.noiseModel.Diagonal.Sigmas(self.odometry_sigmas(distance_m, angle_rad))
 
     def _loop_gaussian_noise(self, edge: LoopEdge) -> gtsam.noiseModel.Base:
         c = self.cfg

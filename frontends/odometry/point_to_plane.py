@@ -1,6 +1,7 @@
 """Point-to-plane ICP with its quality and its information matrix.
 
-Used to refine loop edges densely (RGB-D: between two submaps' clouds) and to judge any
+Used by the RGB-D odometry (the information of each registration), and by loop closure to
+refine loop edges densely (RGB-D: between two submaps' clouds) and to judge any
 registration by its cost: the Gauss-Newton Hessian ``H = sum_k J_k^T J_k`` of the point-to-plane
 residuals ``r_k = n_k . (T p_k - q_k)`` at the solution says which directions the geometry
 constrains. Its smallest eigenvalue is near zero for a degenerate scene (one plane, a straight
@@ -19,7 +20,21 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam.submaps import orthonormalize, transform_points
+
+def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Points from frame b to frame a."""
+    return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation projected onto SO(3)."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    if np.linalg.det(U @ Vt) < 0:
+        U[:, -1] *= -1
+    T[:3, :3] = U @ Vt
+    T[3] = [0.0, 0.0, 0.0, 1.0]
+    return T
 
 
 @dataclass
@@ -89,7 +104,7 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
     return T
 
 
-def _adjoint(T: np.ndarray) -> np.ndarray:
+def adjoint(T: np.ndarray) -> np.ndarray:
     """Adjoint of ``T`` for twists ordered ``[w, v]``."""
     R, t = T[:3, :3], T[:3, 3]
     A = np.zeros((6, 6))
@@ -158,7 +173,7 @@ def point_to_plane_icp(
     r = np.einsum("ij,ij->i", p - q, n)
     J_left = np.hstack([np.cross(p, n), n])
     # Right perturbation: T exp(xi) = exp(Ad_T xi) T, so J_right = J_left Ad_T.
-    J = J_left @ _adjoint(T)
+    J = J_left @ adjoint(T)
     return IcpResult(
         T_ref_query=T,
         converged=converged,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.registration import _exp_se3, point_to_plane_hessian, point_to_plane_icp
+from frontends.odometry.point_to_plane import _exp_se3, point_to_plane_hessian, point_to_plane_icp
 from slam.submaps import transform_points
 
 
