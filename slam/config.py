@@ -306,10 +306,11 @@ class RgbdLoopConfig(_Strict):
         description="coarse-to-fine correspondence gates of the refinement ICP",
     )
     refine_min_inlier_fraction: float = Field(
-        0.3,
+        0.15,
         gt=0,
         le=1,
-        description="reject when fewer query points than this lie within the finest gate",
+        description="reject when fewer query points than this lie within the finest gate (two "
+        "submaps overlap only in part: the keyframe depth agreement is the stricter test)",
     )
     refine_max_rmse_m: float = Field(
         0.012, gt=0, description="reject when the point-to-plane RMSE of those inliers is larger"
@@ -321,11 +322,14 @@ class RgbdLoopConfig(_Strict):
         5.0, gt=0, description="reject when the refinement rotates the edge more than this"
     )
     refine_min_eigenvalue: float = Field(
-        0.005,
+        0.015,
         ge=0,
         description="reject when the smallest eigenvalue of the refinement's normalised "
         "Hessian (rotation scaled by the cloud's RMS radius; about the fraction of points "
-        "constraining the weakest direction) is below this: a flat or degenerate cost",
+        "constraining the weakest direction) is below this: a flat or degenerate cost. "
+        "Measured on 7-Scenes: edges below 0.015 were 7-13 cm off the ground truth while "
+        "their depth agreed no better than the ground truth's (the cost could not fix them); "
+        "a single plane gives 0, the generated room's loop 0.022",
     )
     proximity_candidates: int = Field(
         2,

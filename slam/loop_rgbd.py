@@ -508,7 +508,10 @@ class RgbdLoopDetector(LoopDetector):
         c = self.cfg
         if c.rgbd.proximity_candidates == 0 or not c.rgbd.refine or j not in T_W_A:
             return []
-        closed = {cand.reference_id for cand in done if cand.accepted}
+        # Pairs whose dense refinement already ran (accepted or not) are not tried again.
+        closed = {
+            cand.reference_id for cand in done if cand.accepted or "dense_rmse_m" in cand.scores
+        }
         near = []
         for i in self._features:
             if i in closed or i not in T_W_A or j - i < c.min_submap_separation:

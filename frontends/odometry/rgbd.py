@@ -188,6 +188,7 @@ class RgbdOdometry(Odometry):
         self._prev_cloud = None
         self._cov_chain = np.zeros((6, 6))  # since take_covariance(), at the current keyframe
         self._cov_key_cur = np.zeros((6, 6))
+        self._cov_complete = True  # every registration since take_covariance() had its Hessian
 
     def _build(self, frame: Frame) -> None:
         import cv2
@@ -364,6 +365,7 @@ class RgbdOdometry(Odometry):
     def _registration_covariance(self, reference, current, T_ref_cur: np.ndarray) -> np.ndarray:
         """``factor * sigma^2 H^-1`` of the point-to-plane cost at the estimate, or zeros."""
         if reference is None or current is None:
+            self._cov_complete = False
             return np.zeros((6, 6))
         result = point_to_plane_hessian(
             reference[0],
@@ -380,8 +382,9 @@ class RgbdOdometry(Odometry):
     def take_covariance(self) -> np.ndarray | None:
         """Covariance (``[rot, trans]``, right perturbation) of the motion from the frame of the
         previous call to the latest frame, and restart from the latest frame. None when the
-        covariance is off."""
-        if self.config.covariance_points == 0:
+        covariance is off or a frame had no normals to evaluate it."""
+        complete, self._cov_complete = self._cov_complete, True
+        if self.config.covariance_points == 0 or self._keyframe is None:
             return None
         T_key_cur = np.linalg.inv(self._T_W_key) @ self._T_W_prev
         Ad = adjoint(np.linalg.inv(T_key_cur))
@@ -390,4 +393,4 @@ class RgbdOdometry(Odometry):
         # to its keyframe: the covariance of inv(T_key_cur) is Ad(T_key_cur) cov Ad(T_key_cur)^T.
         Ad_back = adjoint(T_key_cur)
         self._cov_chain = Ad_back @ self._cov_key_cur @ Ad_back.T
-        return 0.5 * (covariance + covariance.T)
+        return 0.5 * (covariance + covariance.T) if complete else None
