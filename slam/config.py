@@ -312,8 +312,12 @@ class RgbdLoopConfig(_Strict):
         description="reject when fewer query points than this lie within the finest gate (two "
         "submaps overlap only in part: the keyframe depth agreement is the stricter test)",
     )
-    refine_max_rmse_m: float = Field(
-        0.012, gt=0, description="reject when the point-to-plane RMSE of those inliers is larger"
+    refine_max_residual_m: float = Field(
+        0.012,
+        gt=0,
+        description="reject when the robust spread (1.4826 x median absolute value) of the "
+        "inliers' point-to-plane residuals is larger (or larger than 0.4 x the finest gate, "
+        "which widens to 1.5 x the point spacing for sparse clouds)",
     )
     refine_max_correction_m: float = Field(
         0.1, gt=0, description="reject when the refinement moves the edge further than this"

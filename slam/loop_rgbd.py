@@ -53,6 +53,7 @@ class RefineCloud:
     normals: np.ndarray
     tree: cKDTree
     radius_m: float
+    spacing_m: float = 0.0
 
     @classmethod
     def build(
@@ -73,7 +74,9 @@ class RefineCloud:
         if len(points) < 100:
             return None
         radius = float(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))))
-        return cls(points, normals, cKDTree(points), radius)
+        tree = cKDTree(points)
+        spacing = float(np.median(tree.query(points, k=2)[0][:, 1]))
+        return cls(points, normals, tree, radius, spacing)
 
 
 @dataclass
@@ -316,18 +319,22 @@ class RgbdVerifier:
     ) -> tuple[bool, str, np.ndarray, IcpResult]:
         """Point-to-plane ICP of the query cloud onto the reference cloud and its checks."""
         c = self.cfg
+        # A sparse cloud (a small max_map_points) needs wider gates than its point spacing, and
+        # its residuals grow with the gate.
+        gates = tuple(max(gate, 1.5 * reference.spacing_m) for gate in c.refine_max_distances_m)
+        max_residual_m = max(c.refine_max_residual_m, 0.4 * gates[-1])
         result = point_to_plane_icp(
             reference.points,
             reference.normals,
             query.points,
             T_Si_Sj_guess,
-            max_distances_m=tuple(c.refine_max_distances_m),
+            max_distances_m=gates,
             tree=reference.tree,
         )
         T = result.T_ref_query
         correction_m, correction_deg = relative_motion(T_Si_Sj_guess, T)
         eigenvalue = result.normalized_min_eigenvalue(reference.radius_m)
-        if not np.all(np.isfinite(T)) or not np.isfinite(result.rmse_m):
+        if not np.all(np.isfinite(T)) or not np.isfinite(result.robust_sigma_m):
             return False, "refine: icp found no correspondences", T_Si_Sj_guess, result
         if result.inlier_fraction < c.refine_min_inlier_fraction:
             reason = (
@@ -335,8 +342,9 @@ class RgbdVerifier:
                 f"{c.refine_min_inlier_fraction:.2f}"
             )
             return False, reason, T, result
-        if result.rmse_m > c.refine_max_rmse_m:
-            return False, f"refine: rmse {result.rmse_m:.4f} m > {c.refine_max_rmse_m} m", T, result
+        if result.robust_sigma_m > max_residual_m:
+            reason = f"refine: residual sigma {result.robust_sigma_m:.4f} > {max_residual_m:.4f} m"
+            return False, reason, T, result
         if correction_m > c.refine_max_correction_m or correction_deg > c.refine_max_correction_deg:
             reason = f"refine: correction {correction_m:.3f} m / {correction_deg:.1f} deg too large"
             return False, reason, T, result
@@ -399,6 +407,7 @@ def refine_scores(result: IcpResult, T_guess: np.ndarray, radius_m: float) -> di
     return {
         "dense_inlier_fraction": result.inlier_fraction,
         "dense_rmse_m": result.rmse_m,
+        "dense_residual_sigma_m": result.robust_sigma_m,
         "dense_correction_m": correction_m,
         "dense_correction_deg": correction_deg,
         "dense_min_eigenvalue": result.normalized_min_eigenvalue(radius_m),

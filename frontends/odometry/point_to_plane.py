@@ -46,6 +46,8 @@ class IcpResult:
         converged: the last update was below the tolerance.
         inlier_fraction: query points with a correspondence within the final distance.
         rmse_m: RMS point-to-plane residual of the inliers.
+        robust_sigma_m: 1.4826 x the median absolute point-to-plane residual of the inliers (the
+            residual spread without the tails of partly overlapping clouds).
         hessian: 6x6 Gauss-Newton Hessian at the solution, right-perturbation ``[rot, trans]``.
         num_inliers: correspondences used in the last iteration.
         iterations: Gauss-Newton iterations run.
@@ -58,6 +60,7 @@ class IcpResult:
     hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     num_inliers: int = 0
     iterations: int = 0
+    robust_sigma_m: float = float("inf")
 
     def normalized_min_eigenvalue(self, length_m: float) -> float:
         """Smallest eigenvalue of the Hessian per inlier, rotation scaled by ``length_m``.
@@ -182,6 +185,7 @@ def point_to_plane_icp(
         hessian=J.T @ J,
         num_inliers=int(ok.sum()),
         iterations=iterations,
+        robust_sigma_m=float(1.4826 * np.median(np.abs(r))),
     )
 
 
