@@ -13,9 +13,18 @@ Candidates come from two places:
 Each candidate is refined by point-to-point ICP (KISS-ICP's registration against a voxel hash
 map of the reference cloud, coarse then fine) and accepted only when
 
-* ICP did not have to move the candidate far (a large correction means the 2D match was wrong),
-* enough query points lie close to the reference cloud after alignment (inlier ratio), and
-* the aligned clouds share enough voxels (overlap = shared voxels / voxels of the smaller cloud).
+* for map_closures candidates: ICP did not have to move the candidate far (a large correction
+  means the 2D match was wrong). Proximity candidates are judged by the result only: their
+  correction is the accumulated drift, which is what the loop is for;
+* enough query points lie close to the reference cloud after alignment (inlier ratio),
+* the aligned clouds share enough voxels (overlap = shared voxels / voxels of the smaller cloud),
+  and
+* the cost is not flat: the smallest eigenvalue of the point-to-plane Hessian at the result
+  (normals of the reference cloud; reported as ``min_eigenvalue``) shows that every direction is
+  constrained. A featureless straight street lets ICP slide along it.
+
+The same Hessian and the inlier residual give the edge's covariance
+(:meth:`frontends.odometry.point_to_plane.IcpResult.covariance`).
 """
 
 from __future__ import annotations
@@ -25,8 +34,10 @@ import logging
 import numpy as np
 from scipy.spatial import cKDTree
 
+from frontends.odometry.point_to_plane import point_to_plane_hessian
 from slam.config import LidarLoopConfig, LoopClosureConfig
 from slam.loops import LoopCandidate, LoopDetector, relative_motion
+from slam.normals import estimate_normals
 from slam.submaps import SubmapRecord, orthonormalize, transform_points, voxel_keys
 
 logger = logging.getLogger(__name__)
@@ -63,6 +74,7 @@ class IcpVerifier:
 
     def __init__(self, cfg: LidarLoopConfig) -> None:
         self.cfg = cfg
+        self.last_covariance: np.ndarray | None = None
 
     def align(
         self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
@@ -99,10 +111,20 @@ class IcpVerifier:
         return T
 
     def verify(
-        self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
+        self,
+        reference: np.ndarray,
+        query: np.ndarray,
+        T_ref_query_guess: np.ndarray,
+        limit_correction: bool = True,
     ) -> tuple[bool, str, np.ndarray, dict[str, float]]:
-        """ICP plus the acceptance tests: ``(accepted, reason, T_ref_query, scores)``."""
+        """ICP plus the acceptance tests: ``(accepted, reason, T_ref_query, scores)``.
+
+        ``limit_correction``: reject a large ICP correction (for guesses that are independent
+        of the drift, such as map_closures' 2D matches). After an accepted verification,
+        :attr:`last_covariance` holds the edge's covariance.
+        """
         c = self.cfg
+        self.last_covariance = None
         reference = np.asarray(reference, dtype=np.float64)
         query = np.asarray(query, dtype=np.float64)
         T = self.align(reference, query, T_ref_query_guess)
@@ -110,6 +132,7 @@ class IcpVerifier:
         scores = {"icp_correction_m": correction_m, "icp_correction_deg": correction_deg}
         if not np.all(np.isfinite(T)):
             return False, "icp diverged", T_ref_query_guess, scores
+        full_reference, full_query = reference, query
         if c.ground_clearance_m > 0:
             reference = reference[above_ground(reference, c.ground_cell_m, c.ground_clearance_m)]
             query = query[above_ground(query, c.ground_cell_m, c.ground_clearance_m)]
@@ -122,7 +145,12 @@ class IcpVerifier:
         overlap = voxel_overlap(reference, query_in_ref, c.overlap_voxel_m)
         scores["inlier_ratio"] = inlier_ratio
         scores["overlap"] = overlap
-        if correction_m > c.max_icp_correction_m or correction_deg > c.max_icp_correction_deg:
+        cost = self._cost(full_reference, full_query, T)
+        eigenvalue = cost.normalized_min_eigenvalue(_rms_radius(full_reference))
+        scores["min_eigenvalue"] = eigenvalue
+        if limit_correction and (
+            correction_m > c.max_icp_correction_m or correction_deg > c.max_icp_correction_deg
+        ):
             return (
                 False,
                 f"icp correction {correction_m:.2f} m / {correction_deg:.1f} deg too large",
@@ -133,7 +161,32 @@ class IcpVerifier:
             return False, f"inlier ratio {inlier_ratio:.2f} < {c.min_inlier_ratio:.2f}", T, scores
         if overlap < c.min_overlap:
             return False, f"overlap {overlap:.2f} < {c.min_overlap:.2f}", T, scores
+        if eigenvalue < c.min_hessian_eigenvalue:
+            return (
+                False,
+                f"degenerate icp cost: min eigenvalue {eigenvalue:.4f} "
+                f"< {c.min_hessian_eigenvalue}",
+                T,
+                scores,
+            )
+        self.last_covariance = cost.covariance(c.covariance_factor)
         return True, "accepted", T, scores
+
+    def _cost(self, reference: np.ndarray, query: np.ndarray, T: np.ndarray):
+        """Point-to-plane cost at ``T`` (normals by PCA on the reference cloud)."""
+        c = self.cfg
+        normals, valid = estimate_normals(
+            reference, np.zeros(3), num_neighbours=10, max_radius_m=4 * c.inlier_distance_m
+        )
+        return point_to_plane_hessian(
+            reference[valid], normals[valid], query, T, max_distance_m=c.inlier_distance_m
+        )
+
+
+def _rms_radius(points: np.ndarray) -> float:
+    if len(points) == 0:
+        return 1.0
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
 
 
 class LidarLoopDetector(LoopDetector):
@@ -206,8 +259,12 @@ class LidarLoopDetector(LoopDetector):
         candidates = []
         for i, (detector, guess, detection_scores) in guesses.items():
             reference = np.asarray(self._clouds[i], dtype=np.float64)
-            accepted, reason, T_Ai_Aj, scores = self._verifier.verify(reference, cloud, guess)
+            accepted, reason, T_Ai_Aj, scores = self._verifier.verify(
+                reference, cloud, guess, limit_correction=detector != "proximity"
+            )
             scores.update(detection_scores)
             logger.debug("loop %d-%d (%s): %s %s", i, j, detector, reason, scores)
-            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, detector))
+            candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, detector)
+            candidate.covariance = self._verifier.last_covariance if accepted else None
+            candidates.append(candidate)
         return candidates

@@ -6,9 +6,26 @@ query anchor, ranked by the number of ORB matches that pass Lowe's ratio test. V
 1. PnP-RANSAC (``cv2.solvePnPRansac``) of the reference keyframe's back-projected keypoints
    against the query keypoints gives ``T_Sj_Si``; enough inliers, and a high enough inlier ratio;
 2. a 3D-3D check: inliers with depth in both frames must agree in 3D (median residual);
-3. refinement with ``cv2.Odometry`` (RGB + depth): the reference frame is warped into the query
-   view with the PnP pose and the dense odometry estimates the remaining correction, which must
-   succeed and stay small. The refined pose is the loop edge.
+3. ``cv2.Odometry`` (RGB + depth): the reference frame is warped into the query view with the
+   PnP pose and the dense odometry estimates the remaining correction, which must succeed, stay
+   small, and pass a registration check of its own: reference depth pixels moved into the query
+   view with the result must agree with the query depth (:func:`depth_agreement`: fraction and
+   median residual of the overlapping pixels), so an odometry that barely moves from a wrong PnP
+   pose fails. A result that fails is never used: without refinement the candidate is rejected;
+   with refinement the ICP below starts from the PnP pose instead (measured on 7-Scenes, where
+   colour is not registered to depth: cv2.Odometry's loop poses agree with only 16-35 % of the
+   depth pixels and are ~3 deg off, while ICP from there reaches 80 %, as much as the ground
+   truth);
+4. dense refinement: point-to-plane ICP between the two submaps' clouds (the whole submap, not
+   only the keyframe), from the cv2.Odometry pose. It must converge with enough inliers, a small
+   residual, a small correction and a well-conditioned cost (smallest eigenvalue of the
+   normalised Hessian). The ICP pose is the loop edge, so the edge depends on depth geometry
+   only (7-Scenes colour is not registered to depth), and its covariance comes from the ICP
+   Hessian and residual (``IcpResult.covariance`` in :mod:`frontends.odometry.point_to_plane`).
+   The refined pose must also pass the keyframes' depth agreement check.
+
+Rejection reasons start with the stage that rejected: ``matches``, ``pnp``, ``3d``, ``odometry``,
+``refine``.
 """
 
 from __future__ import annotations
@@ -17,13 +34,49 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from frontends.frame import Frame
+from frontends.odometry.point_to_plane import IcpResult, point_to_plane_icp
 from slam.config import LoopClosureConfig, RgbdLoopConfig
 from slam.loops import LoopCandidate, LoopDetector, relative_motion
-from slam.submaps import SubmapRecord, transform_points
+from slam.submaps import SubmapRecord, transform_points, voxel_downsample
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RefineCloud:
+    """A thinned cloud with unit normals in the keyframe (anchor) frame, and its k-d tree."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+    radius_m: float
+    spacing_m: float = 0.0
+
+    @classmethod
+    def build(
+        cls, points: np.ndarray, normals: np.ndarray | None, voxel_m: float, max_points: int
+    ) -> RefineCloud | None:
+        if normals is None or len(points) == 0:
+            return None
+        points = np.asarray(points, dtype=np.float64)
+        normals = np.asarray(normals, dtype=np.float64)
+        good = np.isfinite(points).all(axis=1) & (np.linalg.norm(normals, axis=1) > 0.5)
+        points, normals = voxel_downsample(voxel_m, points[good], normals[good])
+        length = np.linalg.norm(normals, axis=1)
+        keep = length > 0.5
+        points, normals = points[keep], normals[keep] / length[keep, None]
+        if len(points) > max_points:
+            pick = np.random.default_rng(0).choice(len(points), max_points, replace=False)
+            points, normals = points[np.sort(pick)], normals[np.sort(pick)]
+        if len(points) < 100:
+            return None
+        radius = float(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))))
+        tree = cKDTree(points)
+        spacing = float(np.median(tree.query(points, k=2)[0][:, 1]))
+        return cls(points, normals, tree, radius, spacing)
 
 
 @dataclass
@@ -37,6 +90,7 @@ class KeyframeFeatures:
         gray: (H, W) uint8 image.
         depth: (H, W) float32 depth in metres (0 = invalid).
         K: 3x3 camera matrix.
+        cloud: the submap cloud for the dense refinement (None: no refinement possible).
     """
 
     pixels: np.ndarray
@@ -45,6 +99,7 @@ class KeyframeFeatures:
     gray: np.ndarray
     depth: np.ndarray
     K: np.ndarray
+    cloud: RefineCloud | None = None
 
 
 def to_gray(rgb: np.ndarray | None, depth: np.ndarray) -> np.ndarray:
@@ -76,17 +131,27 @@ def lift_pixels(
 
 
 class RgbdVerifier:
-    """PnP-RANSAC, 3D-3D check and cv2.Odometry refinement of a keyframe pair."""
+    """PnP-RANSAC, 3D-3D check, cv2.Odometry and dense ICP refinement of a keyframe pair."""
 
     def __init__(self, cfg: RgbdLoopConfig) -> None:
         import cv2
 
         self.cfg = cfg
         self._orb = cv2.ORB.create(nfeatures=cfg.orb_features)
+        self.last_covariance: np.ndarray | None = None
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
 
-    def features(self, frame: Frame) -> KeyframeFeatures | None:
-        """ORB features of a keyframe (None when it has no depth or intrinsics)."""
+    def features(
+        self,
+        frame: Frame,
+        points_A: np.ndarray | None = None,
+        normals_A: np.ndarray | None = None,
+    ) -> KeyframeFeatures | None:
+        """ORB features of a keyframe (None when it has no depth or intrinsics).
+
+        ``points_A`` / ``normals_A``: the submap cloud in the keyframe's frame for the dense
+        refinement; without them the keyframe's own points and normals are used.
+        """
         if frame.depth is None or frame.intrinsics is None:
             return None
         depth = np.nan_to_num(np.asarray(frame.depth, dtype=np.float32), nan=0.0)
@@ -99,7 +164,14 @@ class RgbdVerifier:
         else:
             pixels = np.array([kp.pt for kp in keypoints], dtype=np.float32)
         points = lift_pixels(pixels, depth, K, self.cfg.min_depth_m, self.cfg.max_depth_m)
-        return KeyframeFeatures(pixels, descriptors, points, gray, depth, K)
+        cloud = None
+        if self.cfg.refine:
+            if points_A is None or len(points_A) == 0:
+                points_A, normals_A = frame.points, frame.normals
+            cloud = RefineCloud.build(
+                points_A, normals_A, self.cfg.refine_voxel_m, self.cfg.refine_max_points
+            )
+        return KeyframeFeatures(pixels, descriptors, points, gray, depth, K, cloud)
 
     def match(self, reference: KeyframeFeatures, query: KeyframeFeatures) -> np.ndarray:
         """(M, 2) index pairs (reference, query) passing the ratio test."""
@@ -116,9 +188,14 @@ class RgbdVerifier:
     def verify(
         self, reference: KeyframeFeatures, query: KeyframeFeatures, matches: np.ndarray
     ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
-        """``(accepted, reason, T_Si_Sj, scores)`` of a keyframe pair with its ORB matches."""
+        """``(accepted, reason, T_Si_Sj, scores)`` of a keyframe pair with its ORB matches.
+
+        After an accepted verification with refinement, :attr:`last_covariance` holds the
+        edge's covariance (else None).
+        """
         import cv2
 
+        self.last_covariance = None
         c = self.cfg
         scores: dict[str, float] = {"orb_matches": float(len(matches))}
         object_points = reference.points_S[matches[:, 0]]
@@ -127,7 +204,8 @@ class RgbdVerifier:
         object_points = object_points[with_depth]
         scores["matches_with_depth"] = float(len(matches))
         if len(matches) < c.min_pnp_inliers:
-            return False, f"{len(matches)} matches with depth < {c.min_pnp_inliers}", None, scores
+            reason = f"matches: {len(matches)} with depth < {c.min_pnp_inliers}"
+            return False, reason, None, scores
         image_points = query.pixels[matches[:, 1]].astype(np.float64)
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(
             object_points,
@@ -143,9 +221,10 @@ class RgbdVerifier:
         ratio = num_inliers / len(matches)
         scores["pnp_inlier_ratio"] = ratio
         if not ok or num_inliers < c.min_pnp_inliers:
-            return False, f"pnp inliers {num_inliers} < {c.min_pnp_inliers}", None, scores
+            return False, f"pnp: inliers {num_inliers} < {c.min_pnp_inliers}", None, scores
         if ratio < c.min_inlier_ratio:
-            return False, f"pnp inlier ratio {ratio:.2f} < {c.min_inlier_ratio:.2f}", None, scores
+            reason = f"pnp: inlier ratio {ratio:.2f} < {c.min_inlier_ratio:.2f}"
+            return False, reason, None, scores
         T_Sj_Si = np.eye(4)
         T_Sj_Si[:3, :3] = cv2.Rodrigues(rvec)[0]
         T_Sj_Si[:3, 3] = tvec.ravel()
@@ -153,28 +232,126 @@ class RgbdVerifier:
         residual = self._residual_3d(reference, query, inlier_matches, T_Sj_Si)
         scores["residual_3d_m"] = residual
         if not np.isfinite(residual):
-            return False, "no pnp inlier has depth in both frames", None, scores
+            return False, "3d: no pnp inlier has depth in both frames", None, scores
         if residual > c.max_3d_residual_m:
             return (
                 False,
-                f"3d residual {residual:.3f} m > {c.max_3d_residual_m:.3f} m",
+                f"3d: residual {residual:.3f} m > {c.max_3d_residual_m:.3f} m",
                 np.linalg.inv(T_Sj_Si),
                 scores,
             )
+        refined, odometry_reason = self._odometry_stage(reference, query, T_Sj_Si, scores)
+        if odometry_reason is None:
+            T_Si_Sj = np.linalg.inv(refined)
+        elif c.refine and reference.cloud is not None and query.cloud is not None:
+            # cv2.Odometry's pose failed its own check, so it is not used: the dense refinement
+            # starts from the PnP pose and its result must pass the same depth check.
+            scores["odometry_rejected"] = 1.0
+            T_Si_Sj = np.linalg.inv(T_Sj_Si)
+        else:
+            return False, odometry_reason, np.linalg.inv(T_Sj_Si), scores
+        if not c.refine:
+            return True, "accepted", T_Si_Sj, scores
+        return self.verify_dense(reference, query, T_Si_Sj, scores)
+
+    def verify_dense(
+        self,
+        reference: KeyframeFeatures,
+        query: KeyframeFeatures,
+        T_Si_Sj_guess: np.ndarray,
+        scores: dict[str, float] | None = None,
+    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
+        """Dense refinement from a guess and its checks (ICP quality, keyframe depth agreement).
+
+        Sets :attr:`last_covariance` when accepted.
+        """
+        c = self.cfg
+        self.last_covariance = None
+        scores = {} if scores is None else scores
+        T_Si_Sj = T_Si_Sj_guess
+        if reference.cloud is None or query.cloud is None:
+            return False, "refine: no cloud with normals to refine on", T_Si_Sj, scores
+        accepted, reason, T_dense, result = self.refine(reference.cloud, query.cloud, T_Si_Sj)
+        scores.update(refine_scores(result, T_Si_Sj, reference.cloud.radius_m))
+        if not accepted:
+            return False, reason, T_dense, scores
+        fraction, median = depth_agreement(
+            reference, query, np.linalg.inv(T_dense), c.depth_inlier_distance_m
+        )
+        scores["final_depth_agreement"] = fraction
+        scores["final_depth_residual_m"] = median
+        if not (fraction >= c.min_depth_agreement and median <= c.max_depth_residual_m):
+            reason = f"refine: keyframe depth agreement {fraction:.2f}, residual {median:.3f} m"
+            return False, reason, T_dense, scores
+        self.last_covariance = result.covariance(c.covariance_factor)
+        return True, "accepted", T_dense, scores
+
+    def _odometry_stage(
+        self,
+        reference: KeyframeFeatures,
+        query: KeyframeFeatures,
+        T_Sj_Si: np.ndarray,
+        scores: dict[str, float],
+    ) -> tuple[np.ndarray, str | None]:
+        """cv2.Odometry from the PnP pose and its checks: ``(refined T_Sj_Si, None)`` or
+        ``(PnP pose, reason)``. Its own quality: the depth agreement of the refined pose."""
+        c = self.cfg
         refined, delta = self._refine(reference, query, T_Sj_Si)
         if refined is None:
-            return False, "cv2.Odometry refinement failed", np.linalg.inv(T_Sj_Si), scores
+            return T_Sj_Si, "odometry: cv2.Odometry failed"
         delta_m, delta_deg = relative_motion(np.eye(4), delta)
         scores["refine_correction_m"] = delta_m
         scores["refine_correction_deg"] = delta_deg
         if delta_m > c.max_refine_disagreement_m or delta_deg > c.max_refine_disagreement_deg:
-            return (
-                False,
-                f"cv2.Odometry disagrees with pnp by {delta_m:.3f} m / {delta_deg:.1f} deg",
-                np.linalg.inv(T_Sj_Si),
-                scores,
+            return T_Sj_Si, f"odometry: disagrees with pnp by {delta_m:.3f} m / {delta_deg:.1f} deg"
+        fraction, median = depth_agreement(reference, query, refined, c.depth_inlier_distance_m)
+        scores["odometry_depth_agreement"] = fraction
+        scores["odometry_depth_residual_m"] = median
+        if not fraction >= c.min_depth_agreement:
+            reason = f"odometry: depth agreement {fraction:.2f} < {c.min_depth_agreement:.2f}"
+            return T_Sj_Si, reason
+        if not median <= c.max_depth_residual_m:
+            return T_Sj_Si, f"odometry: depth residual {median:.3f} m > {c.max_depth_residual_m} m"
+        return refined, None
+
+    def refine(
+        self, reference: RefineCloud, query: RefineCloud, T_Si_Sj_guess: np.ndarray
+    ) -> tuple[bool, str, np.ndarray, IcpResult]:
+        """Point-to-plane ICP of the query cloud onto the reference cloud and its checks."""
+        c = self.cfg
+        # A sparse cloud (a small max_map_points) needs wider gates than its point spacing, and
+        # its residuals grow with the gate.
+        gates = tuple(max(gate, 1.5 * reference.spacing_m) for gate in c.refine_max_distances_m)
+        max_residual_m = max(c.refine_max_residual_m, 0.4 * gates[-1])
+        result = point_to_plane_icp(
+            reference.points,
+            reference.normals,
+            query.points,
+            T_Si_Sj_guess,
+            max_distances_m=gates,
+            tree=reference.tree,
+        )
+        T = result.T_ref_query
+        correction_m, correction_deg = relative_motion(T_Si_Sj_guess, T)
+        eigenvalue = result.normalized_min_eigenvalue(reference.radius_m)
+        if not np.all(np.isfinite(T)) or not np.isfinite(result.robust_sigma_m):
+            return False, "refine: icp found no correspondences", T_Si_Sj_guess, result
+        if result.inlier_fraction < c.refine_min_inlier_fraction:
+            reason = (
+                f"refine: inlier fraction {result.inlier_fraction:.2f} < "
+                f"{c.refine_min_inlier_fraction:.2f}"
             )
-        return True, "accepted", np.linalg.inv(refined), scores
+            return False, reason, T, result
+        if result.robust_sigma_m > max_residual_m:
+            reason = f"refine: residual sigma {result.robust_sigma_m:.4f} > {max_residual_m:.4f} m"
+            return False, reason, T, result
+        if correction_m > c.refine_max_correction_m or correction_deg > c.refine_max_correction_deg:
+            reason = f"refine: correction {correction_m:.3f} m / {correction_deg:.1f} deg too large"
+            return False, reason, T, result
+        if eigenvalue < c.refine_min_eigenvalue:
+            reason = f"refine: degenerate cost, min eigenvalue {eigenvalue:.4f}"
+            return False, reason, T, result
+        return True, "accepted", T, result
 
     def _residual_3d(
         self,
@@ -224,8 +401,64 @@ class RgbdVerifier:
         return delta @ T_Sj_Si, delta
 
 
+def refine_scores(result: IcpResult, T_guess: np.ndarray, radius_m: float) -> dict[str, float]:
+    """Diagnostics of a dense refinement for the loop candidate's scores."""
+    correction_m, correction_deg = relative_motion(T_guess, result.T_ref_query)
+    return {
+        "dense_inlier_fraction": result.inlier_fraction,
+        "dense_rmse_m": result.rmse_m,
+        "dense_residual_sigma_m": result.robust_sigma_m,
+        "dense_correction_m": correction_m,
+        "dense_correction_deg": correction_deg,
+        "dense_min_eigenvalue": result.normalized_min_eigenvalue(radius_m),
+        "dense_iterations": float(result.iterations),
+    }
+
+
+def depth_agreement(
+    reference: KeyframeFeatures, query: KeyframeFeatures, T_Sj_Si: np.ndarray, inlier_m: float
+) -> tuple[float, float]:
+    """How well the reference depth, moved into the query view by ``T_Sj_Si``, agrees.
+
+    Every 4th reference depth pixel is lifted, moved and projected into the query image; among
+    those that land on a valid query depth, returns the fraction whose depth differs by less than
+    ``inlier_m`` and the median absolute difference (``(0, inf)`` without overlap).
+    """
+    depth = reference.depth[::4, ::4]
+    rows, cols = np.nonzero(depth > 0)
+    if len(rows) == 0:
+        return 0.0, float("inf")
+    z = depth[rows, cols].astype(np.float64)
+    K = reference.K
+    u, v = cols * 4.0, rows * 4.0
+    points = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+    moved = transform_points(T_Sj_Si, points)
+    front = moved[:, 2] > 1e-3
+    moved = moved[front]
+    Kq = query.K
+    uq = np.round(Kq[0, 0] * moved[:, 0] / moved[:, 2] + Kq[0, 2]).astype(int)
+    vq = np.round(Kq[1, 1] * moved[:, 1] / moved[:, 2] + Kq[1, 2]).astype(int)
+    h, w = query.depth.shape
+    inside = (uq >= 0) & (uq < w) & (vq >= 0) & (vq < h)
+    observed = np.zeros(len(moved))
+    observed[inside] = query.depth[vq[inside], uq[inside]]
+    overlap = observed > 0
+    if overlap.sum() < 50:
+        return 0.0, float("inf")
+    difference = np.abs(observed[overlap] - moved[overlap, 2])
+    return float(np.mean(difference < inlier_m)), float(np.median(difference))
+
+
 class RgbdLoopDetector(LoopDetector):
-    """Pose-proximity + ORB candidates between keyframes, verified by :class:`RgbdVerifier`."""
+    """Pose-proximity + ORB candidates between keyframes, verified by :class:`RgbdVerifier`.
+
+    With ``proximity_candidates > 0`` and refinement on, the nearest older anchors that ORB did not
+    close (within ``candidate_radius_m`` and ``proximity_max_angle_deg`` of viewing direction) are
+    also tried by the dense refinement alone, starting from their current relative estimate (the
+    drift between them is what the loop corrects; ICP's correction limit and the keyframe depth
+    agreement reject a guess that is too far off). This finds revisits whose colour does not
+    match well enough for PnP (7-Scenes: colour not registered to depth, motion blur).
+    """
 
     def __init__(self, cfg: LoopClosureConfig) -> None:
         self.cfg = cfg
@@ -239,7 +472,7 @@ class RgbdLoopDetector(LoopDetector):
         if submap.keyframe is None:
             return []
         j = submap.submap_id
-        query = self._verifier.features(submap.keyframe)
+        query = self._verifier.features(submap.keyframe, submap.points_A, submap.normals_A)
         if query is None:
             return []
         c = self.cfg
@@ -265,7 +498,49 @@ class RgbdLoopDetector(LoopDetector):
                 self._features[i], query, matches
             )
             logger.debug("loop %d-%d: %s %s", i, j, reason, scores)
-            candidates.append(LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "orb"))
+            candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "orb")
+            candidate.covariance = self._verifier.last_covariance if accepted else None
+            candidates.append(candidate)
+        candidates += self._proximity(j, query, submap, T_W_A_estimates, candidates)
         self._features[j] = query
         self._travelled[j] = submap.travelled_m
+        return candidates
+
+    def _proximity(
+        self,
+        j: int,
+        query: KeyframeFeatures,
+        submap: SubmapRecord,
+        T_W_A: dict[int, np.ndarray],
+        done: list[LoopCandidate],
+    ) -> list[LoopCandidate]:
+        c = self.cfg
+        if c.rgbd.proximity_candidates == 0 or not c.rgbd.refine or j not in T_W_A:
+            return []
+        # Pairs whose dense refinement already ran (accepted or not) are not tried again.
+        closed = {
+            cand.reference_id for cand in done if cand.accepted or "dense_rmse_m" in cand.scores
+        }
+        near = []
+        for i in self._features:
+            if i in closed or i not in T_W_A or j - i < c.min_submap_separation:
+                continue
+            if submap.travelled_m - self._travelled[i] < c.min_travel_m:
+                continue
+            guess = np.linalg.inv(T_W_A[i]) @ T_W_A[j]
+            distance, angle = relative_motion(np.eye(4), guess)
+            # Angle between the optical axes: views that look elsewhere do not overlap.
+            axis_deg = float(np.degrees(np.arccos(np.clip(guess[2, 2], -1.0, 1.0))))
+            if distance <= c.rgbd.candidate_radius_m and axis_deg <= c.rgbd.proximity_max_angle_deg:
+                near.append((distance + 0.01 * angle, i, guess))
+        near.sort(key=lambda item: item[0])
+        candidates = []
+        for _, i, guess in near[: c.rgbd.proximity_candidates]:
+            accepted, reason, T_Ai_Aj, scores = self._verifier.verify_dense(
+                self._features[i], query, guess
+            )
+            logger.debug("loop %d-%d (proximity): %s %s", i, j, reason, scores)
+            candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "proximity")
+            candidate.covariance = self._verifier.last_covariance if accepted else None
+            candidates.append(candidate)
         return candidates

@@ -21,6 +21,8 @@ class LoopCandidate:
         scores: diagnostics of detection and verification (inliers, overlap, residuals...).
         detector: what proposed it (``map_closures``, ``proximity``, ``orb``).
         graph_inlier: set by the pipeline after the pose graph solved with this edge.
+        covariance: 6x6 covariance of ``T_Ai_Aj`` from the registration (GTSAM's tangent order
+            ``[rx, ry, rz, tx, ty, tz]``, right perturbation), or None for the graph's default.
     """
 
     reference_id: int
@@ -31,6 +33,7 @@ class LoopCandidate:
     scores: dict[str, float] = field(default_factory=dict)
     detector: str = ""
     graph_inlier: bool | None = None
+    covariance: np.ndarray | None = None
 
 
 class LoopDetector(ABC):

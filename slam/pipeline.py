@@ -137,7 +137,9 @@ class SlamPipeline:
 
         closed, current, T_A_S = self.keyframer.add(self._map_frame(frame), T_W_S_odometry)
         if current.submap_id not in self.graph:
-            self.graph.add_anchor(current.submap_id, current.T_W_A_odometry)
+            take_covariance = getattr(self.odometry, "take_covariance", None)
+            covariance = take_covariance() if take_covariance is not None else None
+            self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, covariance)
         self._timed("keyframing", t)
 
         self._frame_submap.append(current.submap_id)
@@ -182,7 +184,10 @@ class SlamPipeline:
         for candidate in candidates:
             if candidate.accepted and candidate.T_Ai_Aj is not None:
                 edge = self.graph.add_loop(
-                    candidate.reference_id, candidate.query_id, candidate.T_Ai_Aj
+                    candidate.reference_id,
+                    candidate.query_id,
+                    candidate.T_Ai_Aj,
+                    covariance=candidate.covariance,
                 )
                 candidate.graph_inlier = edge.inlier
                 added = True

@@ -1,18 +1,30 @@
 """GTSAM pose graph over submap anchors.
 
-One node per submap anchor ``T_W_A``. Consecutive anchors are tied by odometry factors whose
-noise grows with the distance travelled and the angle turned between them; loop closures are
-``BetweenFactorPose3`` with a Cauchy robust kernel. iSAM2 keeps the estimate current as anchors
-arrive.
+One node per submap anchor ``T_W_A``. Consecutive anchors are tied by odometry factors; loop
+closures are ``BetweenFactorPose3``. Edge noise (``use_edge_covariances``): an edge that comes
+with a covariance from its registration uses it, plus a floor (``loop_min_sigma_*``,
+``odometry_min_sigma_*``) added in quadrature so that a very confident ICP cannot pin the graph.
+Loop covariances come from the dense loop refinement or the LiDAR ICP (``factor * sigma^2 H^-1``
+of the point-to-plane cost, :mod:`frontends.odometry.point_to_plane`); odometry covariances from
+the RGB-D odometry's per-frame registration Hessians, chained from one anchor to the next. Edges
+without one use the configured sigmas (odometry: growing with the distance travelled and the
+angle turned).
 
-A robust kernel alone cannot tell a wrong loop from a right one after large drift: both have a
-large residual at the odometry estimate, so a Cauchy kernel down-weights both. Therefore every
-time a loop edge is added (rare compared to anchors) the whole graph is solved by graduated
-non-convexity (GNC, truncated least squares, prior and odometry factors known inliers), which
-starts from the convex least-squares problem and only then rejects edges that stay inconsistent.
-iSAM2 is then re-seeded from the GNC solution with the inlier loops (still Cauchy-robust); the
-outliers stay in the record, are re-examined at every later GNC solve, and are reported.
-:meth:`PoseGraph.optimize_batch` runs the same GNC (or a plain Levenberg-Marquardt) at the end.
+Robust back-ends (``online_gnc``), each consistent from the first loop to the final estimate:
+
+* GNC (default). A robust kernel alone cannot tell a wrong loop from a right one after large
+  drift: both have a large residual at the odometry estimate. So every time a loop edge is added
+  (rare compared to anchors) the whole graph is solved by graduated non-convexity (truncated least
+  squares; prior and odometry factors known inliers), which starts from the convex least-squares
+  problem and only then rejects edges that stay inconsistent. The GNC optimum *is* the estimate;
+  iSAM2 is re-seeded with it and with the inlier loops as plain Gaussian factors (the GNC weights
+  of inliers are 1, so the re-seeded problem has the same optimum), and only adds anchors on top
+  until the next loop. Rejected loops stay in the record, are re-examined at every later GNC
+  solve, and are reported. The final batch (``final_optimizer``): ``gnc`` solves once more;
+  ``lm`` runs Levenberg-Marquardt on the chain and the *inlier* loops (Gaussian), so it never
+  brings a rejected loop back.
+* Cauchy (``online_gnc: false``): iSAM2 with every loop under a Cauchy kernel; the final ``lm``
+  runs the same Cauchy problem in batch, ``gnc`` switches to GNC for the final estimate.
 
 GTSAM orders the Pose3 tangent space as ``[rx, ry, rz, tx, ty, tz]``.
 """
@@ -43,6 +55,7 @@ class LoopEdge:
     Attributes:
         weight: GNC weight (or Cauchy weight without GNC) at the latest solve; 1 = trusted.
         inlier: whether the edge is part of the current estimate.
+        covariance: 6x6 covariance from the registration (``[rot, trans]``), or None.
     """
 
     i: int
@@ -51,6 +64,7 @@ class LoopEdge:
     sigma_scale: float = 1.0
     weight: float = 1.0
     inlier: bool = True
+    covariance: np.ndarray | None = None
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
@@ -101,12 +115,16 @@ class PoseGraph:
         )
         return _sigmas(sigma_r, sigma_t)
 
-    def add_anchor(self, node_id: int, T_W_A_odometry: np.ndarray) -> None:
+    def add_anchor(
+        self, node_id: int, T_W_A_odometry: np.ndarray, covariance: np.ndarray | None = None
+    ) -> None:
         """Add the anchor of a new submap with its odometry pose.
 
         The first anchor is fixed by a tight prior (it defines the world frame). Every later anchor
         gets an odometry factor from the previous one, measured by the odometry poses, and is
         initialised at the current estimate of the previous anchor composed with that measurement.
+        ``covariance``: 6x6 (``[rot, trans]``) of that motion from the odometry's registrations,
+        or None for the configured sigmas.
         """
         if node_id in self._odometry_anchor:
             raise ValueError(f"anchor {node_id} already in the pose graph")
@@ -121,7 +139,7 @@ class PoseGraph:
             T_prev_cur = np.linalg.inv(self._odometry_anchor[prev]) @ T_W_A_odometry
             distance = float(np.linalg.norm(T_prev_cur[:3, 3]))
             angle = rotation_angle_rad(T_prev_cur[:3, :3])
-            noise = gtsam.noiseModel.Diagonal.Sigmas(self.odometry_sigmas(distance, angle))
+            noise = self._odometry_noise(distance, angle, covariance)
             factor = gtsam.BetweenFactorPose3(prev, node_id, _pose3(T_prev_cur), noise)
             new_values.insert(node_id, _pose3(self.pose(prev) @ T_prev_cur))
         self._chain.append(factor)
@@ -132,8 +150,24 @@ class PoseGraph:
         self._isam.update(new_factors, new_values)
         self._estimate = self._isam.calculateEstimate()
 
+    def _odometry_noise(
+        self, distance_m: float, angle_rad: float, covariance: np.ndarray | None
+    ) -> gtsam.noiseModel.Base:
+        c = self.cfg
+        if covariance is not None and c.use_edge_covariances:
+            covariance = np.asarray(covariance, dtype=np.float64)
+            if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+                raise ValueError("odometry covariance must be a finite 6x6 matrix")
+            floor = _sigmas(c.odometry_min_sigma_rad, c.odometry_min_sigma_m) ** 2
+            return gtsam.noiseModel.Gaussian.Covariance(covariance + np.diag(floor))
+        return gtsam.noiseModel.Diagonal.Sigmas(self.odometry_sigmas(distance_m, angle_rad))
+
     def _loop_gaussian_noise(self, edge: LoopEdge) -> gtsam.noiseModel.Base:
         c = self.cfg
+        if edge.covariance is not None and c.use_edge_covariances:
+            floor = _sigmas(c.loop_min_sigma_rad, c.loop_min_sigma_m) ** 2
+            covariance = edge.sigma_scale**2 * (edge.covariance + np.diag(floor))
+            return gtsam.noiseModel.Gaussian.Covariance(covariance)
         return gtsam.noiseModel.Diagonal.Sigmas(
             edge.sigma_scale * _sigmas(c.loop_rotation_sigma_rad, c.loop_translation_sigma_m)
         )
@@ -145,15 +179,30 @@ class PoseGraph:
             noise = gtsam.noiseModel.Robust.Create(kernel, noise)
         return gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_Ai_Aj), noise)
 
-    def add_loop(self, i: int, j: int, T_Ai_Aj: np.ndarray, sigma_scale: float = 1.0) -> LoopEdge:
+    def add_loop(
+        self,
+        i: int,
+        j: int,
+        T_Ai_Aj: np.ndarray,
+        sigma_scale: float = 1.0,
+        covariance: np.ndarray | None = None,
+    ) -> LoopEdge:
         """Add a verified loop edge between anchors ``i`` and ``j`` and re-solve.
 
-        Returns the edge; its ``inlier`` flag says whether the graph kept it.
+        ``covariance``: 6x6 (``[rot, trans]``, right perturbation) from the registration, or
+        None for the configured sigmas. Returns the edge; its ``inlier`` flag says whether the
+        graph kept it.
         """
         for node in (i, j):
             if node not in self._odometry_anchor:
                 raise KeyError(f"anchor {node} is not in the pose graph")
-        edge = LoopEdge(i, j, np.asarray(T_Ai_Aj, dtype=np.float64).copy(), sigma_scale)
+        if covariance is not None:
+            covariance = np.asarray(covariance, dtype=np.float64)
+            if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+                raise ValueError(f"loop {i}-{j}: covariance must be a finite 6x6 matrix")
+        edge = LoopEdge(
+            i, j, np.asarray(T_Ai_Aj, dtype=np.float64).copy(), sigma_scale, covariance=covariance
+        )
         self.loops.append(edge)
         if self.cfg.online_gnc:
             self._solve_gnc()
@@ -194,17 +243,21 @@ class PoseGraph:
             edge.inlier = bool(weight > INLIER_WEIGHT)
         self._reseed(result)
 
-    def _reseed(self, values: gtsam.Values) -> None:
-        """Restart iSAM2 from ``values`` with the chain and the inlier loops (Cauchy)."""
+    def _inlier_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The chain and the GNC-inlier loops with Gaussian noise: the problem GNC solved."""
         graph = gtsam.NonlinearFactorGraph()
         for factor in self._chain:
             graph.add(factor)
         for edge in self.loops:
             if edge.inlier:
-                graph.add(self._loop_factor(edge, robust=True))
+                graph.add(self._loop_factor(edge, robust=False))
+        return graph
+
+    def _reseed(self, values: gtsam.Values) -> None:
+        """Restart iSAM2 at the GNC optimum ``values`` with the chain and the inlier loops."""
         self._isam = self._new_isam()
-        self._isam.update(graph, values)
-        self._estimate = self._isam.calculateEstimate()
+        self._isam.update(self._inlier_graph(), values)
+        self._estimate = values
 
     def _update_cauchy_weights(self) -> None:
         for edge in self.loops:
@@ -220,22 +273,28 @@ class PoseGraph:
         """Optimise the whole graph from the current estimate (``cfg.final_optimizer``).
 
         ``gnc``: graduated non-convexity as at loop events. ``lm``: Levenberg-Marquardt on the
-        chain and every loop edge with the Cauchy kernel. ``none``: keep the iSAM2 estimate.
+        problem of the online back-end: with ``online_gnc`` the chain and the GNC-inlier loops
+        (Gaussian; rejected loops stay out), otherwise every loop under the Cauchy kernel.
+        ``none``: keep the current estimate.
         """
         if not self._node_ids or not self.loops or self.cfg.final_optimizer == "none":
             return self.poses()
         if self.cfg.final_optimizer == "gnc":
             self._solve_gnc()
             return self.poses()
-        graph = gtsam.NonlinearFactorGraph()
-        for factor in self._chain:
-            graph.add(factor)
-        for edge in self.loops:
-            graph.add(self._loop_factor(edge, robust=True))
+        if self.cfg.online_gnc:
+            graph = self._inlier_graph()
+        else:
+            graph = gtsam.NonlinearFactorGraph()
+            for factor in self._chain:
+                graph.add(factor)
+            for edge in self.loops:
+                graph.add(self._loop_factor(edge, robust=True))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.cfg.batch_max_iterations)
         self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate, params).optimize()
-        self._update_cauchy_weights()
+        if not self.cfg.online_gnc:
+            self._update_cauchy_weights()
         self.num_solves += 1
         return self.poses()
 

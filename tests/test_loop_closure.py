@@ -145,3 +145,135 @@ def test_lidar_detector_closes_the_lap(street):
         error_m, error_deg = relative_motion(truth, c.T_Ai_Aj)
         assert error_m < 0.2 and error_deg < 0.5
     assert any(c.reference_id == 0 and c.query_id == 9 for c in accepted)
+
+
+def _features(verifier: RgbdVerifier, source, i: int, j: int):
+    reference = verifier.features(source[i])
+    query = verifier.features(source[j])
+    return reference, query, verifier.match(reference, query)
+
+
+def test_rgbd_pnp_rejects_scrambled_matches(room):
+    """Same two views, but the query keypoints are shuffled: PnP finds no consistent pose."""
+    verifier = RgbdVerifier(RgbdLoopConfig())
+    reference, query, matches = _features(verifier, room, 0, 8)
+    query.pixels = np.random.default_rng(0).permutation(query.pixels)
+    accepted, reason, _, scores = verifier.verify(reference, query, matches)
+    assert not accepted and reason.startswith("pnp:"), (reason, scores)
+
+
+def test_rgbd_3d_check_rejects_depth_inconsistent_with_pnp(room):
+    """PnP sees the right pose, but the query depth disagrees by 10 cm: the 3D-3D check fails."""
+    verifier = RgbdVerifier(RgbdLoopConfig())
+    reference, query, matches = _features(verifier, room, 0, 8)
+    query.points_S = query.points_S * 1.05 + [0.0, 0.0, 0.1]
+    accepted, reason, _, scores = verifier.verify(reference, query, matches)
+    assert not accepted and reason.startswith("3d:"), (reason, scores)
+
+
+def test_rgbd_odometry_quality_sees_a_wrong_pose(room):
+    from slam.loop_rgbd import depth_agreement
+
+    verifier = RgbdVerifier(RgbdLoopConfig())
+    reference, query, _ = _features(verifier, room, 0, 8)
+    T_Sj_Si = np.linalg.inv(relative_gt(room, 0, 8))
+    fraction, residual = depth_agreement(reference, query, T_Sj_Si, 0.03)
+    assert fraction > 0.8 and residual < 0.02
+    off = T_Sj_Si.copy()
+    off[:3, 3] += [0.0, 0.0, 0.08]
+    fraction, residual = depth_agreement(reference, query, off, 0.03)
+    assert fraction < RgbdLoopConfig().min_depth_agreement and residual > 0.05
+
+
+@pytest.mark.parametrize(
+    "offset", [(0.04, 2.0), (0.3, 12.0)], ids=["small-corrected", "large-rejected"]
+)
+def test_rgbd_dense_refinement_corrects_or_rejects_a_wrong_guess(room, offset):
+    """A loop edge off by a few cm / deg is corrected by the dense refinement; one far off is
+    either corrected or rejected, never accepted wrong."""
+    from scipy.spatial.transform import Rotation
+
+    verifier = RgbdVerifier(RgbdLoopConfig())
+    reference, query, _ = _features(verifier, room, 2, 236)
+    truth = relative_gt(room, 2, 236)
+    delta = np.eye(4)
+    axis = np.array([0.6, 0.0, 0.8])
+    delta[:3, :3] = Rotation.from_rotvec(np.radians(offset[1]) * axis).as_matrix()
+    delta[:3, 3] = offset[0] * np.array([0.0, 0.6, 0.8])
+    accepted, reason, T, result = verifier.refine(reference.cloud, query.cloud, truth @ delta)
+    error_m, error_deg = relative_motion(truth, T)
+    if offset[0] < 0.1:
+        assert accepted, reason
+    if accepted:
+        assert error_m < 0.01 and error_deg < 0.5, (reason, error_m, error_deg)
+        assert np.all(np.linalg.eigvalsh(result.covariance()) > 0)
+    else:
+        assert reason.startswith("refine:")
+
+
+def test_rgbd_dense_refinement_rejects_a_flat_cost():
+    """Two views of one plane: ICP cannot fix the in-plane motion, so the edge is rejected."""
+    from slam.loop_rgbd import RefineCloud
+
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-1, 1, (20000, 2)), np.full(20000, 2.0)])
+    normals = np.tile([0.0, 0.0, -1.0], (20000, 1))
+    cfg = RgbdLoopConfig()
+    cloud = RefineCloud.build(points, normals, cfg.refine_voxel_m, cfg.refine_max_points)
+    guess = np.eye(4)
+    guess[:3, 3] = [0.05, 0.0, 0.0]
+    accepted, reason, _, _ = RgbdVerifier(cfg).refine(cloud, cloud, guess)
+    assert not accepted and reason.startswith("refine: degenerate"), reason
+
+
+@pytest.mark.skipif(not (DATA / "7scenes_redkitchen").is_dir(), reason="no ../shared/data")
+def test_rgbd_odometry_stage_is_judged_on_its_own_real_7scenes():
+    """7-Scenes colour is not registered to depth: cv2.Odometry's loop pose for frames 0 and 240
+    agrees with under a third of the depth. Without refinement the candidate is rejected at that
+    stage; with it, ICP from the PnP pose makes the depth agree."""
+    source = make_source("7scenes", root=DATA / "7scenes_redkitchen", sequence="seq-01")
+    plain = RgbdVerifier(RgbdLoopConfig(max_3d_residual_m=0.12, refine=False))
+    accepted, reason, _, scores = verify_pair(plain, source, 0, 240)
+    assert not accepted and reason.startswith("odometry:"), (reason, scores)
+    dense = RgbdVerifier(RgbdLoopConfig(max_3d_residual_m=0.12))
+    accepted, reason, T, scores = verify_pair(dense, source, 0, 240)
+    assert accepted, (reason, scores)
+    assert scores["final_depth_agreement"] > scores["odometry_depth_agreement"] + 0.3
+    error_m, error_deg = relative_motion(relative_gt(source, 0, 240), T)
+    assert error_m < 0.04 and error_deg < 1.5
+
+
+def test_icp_proximity_candidate_with_large_drift_is_judged_by_its_result(street):
+    """A proximity guess 6 m off (drift) converges: it is accepted as a proximity candidate,
+    while the same correction from a map_closures match (``limit_correction``) is rejected."""
+    reference = street_cloud(street, 0, 10)
+    query = street_cloud(street, 140, 150)
+    truth = relative_gt(street, 0, 140)
+    guess = perturb(truth, 5.0, -3.3, 2.0)
+    verifier = IcpVerifier(LidarLoopConfig())
+    accepted, reason, T, scores = verifier.verify(reference, query, guess, limit_correction=False)
+    assert accepted, (reason, scores)
+    error_m, error_deg = relative_motion(truth, T)
+    assert error_m < 0.15 and error_deg < 0.5, scores
+    assert scores["icp_correction_m"] > LidarLoopConfig().max_icp_correction_m
+    assert verifier.last_covariance is not None
+    accepted, reason, _, _ = verifier.verify(reference, query, guess)
+    assert not accepted and reason.startswith("icp correction"), reason
+
+
+def test_icp_rejects_a_degenerate_corridor():
+    """Ground and two parallel walls: nothing fixes the position along the corridor."""
+    rng = np.random.default_rng(0)
+    n = 6000
+    x = rng.uniform(-40, 40, 3 * n)
+    ground = np.column_stack([x[:n], rng.uniform(-8, 8, n), np.zeros(n)])
+    left = np.column_stack([x[n : 2 * n], np.full(n, 8.0), rng.uniform(0, 6, n)])
+    right = np.column_stack([x[2 * n :], np.full(n, -8.0), rng.uniform(0, 6, n)])
+    cloud = voxel_subsample(np.vstack([ground, left, right]), 0.5)
+    guess = np.eye(4)
+    guess[0, 3] = 3.0  # ICP cannot see this
+    accepted, reason, _, scores = IcpVerifier(LidarLoopConfig()).verify(
+        cloud, cloud + rng.normal(0, 0.02, cloud.shape), guess, limit_correction=False
+    )
+    assert not accepted and reason.startswith("degenerate"), (reason, scores)
+    assert scores["min_eigenvalue"] < LidarLoopConfig().min_hessian_eigenvalue

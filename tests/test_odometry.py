@@ -304,3 +304,34 @@ def test_rgbd_on_a_generated_room_lap(generated_root: Path) -> None:
     assert ate_rmse(est, gt) < 0.02
     assert np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) < 0.05
     assert odometry.num_failures == 0
+
+
+def test_rgbd_odometry_covariance_grows_along_the_chain(generated_root: Path) -> None:
+    """The motion covariance handed to the pose graph is positive definite and grows with the
+    number of registrations chained since the previous anchor."""
+    from frontends.sources import make_source
+
+    source = make_source(
+        "generated",
+        kind="rgbd",
+        root=generated_root,
+        num_frames=150,
+        width=320,
+        height=240,
+        frames=slice(0, 31),
+    )
+    odometry = make_odometry("rgbd")
+    covariances = {}
+    for frame in source:
+        odometry.register(frame)
+        if frame.index in (0, 5, 30):
+            covariances[frame.index] = odometry.take_covariance()
+    short, long = covariances[5], covariances[30]
+    for cov in (short, long):
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+    assert np.trace(long[3:, 3:]) > 2 * np.trace(short[3:, 3:])
+    # Frames rendered without normals cannot be evaluated: the pose graph's sigmas apply.
+    plain = RgbdOdometry(downscale=1)
+    plain.register(_render(_room(), T_W_C0, 0))
+    plain.register(_render(_room(), T_W_C0 @ _se3(t=(0.01, 0.0, 0.0)), 1))
+    assert plain.take_covariance() is None

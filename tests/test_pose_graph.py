@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -122,3 +123,56 @@ def test_bad_anchor_ids():
         graph.add_anchor(0, np.eye(4))
     with pytest.raises(KeyError):
         graph.add_loop(0, 7, np.eye(4))
+
+
+def test_estimate_after_a_loop_is_the_gnc_optimum(scenario):
+    """The online estimate is the GNC solution itself, not a further step under another cost:
+    Levenberg-Marquardt on the chain and the inlier loops does not move it, nor does the final
+    GNC."""
+    gt, odometry, loops = scenario
+    wrong = relative(gt, 10, 30)
+    wrong[:3, 3] += [3.0, -2.0, 0.5]
+    graph = build(PoseGraphConfig(final_optimizer="gnc"), odometry, loops, [(10, 30, wrong)])
+    # The last loop closes at the last anchor, so the estimate is the one right after GNC.
+    online = graph.poses()
+    values = gtsam.Values()
+    for k, T in online.items():
+        values.insert(k, gtsam.Pose3(T))
+    polished = gtsam.LevenbergMarquardtOptimizer(graph._inlier_graph(), values).optimize()
+    for k, T in online.items():
+        np.testing.assert_allclose(polished.atPose3(k).matrix(), T, atol=1e-4)
+    final = graph.optimize_batch()
+    shift = max(np.linalg.norm(final[k][:3, 3] - online[k][:3, 3]) for k in online)
+    assert shift < 1e-4
+
+
+def test_final_lm_does_not_bring_back_rejected_loops(scenario):
+    gt, odometry, loops = scenario
+    wrong = relative(gt, 10, 30)
+    wrong[:3, 3] += [3.0, -2.0, 0.5]
+    cfg = PoseGraphConfig(final_optimizer="lm")
+    clean = build(cfg, odometry, loops)
+    corrupted = build(cfg, odometry, loops, [(10, 30, wrong)])
+    ate_clean = ate(clean.optimize_batch(), gt)
+    ate_corrupted = ate(corrupted.optimize_batch(), gt)
+    false_edge = next(e for e in corrupted.loops if (e.i, e.j) == (10, 30))
+    assert not false_edge.inlier
+    assert abs(ate_corrupted - ate_clean) < 1e-4
+
+
+def test_loop_covariance_sets_the_edge_weight(scenario):
+    """An edge with a tight registration covariance pulls the graph; a loose one barely does."""
+    gt, odometry, _ = scenario
+    results = {}
+    for sigma in (1e-3, 10.0):
+        graph = PoseGraph(PoseGraphConfig(loop_min_sigma_m=0.0, loop_min_sigma_rad=0.0))
+        for k, T in enumerate(odometry):
+            graph.add_anchor(k, T)
+        graph.add_loop(0, 40, relative(gt, 0, 40), covariance=np.eye(6) * sigma**2)
+        T_0_40 = np.linalg.inv(graph.pose(0)) @ graph.pose(40)
+        results[sigma] = np.linalg.norm(T_0_40[:3, 3] - relative(gt, 0, 40)[:3, 3])
+    drift = np.linalg.norm(
+        (np.linalg.inv(odometry[0]) @ odometry[40])[:3, 3] - relative(gt, 0, 40)[:3, 3]
+    )
+    assert results[1e-3] < 0.05 * drift
+    assert results[10.0] > 0.9 * drift

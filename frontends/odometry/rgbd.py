@@ -14,6 +14,14 @@ keyframes (the default), 6.2 cm frame-to-frame, 24 cm with 10 cm / 5 deg keyfram
 
 If registration to the keyframe fails, the previous frame is tried; if that fails too, the pose
 is extrapolated with constant velocity, a warning is logged and ``num_failures`` is incremented.
+
+Information: OpenCV does not return the Hessian of its cost, so after each registration the
+point-to-plane cost of the frame's points against the reference frame's points and normals is
+evaluated at the estimated pose (:func:`~frontends.odometry.point_to_plane.point_to_plane_hessian`,
+a few thousand points). ``covariance_factor * sigma^2 H^-1`` of each registration is chained from
+keyframe to keyframe (``Ad`` transforms); :meth:`RgbdOdometry.take_covariance` returns the
+covariance of the motion since its previous call, which the pipeline calls at every new submap
+anchor to weigh the pose graph's odometry edge. A failed registration adds a large covariance.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, register_odometry
+from frontends.odometry.point_to_plane import adjoint, point_to_plane_hessian
 
 logger = logging.getLogger(__name__)
 
@@ -85,6 +94,22 @@ class RgbdOdometryConfig(BaseModel):
     )
     keyframe_rotation_deg: float = Field(
         2.0, ge=0, description="Replace the keyframe once the camera has turned this much."
+    )
+    covariance_points: int = Field(
+        2000,
+        ge=0,
+        description="Points of each frame used to evaluate the registration's point-to-plane "
+        "Hessian (its covariance); 0 turns the covariance off.",
+    )
+    covariance_max_distance_m: float = Field(
+        0.05, gt=0, description="Correspondence gate of that evaluation."
+    )
+    covariance_factor: float = Field(
+        20.0,
+        gt=0,
+        description="Covariance of a registration = this factor * sigma^2 H^-1 (sigma: its "
+        "point-to-plane RMSE). Inflates the raw estimate for correlated residuals and the "
+        "photometric term it does not model.",
     )
 
 
@@ -159,6 +184,11 @@ class RgbdOdometry(Odometry):
         self.num_failures = 0
         self.num_fallbacks = 0
         self.num_keyframes = 0
+        self._key_cloud = None  # (points, normals, tree) of the keyframe for the covariance
+        self._prev_cloud = None
+        self._cov_chain = np.zeros((6, 6))  # since take_covariance(), at the current keyframe
+        self._cov_key_cur = np.zeros((6, 6))
+        self._cov_complete = True  # every registration since take_covariance() had its Hessian
 
     def _build(self, frame: Frame) -> None:
         import cv2
@@ -266,19 +296,24 @@ class RgbdOdometry(Odometry):
         if self._keyframe is None:
             self._keyframe = self._previous = current
             self._T_W_key = self._T_W_prev = np.eye(4)
+            self._key_cloud = self._prev_cloud = self._cloud(frame)
+            self._cov_key_prev = np.zeros((6, 6))
             self.num_keyframes = 1
             return np.eye(4)
 
         T_key_cur = self._relative(self._keyframe, current)
         new_keyframe = False
+        cloud = self._cloud(frame)
         if T_key_cur is not None:
             T_W_cur = self._T_W_key @ T_key_cur
+            cov_key_cur = self._registration_covariance(self._key_cloud, cloud, T_key_cur)
         else:
             T_prev_cur = None
             if self._previous is not self._keyframe:
                 T_prev_cur = self._relative(self._previous, current)
             if T_prev_cur is not None:
                 self.num_fallbacks += 1
+                cov_prev_cur = self._registration_covariance(self._prev_cloud, cloud, T_prev_cur)
             else:
                 self.num_failures += 1
                 logger.warning(
@@ -287,7 +322,11 @@ class RgbdOdometry(Odometry):
                     self.num_failures,
                 )
                 T_prev_cur = self._T_prev_prev2
+                cov_prev_cur = np.diag([0.05**2] * 3 + [0.1**2] * 3)
             T_W_cur = self._T_W_prev @ T_prev_cur
+            # Chained through the previous frame: keyframe -> previous -> current.
+            Ad = adjoint(np.linalg.inv(T_prev_cur))
+            cov_key_cur = Ad @ self._cov_key_prev @ Ad.T + cov_prev_cur
             new_keyframe = True
 
         T_key_cur = np.linalg.inv(self._T_W_key) @ T_W_cur
@@ -297,8 +336,61 @@ class RgbdOdometry(Odometry):
             or np.linalg.norm(T_key_cur[:3, 3]) >= c.keyframe_translation_m
             or _rotation_deg(T_key_cur) >= c.keyframe_rotation_deg
         ):
+            Ad = adjoint(np.linalg.inv(T_key_cur))
+            self._cov_chain = Ad @ self._cov_chain @ Ad.T + cov_key_cur
+            cov_key_cur = np.zeros((6, 6))
             self._keyframe, self._T_W_key = current, T_W_cur
+            self._key_cloud = cloud
             self.num_keyframes += 1
+        self._cov_key_cur = self._cov_key_prev = cov_key_cur
+        self._prev_cloud = cloud
         self._T_prev_prev2 = np.linalg.inv(self._T_W_prev) @ T_W_cur
         self._previous, self._T_W_prev = current, T_W_cur
         return T_W_cur.copy()
+
+    def _cloud(self, frame: Frame):
+        """A thinned copy of the frame's points and normals with a k-d tree (or None)."""
+        n = self.config.covariance_points
+        if n == 0 or frame.normals is None or len(frame.points) < 50:
+            return None
+        from scipy.spatial import cKDTree
+
+        step = max(1, len(frame.points) // n)
+        points = np.asarray(frame.points[::step], dtype=np.float64)
+        normals = np.asarray(frame.normals[::step], dtype=np.float64)
+        good = np.linalg.norm(normals, axis=1) > 0.5
+        points, normals = points[good], normals[good]
+        return points, normals, cKDTree(points)
+
+    def _registration_covariance(self, reference, current, T_ref_cur: np.ndarray) -> np.ndarray:
+        """``factor * sigma^2 H^-1`` of the point-to-plane cost at the estimate, or zeros."""
+        if reference is None or current is None:
+            self._cov_complete = False
+            return np.zeros((6, 6))
+        result = point_to_plane_hessian(
+            reference[0],
+            reference[1],
+            current[0],
+            T_ref_cur,
+            max_distance_m=self.config.covariance_max_distance_m,
+            tree=reference[2],
+        )
+        if result.num_inliers < 50:
+            return np.diag([0.05**2] * 3 + [0.1**2] * 3)
+        return result.covariance(self.config.covariance_factor)
+
+    def take_covariance(self) -> np.ndarray | None:
+        """Covariance (``[rot, trans]``, right perturbation) of the motion from the frame of the
+        previous call to the latest frame, and restart from the latest frame. None when the
+        covariance is off or a frame had no normals to evaluate it."""
+        complete, self._cov_complete = self._cov_complete, True
+        if self.config.covariance_points == 0 or self._keyframe is None:
+            return None
+        T_key_cur = np.linalg.inv(self._T_W_key) @ self._T_W_prev
+        Ad = adjoint(np.linalg.inv(T_key_cur))
+        covariance = Ad @ self._cov_chain @ Ad.T + self._cov_key_cur
+        # The latest frame becomes the origin. The next motion starts with the way back from it
+        # to its keyframe: the covariance of inv(T_key_cur) is Ad(T_key_cur) cov Ad(T_key_cur)^T.
+        Ad_back = adjoint(T_key_cur)
+        self._cov_chain = Ad_back @ self._cov_key_cur @ Ad_back.T
+        return 0.5 * (covariance + covariance.T) if complete else None

@@ -1,0 +1,354 @@
+"""Trajectory accuracy of the RGB-D pipeline and of every loop edge against ground truth.
+
+    python -m benchmarks.bench_accuracy [--label after] [--out benchmarks/results/accuracy.md]
+    python -m benchmarks.bench_accuracy --report-only
+
+Runs, each in its own process (``NullLogger``, map on the CPU, one torch thread):
+
+* real 7-Scenes redkitchen seq-01 frames 0-399 with configs/7scenes.yaml (skipped when
+  ../shared/data is absent);
+* the generated RGB-D room with configs/demo.yaml.
+
+Every run is stored under ``--label`` in ``benchmarks/results/accuracy.json``, so a "before" run
+made from an older checkout (``PYTHONPATH=<old checkout> python benchmarks/bench_accuracy.py
+--label before``) and the current "after" run end up in one before/after table. For every run the
+section lists each verified loop edge's error against the ground-truth relative pose of the two
+anchors, and whether the pose graph kept it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import logging
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+RESULTS = REPO / "benchmarks" / "results"
+
+log = logging.getLogger("benchmarks.bench_accuracy")
+
+
+def _per_axis_ate(est: np.ndarray, gt: np.ndarray) -> list[float]:
+    from slam.metrics.trajectory import align_se3
+
+    aligned = align_se3(est, gt) @ est
+    diff = aligned[:, :3, 3] - gt[:, :3, 3]
+    return [float(v) for v in np.sqrt(np.mean(diff**2, axis=0))]
+
+
+def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth: np.ndarray):
+    """Fraction of keyframe ``a``'s depth that agrees (3 cm) with keyframe ``b``'s, moved by the
+    loop edge and by the ground truth: a check of the ground truth that needs no ground truth."""
+    try:
+        from slam.loop_rgbd import RgbdVerifier, depth_agreement
+    except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
+        return None, None
+
+    verifier = RgbdVerifier(pipeline.cfg.loop_closure.rgbd)
+    fa, fb = verifier.features(source[a]), verifier.features(source[b])
+    if fa is None or fb is None:
+        return None, None
+    edge = depth_agreement(fa, fb, np.linalg.inv(T_a_b), 0.03)[0]
+    reference = depth_agreement(fa, fb, np.linalg.inv(truth), 0.03)[0]
+    return edge, reference
+
+
+def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[str, float]:
+    """Median depth agreement of frame pairs ``(k, k + gap)`` under three sets of poses.
+
+    Needs no ground truth: a relative pose under which the two depth images agree better is
+    more consistent with the sensor. Reported for the ground truth, the odometry and the SLAM
+    poses, so that a trajectory error against the ground truth can be put into proportion.
+    """
+    try:
+        from slam.loop_rgbd import RgbdVerifier, depth_agreement
+    except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
+        return None
+
+    verifier = RgbdVerifier(pipeline.cfg.loop_closure.rgbd)
+    sets = {"gt": gt, "odometry": pipeline.odometry_poses(), "slam": pipeline.slam_poses()}
+    values: dict[str, list[float]] = {name: [] for name in sets}
+    for k in range(0, len(gt) - gap, gap):
+        fa, fb = verifier.features(source[k]), verifier.features(source[k + gap])
+        if fa is None or fb is None:
+            continue
+        for name, poses in sets.items():
+            T_b_a = np.linalg.inv(poses[k + gap]) @ poses[k]
+            values[name].append(depth_agreement(fa, fb, T_b_a, 0.03)[0])
+    return {name: float(np.median(v)) if v else float("nan") for name, v in values.items()}
+
+
+def _summary(pipeline, wall_s: float, gt: np.ndarray, source=None) -> dict[str, Any]:
+    from slam.loops import relative_motion
+    from slam.metrics.trajectory import ate_rmse
+
+    loops = []
+    for c in pipeline.accepted_loops():
+        a = pipeline.submap_frames(c.reference_id)[0]
+        b = pipeline.submap_frames(c.query_id)[0]
+        truth = np.linalg.inv(gt[a]) @ gt[b]
+        error_m, error_deg = relative_motion(truth, c.T_Ai_Aj)
+        agreement_edge, agreement_gt = (None, None)
+        if source is not None:
+            agreement_edge, agreement_gt = _depth_agreements(
+                pipeline, source, a, b, c.T_Ai_Aj, truth
+            )
+        loops.append(
+            {
+                "i": c.reference_id,
+                "j": c.query_id,
+                "frames": [int(a), int(b)],
+                "error_m": error_m,
+                "error_deg": error_deg,
+                "kept": bool(c.graph_inlier),
+                "detector": c.detector,
+                "depth_agreement_edge": agreement_edge,
+                "depth_agreement_gt": agreement_gt,
+                "scores": {k: float(v) for k, v in c.scores.items()},
+            }
+        )
+    rejected: dict[str, int] = {}
+    for c in pipeline.loop_candidates:
+        if not c.accepted:
+            stage = c.reason.split(" ")[0].rstrip(":") if c.reason else "?"
+            rejected[stage] = rejected.get(stage, 0) + 1
+    odometry = pipeline.odometry_poses()
+    slam = pipeline.slam_poses()
+    return {
+        "frames": pipeline.num_frames,
+        "submaps": len(pipeline.records),
+        "candidates": len(pipeline.loop_candidates),
+        "verified": len(loops),
+        "kept": sum(1 for e in loops if e["kept"]),
+        "rejected_by_stage": rejected,
+        "loops": loops,
+        "ate_odometry_m": ate_rmse(odometry, gt),
+        "ate_slam_m": ate_rmse(slam, gt),
+        "ate_axes_odometry_m": _per_axis_ate(odometry, gt),
+        "ate_axes_slam_m": _per_axis_ate(slam, gt),
+        "wall_s": wall_s,
+        "fps": pipeline.num_frames / wall_s,
+        "stage_s": {k: float(sum(v)) for k, v in pipeline.timings_s.items()},
+        "load_avg": list(os.getloadavg()),
+    }
+
+
+def _run(config_name: str, overrides: dict[str, Any], dataset: str) -> dict[str, Any]:
+    import torch
+
+    from frontends.sources import make_source
+    from slam.builders import build_map, build_odometry, source_kwargs
+    from slam.config import default_config_path, load_run_config
+    from slam.pipeline import SlamPipeline
+    from slam.viz import NullLogger
+
+    torch.set_num_threads(1)
+    base = {
+        "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
+        "mapping": {"device": "cpu"},
+    }
+    cfg = load_run_config(default_config_path(config_name), _merge(base, overrides))
+    source = make_source(dataset, **source_kwargs(cfg))
+    odometry = build_odometry(cfg, "rgbd")
+    pipeline = SlamPipeline(cfg, source.sensor, odometry, build_map(cfg), NullLogger())
+    start = time.perf_counter()
+    for frame in source:
+        pipeline.process(frame)
+    pipeline.finish()
+    wall = time.perf_counter() - start
+    out = _summary(pipeline, wall, source.gt_poses, source)
+    if source.sensor == "rgbd":
+        consistency = _pose_consistency(pipeline, source, source.gt_poses)
+        if consistency is not None:
+            out["pose_consistency"] = consistency
+    return out
+
+
+SCENARIOS = {
+    "7scenes": (
+        "7-Scenes redkitchen seq-01 0-399",
+        "7scenes",
+        {"source": {"root": str(DATA / "7scenes_redkitchen"), "sequence": "seq-01"}},
+        "7scenes",
+    ),
+    "room": ("generated room (demo config)", "demo", {}, "generated"),
+}
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _revision() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "describe", "--always", "--dirty"],
+            cwd=Path(os.environ.get("PYTHONPATH", REPO).split(os.pathsep)[0]),
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _cm(value: float) -> str:
+    return f"{100 * value:.1f}"
+
+
+def write_report(path: Path, saved: dict[str, Any]) -> None:
+    lines = [
+        "## Trajectory accuracy (RGB-D loops and odometry)",
+        "",
+        "- Command: `python -m benchmarks.bench_accuracy --label after` (the `before` rows: the "
+        "same script run with PYTHONPATH pointing at a checkout of the revision named)",
+        "- Every run: one process, `NullLogger`, map on the CPU, torch with 1 thread; frames/s is "
+        "the whole pipeline. Load average = 1-min load average at the end of the run (a shared "
+        "2-core machine: other jobs inflate wall times). ATE: RMSE after SE(3) Umeyama "
+        "alignment without scale; per axis in the ground-truth frame. Depth agreement (needs no "
+        "ground truth): median over frame pairs (k, k+20) of the fraction of frame k's depth "
+        "pixels that, moved into frame k+20 by the pair's relative pose, agree with its depth "
+        "within 3 cm; higher = more consistent with the sensor.",
+        "",
+        "| run | label | revision | ATE odometry [cm] | ATE SLAM [cm] | SLAM per axis x / y / z "
+        "[cm] | loops verified / kept | loop error median [cm / deg] | loop error max "
+        "[cm / deg] | depth agreement, frames k / k+20: GT / odometry / SLAM | frames/s | "
+        "load avg |",
+        "|---|---|---|---:|---:|---|---|---|---|---|---:|---:|",
+    ]
+    for key, (title, *_rest) in SCENARIOS.items():
+        for label, runs in saved["runs"].items():
+            r = runs.get(key)
+            if r is None:
+                continue
+            err = np.array([[e["error_m"], e["error_deg"]] for e in r["loops"]]).reshape(-1, 2)
+            median = (
+                f"{_cm(np.median(err[:, 0]))} / {np.median(err[:, 1]):.2f}" if len(err) else "-"
+            )
+            worst = f"{_cm(err[:, 0].max())} / {err[:, 1].max():.2f}" if len(err) else "-"
+            axes = " / ".join(_cm(v) for v in r["ate_axes_slam_m"])
+            pc = r.get("pose_consistency")
+            consistency = f"{pc['gt']:.3f} / {pc['odometry']:.3f} / {pc['slam']:.3f}" if pc else "-"
+            lines.append(
+                f"| {title} | {label} | {runs['_revision']} | {_cm(r['ate_odometry_m'])} | "
+                f"{_cm(r['ate_slam_m'])} | {axes} | {r['verified']} / {r['kept']} | {median} | "
+                f"{worst} | {consistency} | {r['fps']:.1f} | {r['load_avg'][0]:.1f} |"
+            )
+    lines += [
+        "",
+        "### Every loop edge against ground truth",
+        "",
+        "Error = the edge's relative pose of the two anchor frames vs the ground truth's. Depth "
+        "agreement: fraction of the first keyframe's depth pixels (every 4th) that, moved into "
+        "the second keyframe's view, agree with its depth within 3 cm, once with the edge and "
+        "once with the ground-truth relative pose; it needs no ground truth, so where the edge "
+        "agrees better than the ground truth, the error column measures the ground truth too.",
+        "",
+    ]
+    for key, (title, *_rest) in SCENARIOS.items():
+        for label, runs in saved["runs"].items():
+            r = runs.get(key)
+            if r is None:
+                continue
+            rejected = ", ".join(f"{k}: {v}" for k, v in sorted(r["rejected_by_stage"].items()))
+            lines += [
+                f"{title}, {label}: {r['candidates']} candidates, {r['verified']} verified, "
+                f"{r['verified'] - r['kept']} rejected by the pose graph; candidates rejected by "
+                f"the verifier, by first word of the reason: {rejected or 'none'}.",
+                "",
+            ]
+            if not r["loops"]:
+                continue
+            lines += [
+                "| edge i-j (frames) | found by | error [cm] | error [deg] | kept by graph | "
+                "depth agreement: edge / ground truth |",
+                "|---|---|---:|---:|---|---|",
+            ]
+            for e in r["loops"]:
+                frames = "-".join(str(f) for f in e.get("frames", []))
+                agreement = (
+                    f"{e['depth_agreement_edge']:.2f} / {e['depth_agreement_gt']:.2f}"
+                    if e.get("depth_agreement_gt") is not None
+                    else "-"
+                )
+                lines.append(
+                    f"| {e['i']}-{e['j']} ({frames}) | {e.get('detector', '')} | "
+                    f"{_cm(e['error_m'])} | {e['error_deg']:.2f} | "
+                    f"{'yes' if e['kept'] else 'no'} | {agreement} |"
+                )
+            lines.append("")
+    lines.append(f"Machine: {saved['machine']}")
+    lines.append("")
+    path.write_text("\n".join(lines))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--label", default="after", help="name of this set of runs")
+    parser.add_argument("--out", type=Path, default=RESULTS / "accuracy.md")
+    parser.add_argument("--only", choices=sorted(SCENARIOS), action="append")
+    parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--revision", help="revision name to record (default: git describe)")
+    parser.add_argument(
+        "--override",
+        type=json.loads,
+        default={},
+        help="config overrides for every run, as JSON (e.g. '{\"pose_graph\": {...}}')",
+    )
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    log.setLevel(logging.INFO)
+    raw = args.out.with_suffix(".json")
+    saved = json.loads(raw.read_text()) if raw.is_file() else {"runs": {}}
+    saved["machine"] = (
+        f"{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}"
+    )
+    if not args.report_only:
+        runs = saved["runs"].setdefault(args.label, {})
+        runs["_revision"] = args.revision or _revision()
+        runs["_date"] = dt.datetime.now().isoformat(timespec="seconds")
+        for key in args.only or sorted(SCENARIOS):
+            _title, config_name, overrides, dataset = SCENARIOS[key]
+            if dataset == "7scenes" and not (DATA / "7scenes_redkitchen").is_dir():
+                log.warning("no 7-Scenes data under %s: skipped", DATA)
+                continue
+            runs[key] = _run(config_name, _merge(overrides, args.override), dataset)
+            r = runs[key]
+            log.info(
+                "%s %s: ATE odometry %s cm, SLAM %s cm, loops verified/kept %d/%d, %.1f fps, "
+                "load %.1f",
+                key,
+                args.label,
+                _cm(r["ate_odometry_m"]),
+                _cm(r["ate_slam_m"]),
+                r["verified"],
+                r["kept"],
+                r["fps"],
+                r["load_avg"][0],
+            )
+        raw.parent.mkdir(parents=True, exist_ok=True)
+        raw.write_text(json.dumps(saved, indent=2))
+    write_report(args.out, saved)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
