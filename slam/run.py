@@ -233,14 +233,13 @@ def _setup_logging(log_file: Path, verbose: bool) -> None:
 
 def execute(entry: DatasetEntry, cfg: RunConfig, folder: Path, progress: bool) -> dict[str, Any]:
     """Run the pipeline on the configured sequence and write the run folder; returns metrics."""
-    import torch
-
     from slam.builders import build_logger, build_map, build_odometry, build_source
     from slam.outputs import RunOutputs
     from slam.pipeline import SlamPipeline
     from slam.run_metrics import collect_metrics
+    from slam.threads import apply_thread_budget
 
-    torch.set_num_threads(cfg.torch_threads)
+    apply_thread_budget(cfg)
     if cfg.viz.mode == "none":  # nobody would see intermediate meshes
         cfg.viz.mesh_every_submaps = 10**9
         cfg.viz.mesh_after_remap = False
