@@ -396,6 +396,7 @@ class RunConfig(_Strict):
         "it (the worker applies map work in submap order)",
     )
 
+
 def _location(loc: tuple[Any, ...]) -> str:
     return ".".join(str(part) for part in loc) or "<root>"
 
