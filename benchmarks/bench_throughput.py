@@ -415,7 +415,10 @@ def main(argv: list[str] | None = None) -> int:
                 fn = {"ours": scenario_ours, "kiss_icp": scenario_kiss_icp}.get(name)
                 run[name] = _in_child(fn or scenario_micro, args.frames)
             log.info("%s: %s", name, {k: v for k, v in run[name].items() if k != "stage_s"})
-            results[key] = run
+            # re-read before writing: several invocations may run side by side
+            results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+            merged = results.setdefault(key, {})
+            merged.update({k: v for k, v in run.items() if k not in methods or k == name})
             RESULTS.parent.mkdir(parents=True, exist_ok=True)
             RESULTS.write_text(json.dumps(results, indent=2, default=str))
     write_report(results)
