@@ -418,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
             # re-read before writing: several invocations may run side by side
             results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
             merged = results.setdefault(key, {})
-            merged.update({k: v for k, v in run.items() if k not in methods or k == name})
+            merged.update({k: run[k] for k in ("code", "date", "load", name)})
             RESULTS.parent.mkdir(parents=True, exist_ok=True)
             RESULTS.write_text(json.dumps(results, indent=2, default=str))
     write_report(results)
