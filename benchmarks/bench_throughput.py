@@ -293,6 +293,31 @@ def scenario_micro(_: int) -> dict:
     return out
 
 
+def scenario_rgbd(_: int) -> dict:
+    """bench_slam's RGB-D scenarios (generated room with the demo config, 7-Scenes 0-399), with
+    this code's thread budget where it has one."""
+    from benchmarks import bench_slam
+
+    _apply_thread_budget(_config())
+    keep = (
+        "frames",
+        "fps",
+        "wall_s",
+        "ate_odometry_m",
+        "ate_slam_m",
+        "mesh_accuracy_m",
+        "mesh_completion_m",
+        "stage_s",
+        "peak_rss_mb",
+    )
+    out = {}
+    for name, fn in (("room", bench_slam.scenario_room), ("7scenes", bench_slam.scenario_7scenes)):
+        r = fn()
+        out[name] = None if r is None else {k: r.get(k) for k in keep}
+    out["load"] = os.getloadavg()[0]
+    return out
+
+
 def _in_child(fn, *args):
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
@@ -379,6 +404,29 @@ def write_report(results: dict) -> None:
             f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
             f"{m['mesh_again_wall_s']:.3f} | {m['load']:.1f} |"
         )
+    lines += [
+        "",
+        "RGB-D (`--only rgbd`: bench_slam's room and 7-Scenes scenarios, `NullLogger`):",
+        "",
+        "| run | sequence | frames | frames/s | ATE odometry [m] | ATE SLAM [m] | "
+        "mesh accuracy [cm] | peak RSS [MB] | load |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in sorted(results):
+        rgbd = results[key].get("rgbd")
+        if not rgbd:
+            continue
+        for name in ("room", "7scenes"):
+            r = rgbd.get(name)
+            if not r:
+                continue
+            accuracy = r.get("mesh_accuracy_m")
+            lines.append(
+                f"| {key} | {name} | {r['frames']} | {r['fps']:.2f} | "
+                f"{r['ate_odometry_m']:.4f} | {r['ate_slam_m']:.4f} | "
+                f"{'n/a' if accuracy is None else f'{100 * accuracy:.2f}'} | "
+                f"{r['peak_rss_mb']:.0f} | {rgbd['load']:.1f} |"
+            )
     lines.append("")
     REPORT.parent.mkdir(parents=True, exist_ok=True)
     REPORT.write_text("\n".join(lines))
@@ -389,7 +437,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=FULL_FRAMES, help="first N scans")
     parser.add_argument("--label", default="after", help="code label of this run")
     parser.add_argument(
-        "--only", choices=["ours", "kiss_icp", "kiss_slam", "micro"], action="append"
+        "--only", choices=["ours", "kiss_icp", "kiss_slam", "micro", "rgbd"], action="append"
     )
     parser.add_argument("--skip-kiss-slam", action="store_true")
     parser.add_argument("--report-only", action="store_true")
@@ -412,8 +460,13 @@ def main(argv: list[str] | None = None) -> int:
             if name == "kiss_slam":
                 run[name] = scenario_kiss_slam(args.frames)
             else:
-                fn = {"ours": scenario_ours, "kiss_icp": scenario_kiss_icp}.get(name)
-                run[name] = _in_child(fn or scenario_micro, args.frames)
+                fn = {
+                    "ours": scenario_ours,
+                    "kiss_icp": scenario_kiss_icp,
+                    "micro": scenario_micro,
+                    "rgbd": scenario_rgbd,
+                }[name]
+                run[name] = _in_child(fn, args.frames)
             log.info("%s: %s", name, {k: v for k, v in run[name].items() if k != "stage_s"})
             # re-read before writing: several invocations may run side by side
             results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
