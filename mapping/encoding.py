@@ -8,8 +8,12 @@ and its Jacobian the mean of the exact per-point ``dF/dr``.
 The Jacobian is computed by forward-mode differentiation written out for the two layer types of the
 vector-neuron encoder (:class:`VNLinear`, :class:`VNLeakyReLU`), carrying the value and its three
 tangents ``d/dr_j`` together in a channel-last layout ``(..., 3, C)`` so that every layer is one
-matrix product. :func:`point_latents_reference` computes the same with ``torch.func`` and is used
-by the tests to check the fast path.
+matrix product. Three things keep it cheap: the first layer's tangent is the same for every point
+(so the first activation's tangent is one outer product per point), the element-wise tangent work
+of an activation is a few in-place passes, and the encoder's final VNLinear runs after the
+per-voxel mean (it is linear, so it commutes with pooling) on values and tangents alike.
+:func:`point_latents_reference` computes the same with ``torch.func`` and is used by the tests to
+check the fast path.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from mapping import networks
 from mapping.networks import PointEncoder, PriorModel, VNLeakyReLU, VNLinear
 from mapping.voxel_block import VoxelBlock, pack_keys, unpack_keys
 
-ENCODE_CHUNK = 2048
+ENCODE_CHUNK = 4096
 CORNER_OFFSETS = torch.tensor(
     [[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.int64
 )
@@ -32,49 +36,154 @@ def _vn_linear(weight: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return x @ weight.T
 
 
-def _vn_leaky_relu(
-    layer: VNLeakyReLU, x: torch.Tensor, dx: torch.Tensor | None
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Channel-last VN-LeakyReLU with optional forward-mode tangents ``dx (P, T, 3, C)``.
+def _relu_terms(
+    layer: VNLeakyReLU, x: torch.Tensor, k: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Value of VN-LeakyReLU from ``x`` and ``k = U x`` (channel-last ``(P, 3, C)``).
 
-    With ``k = U x``, ``coef = <x, k> / (|k|^2 + eps)`` and ``a`` the slope, the module computes
-    ``out = a x + (1 - a) relu`` where ``relu = x - coef k`` if ``<x, k> < 0`` else ``x``, i.e.
-    ``out = x - beta k`` with ``beta = (1 - a) [<x, k> < 0] coef``. Its tangent is
-    ``dx - gamma k - beta dk`` with ``gamma = (1 - a) [<x, k> < 0] d(coef)`` and
-    ``d(coef) = <dx, k> + <x - 2 coef k, dk>`` over ``|k|^2 + eps``.
+    With ``coef = <x, k> / (|k|^2 + eps)`` and ``a`` the slope, the module computes
+    ``out = x - beta k`` with ``beta = (1 - a) [<x, k> < 0] coef``. Returns
+    ``(out, beta, gate, coef, k_sq)`` with ``gate = (1 - a) [<x, k> < 0]``; the tangents below
+    need the last four.
     """
-    weight = layer.direction.weight
-    k = _vn_linear(weight, x)
     dot = (x * k).sum(-2, keepdim=True)
     k_sq = (k * k).sum(-2, keepdim=True) + networks._EPS
     coef = dot / k_sq
     gate = (dot < 0).to(x.dtype) * (1.0 - layer.negative_slope)
     beta = gate * coef
     out = torch.addcmul(x, beta, k, value=-1.0)
-    if dx is None:
-        return out, None
-    dk = _vn_linear(weight, dx)
+    return out, beta, gate, coef, k_sq
+
+
+def _relu_tangent(
+    x: torch.Tensor,
+    k: torch.Tensor,
+    dx: torch.Tensor,
+    dk: torch.Tensor,
+    terms: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
+) -> torch.Tensor:
+    """Forward-mode tangent of VN-LeakyReLU, ``dx``/``dk`` ``(P, T, 3, C)`` (``dx`` is reused).
+
+    ``d_out = dx - gamma k - beta dk`` with ``gamma = gate d(coef)`` and
+    ``d(coef) = (<dx, k> + <x - 2 coef k, dk>) / (|k|^2 + eps)``.
+    """
+    beta, gate, coef, k_sq = terms
     k1 = k.unsqueeze(1)
-    y = torch.addcmul(x, coef, k, value=-2.0).unsqueeze(1)
-    d_coef = ((dx * k1).sum(-2, keepdim=True) + (y * dk).sum(-2, keepdim=True)) / k_sq.unsqueeze(1)
-    gamma = gate.unsqueeze(1) * d_coef
-    d_out = torch.addcmul(dx, gamma, k1, value=-1.0)
-    d_out.addcmul_(beta.unsqueeze(1), dk, value=-1.0)
+    y1 = torch.addcmul(x, coef, k, value=-2.0).unsqueeze(1)
+    inner = dx * k1
+    inner.addcmul_(y1, dk)
+    gamma = inner.sum(-2, keepdim=True).mul_(gate.unsqueeze(1) / k_sq.unsqueeze(1))
+    dx.addcmul_(gamma, k1, value=-1.0)
+    dx.addcmul_(beta.unsqueeze(1), dk, value=-1.0)
+    return dx
+
+
+def _first_block(
+    linear: VNLinear, relu: VNLeakyReLU, x_in: torch.Tensor, with_jacobian: bool
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """VNLinear then VN-LeakyReLU on the input ``(P, 3, I)``, tangents along input channel 0.
+
+    The input's tangent ``d x_in / d r_j`` is ``e_j`` on channel 0, so after the linear layer it
+    is the same for every point (``delta_ij w`` with ``w = W[:, 0]``) and so is ``dk``
+    (``delta_ij u``, ``u = U w``). The tangent of the activation then reduces to
+    ``d_out[j, i] = delta_ij (w - beta u) - gamma[j] k[i]`` with
+    ``gamma[j] = gate (w k[j] + u y[j]) / (|k|^2 + eps)``, ``y = x - 2 coef k``: one outer
+    product per point instead of a matrix product and seven passes over ``(P, 3, 3, C)``.
+    """
+    x = _vn_linear(linear.weight, x_in)
+    U = relu.direction.weight
+    k = _vn_linear(U, x)
+    out, beta, gate, coef, k_sq = _relu_terms(relu, x, k)
+    if not with_jacobian:
+        return out, None
+    w = linear.weight[:, 0]
+    u = U @ w
+    y = torch.addcmul(x, coef, k, value=-2.0)
+    neg_gamma = torch.addcmul(w * k, u, y).mul_(gate / k_sq).neg_()  # (P, 3, C), index j
+    d_out = torch.mul(neg_gamma.unsqueeze(2), k.unsqueeze(1))  # (P, 3 j, 3 i, C)
+    diag = torch.addcmul(w, beta, u, value=-1.0)  # (P, 1, C)
+    torch.diagonal(d_out, dim1=1, dim2=2).add_(diag.transpose(1, 2))
     return out, d_out
 
 
-def _run_branch(
-    branch: nn.Sequential, x: torch.Tensor, dx: torch.Tensor | None
+def _run_layers(
+    layers: list[nn.Module], x: torch.Tensor, dx: torch.Tensor | None
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    for layer in branch:
+    """Generic channel-last forward pass with tangents ``dx (P, 3, 3, C)``."""
+    for layer in layers:
         if isinstance(layer, VNLinear):
             x = _vn_linear(layer.weight, x)
             dx = None if dx is None else _vn_linear(layer.weight, dx)
         elif isinstance(layer, VNLeakyReLU):
-            x, dx = _vn_leaky_relu(layer, x, dx)
+            weight = layer.direction.weight
+            k = _vn_linear(weight, x)
+            out, *terms = _relu_terms(layer, x, k)
+            if dx is not None:  # dx is a fresh tensor here (made by the layer before)
+                dx = _relu_tangent(x, k, dx, _vn_linear(weight, dx), terms)
+            x = out
         else:
             raise TypeError(f"encoder layer {type(layer).__name__} has no fast path")
     return x, dx
+
+
+def _split_branch(branch: nn.Sequential) -> tuple[list[nn.Module], torch.Tensor | None]:
+    """The layers before the final VNLinear, and that layer's weight (None if it is not one)."""
+    layers = list(branch)
+    if layers and isinstance(layers[-1], VNLinear):
+        return layers[:-1], layers[-1].weight
+    return layers, None
+
+
+def _run_branch_features(
+    branch: nn.Sequential, x: torch.Tensor, with_jacobian: bool
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """A branch up to (excluding) its final VNLinear, with tangents along input channel 0.
+
+    Returns ``(h, dh, final_weight)``; the final layer is linear, so it commutes with the
+    per-voxel mean and can run after pooling.
+    """
+    layers, final = _split_branch(branch)
+    if len(layers) >= 2 and isinstance(layers[0], VNLinear) and isinstance(layers[1], VNLeakyReLU):
+        h, dh = _first_block(layers[0], layers[1], x, with_jacobian)
+        h, dh = _run_layers(layers[2:], h, dh)
+    else:
+        dx = None
+        if with_jacobian:
+            p, _, channels = x.shape
+            dx = torch.zeros(p, 3, 3, channels, dtype=x.dtype, device=x.device)
+            dx[:, :, :, 0] = torch.eye(3, dtype=x.dtype, device=x.device)
+        h, dh = _run_layers(layers, x, dx)
+    return h, dh, final
+
+
+def point_features(
+    encoder: PointEncoder, r: torch.Tensor, n: torch.Tensor, with_jacobian: bool
+) -> tuple[torch.Tensor, torch.Tensor | None, list[tuple[torch.Tensor | None, int, int]]]:
+    """Per-point features before the encoder's final linear layer(s), channel-last.
+
+    Returns ``(h (P, 3, H), dh (P, 3, 3, H) or None, heads)``. :func:`apply_heads` maps ``h``
+    (or any mean of ``h`` over points) to the latent; because the heads are linear, pooling
+    first and applying them to the voxel means is exact and much cheaper.
+    """
+    if encoder.kind == "joint":
+        h, dh, final = _run_branch_features(
+            encoder.branch, torch.stack([r, n], dim=-1), with_jacobian
+        )
+        return h, dh, [(final, 0, h.shape[-1])]
+    pos, d_pos, f_pos = _run_branch_features(encoder.position, r.unsqueeze(-1), with_jacobian)
+    nrm, _, f_nrm = _run_branch_features(encoder.normal, n.unsqueeze(-1), False)
+    hp = pos.shape[-1]
+    h = torch.cat([pos, nrm], dim=-1)
+    dh = None
+    if d_pos is not None:
+        dh = torch.cat([d_pos, d_pos.new_zeros(*d_pos.shape[:-1], nrm.shape[-1])], dim=-1)
+    return h, dh, [(f_pos, 0, hp), (f_nrm, hp, h.shape[-1])]
+
+
+def apply_heads(heads: list[tuple[torch.Tensor | None, int, int]], h: torch.Tensor) -> torch.Tensor:
+    """Apply the final linear layers of :func:`point_features` to ``h (..., H)`` (channel-last)."""
+    parts = [h[..., a:b] if w is None else h[..., a:b] @ w.T for w, a, b in heads]
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
 
 def point_latents(
@@ -89,22 +198,8 @@ def point_latents(
         ``F (P, 3, C)`` with ``F[p, i, c]`` = component i of channel c, and, if asked,
         ``dF (P, 3, 3, C)`` with ``dF[p, j, i, c] = dF[p, i, c] / dr[p, j]``.
     """
-    p = r.shape[0]
-    eye = None
-    if with_jacobian:
-        eye = torch.eye(3, dtype=r.dtype, device=r.device).view(1, 3, 3, 1).expand(p, 3, 3, 1)
-    if encoder.kind == "joint":
-        x = torch.stack([r, n], dim=-1)
-        dx = None if eye is None else torch.cat([eye, torch.zeros_like(eye)], dim=-1)
-        return _run_branch(encoder.branch, x, dx)
-    pos, d_pos = _run_branch(encoder.position, r.unsqueeze(-1), eye)
-    nrm, _ = _run_branch(encoder.normal, n.unsqueeze(-1), None)
-    out = torch.cat([pos, nrm], dim=-1)
-    if d_pos is None:
-        return out, None
-    return out, torch.cat(
-        [d_pos, torch.zeros(p, 3, 3, nrm.shape[-1], dtype=r.dtype, device=r.device)], -1
-    )
+    h, dh, heads = point_features(encoder, r, n, with_jacobian)
+    return apply_heads(heads, h), None if dh is None else apply_heads(heads, dh)
 
 
 def point_latents_reference(
@@ -179,22 +274,27 @@ def encode_points(
     r = r.reshape(-1, 3).to(dtype)
     n = normals_W.to(dtype).repeat_interleave(8, dim=0)
     m = keys.shape[0]
-    sums = torch.zeros(m, 3, channels, dtype=dtype, device=device)
-    jac_sums = torch.zeros(m, 3, 3, channels, dtype=dtype, device=device) if with_jacobian else None
+    sums = jac_sums = None
+    heads: list = []
     for start in range(0, r.shape[0], chunk):
         sl = slice(start, start + chunk)
         idx = inverse[sl]
-        f, df = point_latents(encoder, r[sl], n[sl], with_jacobian)
-        sums.index_add_(0, idx, f)
-        if jac_sums is not None and df is not None:
-            jac_sums.index_add_(0, idx, df)
+        h, dh, heads = point_features(encoder, r[sl], n[sl], with_jacobian)
+        if sums is None:
+            sums = torch.zeros(m, *h.shape[1:], dtype=dtype, device=device)
+            if dh is not None:
+                jac_sums = torch.zeros(m, *dh.shape[1:], dtype=dtype, device=device)
+        sums.index_add_(0, idx, h)
+        if jac_sums is not None and dh is not None:
+            jac_sums.index_add_(0, idx, dh)
     counts = torch.bincount(inverse, minlength=m).to(dtype)
-    latents = (sums / counts.view(m, 1, 1)).transpose(1, 2)
+    # the encoder's final layers are linear: applied once per voxel, to the means
+    latents = apply_heads(heads, sums / counts.view(m, 1, 1)).transpose(1, 2)
     if jac_sums is None:
         jacobians = torch.zeros(m, channels, 3, 3, dtype=dtype, device=device)
     else:
         # jac_sums[m, j, i, c] -> J[m, c, i, j]
-        jacobians = (jac_sums / counts.view(m, 1, 1, 1)).permute(0, 3, 2, 1)
+        jacobians = apply_heads(heads, jac_sums / counts.view(m, 1, 1, 1)).permute(0, 3, 2, 1)
     return VoxelBlock(
         keys=unpack_keys(keys),
         latents=latents.to(torch.float32).contiguous(),

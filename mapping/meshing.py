@@ -10,7 +10,10 @@ The lattice is cut into cubic chunks of ``chunk_voxels`` voxels per edge; each c
 dense ``(chunk_voxels s + 1)^3`` node array (faces shared with neighbours), runs scikit-image
 marching cubes on the cells whose 8 corners are all observed, drops triangles with a vertex sigma
 above the threshold and caches the result. Changed voxels mark the chunks their cube reaches as
-dirty; only those are re-meshed. The chunk meshes are concatenated and welded.
+dirty; only those are re-meshed. The chunk meshes are concatenated and only the vertices on chunk
+faces (the only ones two chunks can share) are welded; the assembled mesh is cached until a chunk
+changes. A chunk whose marching cubes fails is left out with a warning that counts them
+(:attr:`ChunkMesher.failed_chunks`); a chunk with no surface in its observed cells is simply empty.
 """
 
 from __future__ import annotations
@@ -132,7 +135,10 @@ class ChunkMesher:
         self.chunk_voxels = chunk_voxels
         self.max_sigma_vu = max_sigma_vu
         self.min_weight = min_weight
-        self._chunks: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # per chunk: world vertices, faces, and which vertices lie on the chunk's faces
+        self._chunks: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._assembled: trimesh.Trimesh | None = None
+        self.failed_chunks = 0  # chunks whose marching cubes failed (whole lifetime)
         self.last_remeshed = torch.zeros(0, dtype=torch.int64)  # packed chunk keys, last update
         self._fine = lattice_offsets(subdivisions)
         # coarse-to-fine: a half-voxel lattice decides where the fine lattice is decoded
@@ -146,6 +152,7 @@ class ChunkMesher:
 
     def clear(self) -> None:
         self._chunks.clear()
+        self._assembled = None
 
     def dirty_chunks(self, dirty_voxel_keys: torch.Tensor) -> torch.Tensor:
         """Packed chunk keys whose node range a changed voxel's ``2V`` cube reaches."""
@@ -163,6 +170,8 @@ class ChunkMesher:
         self.last_remeshed = chunks
         if chunks.numel() == 0:
             return
+        self._assembled = None
+        failures: list[tuple[int, str]] = []
         keys = store.sorted_keys()
         rows = store.rows()
         decodable = store.weights64() >= self.min_weight
@@ -177,10 +186,25 @@ class ChunkMesher:
                 store, decoder, batch, grid, rows, pair_voxel[lo:hi], pair_chunk[lo:hi]
             )
             for key, mesh in zip(batch.tolist(), meshes, strict=True):
+                if isinstance(mesh, str):
+                    failures.append((key, mesh))
+                    mesh = None
                 if mesh is None:
                     self._chunks.pop(key, None)
                 else:
                     self._chunks[key] = mesh
+        if failures:
+            self.failed_chunks += len(failures)
+            key, reason = failures[0]
+            log.warning(
+                "meshing: marching cubes failed on %d of %d re-meshed chunks (%d so far), which "
+                "are left out of the mesh; first: chunk %s: %s",
+                len(failures),
+                chunks.shape[0],
+                self.failed_chunks,
+                unpack_keys(torch.tensor([key])).tolist()[0],
+                reason,
+            )
 
     def _voxel_chunk_pairs(
         self, grid: torch.Tensor, chunks: torch.Tensor
@@ -272,7 +296,7 @@ class ChunkMesher:
         rows: torch.Tensor,
         pair_voxel: torch.Tensor,
         pair_chunk: torch.Tensor,
-    ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | str | None]:
         n_chunks = batch.shape[0]
         if pair_voxel.numel() == 0:
             return [None] * n_chunks
@@ -313,7 +337,9 @@ class ChunkMesher:
 
     def _march(
         self, sdf: np.ndarray, sigma: np.ndarray, valid: np.ndarray, corner: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray] | None:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str | None:
+        """One chunk's mesh ``(world vertices, faces, on-chunk-face mask)``, None when it has no
+        surface, or the reason marching cubes failed."""
         from scipy.ndimage import map_coordinates
         from skimage.measure import marching_cubes
 
@@ -340,8 +366,12 @@ class ChunkMesher:
             verts, faces, _, _ = marching_cubes(
                 sdf.astype(np.float32), level=0.0, mask=mask, allow_degenerate=False
             )
-        except (RuntimeError, ValueError):
-            return None
+        except RuntimeError as exc:
+            if "No surface found" in str(exc):  # the sign changes are all in unobserved cells
+                return None
+            return f"{type(exc).__name__}: {exc}"
+        except ValueError as exc:
+            return f"{type(exc).__name__}: {exc}"
         if faces.shape[0] == 0:
             return None
         vert_sigma = map_coordinates(sigma, verts.T, order=1)
@@ -351,24 +381,55 @@ class ChunkMesher:
             return None
         used, faces = np.unique(faces, return_inverse=True)
         h = self.voxel_size_m / self.subdivisions
-        verts_W = (verts[used].astype(np.float64) + corner) * h
-        return verts_W, faces.reshape(-1, 3).astype(np.int64)
+        local = verts[used]
+        # marching cubes puts a vertex on a lattice edge, so the coordinate across a chunk face
+        # is exactly the face's node index
+        on_face = ((local == 0) | (local == sdf.shape[0] - 1)).any(axis=1)
+        verts_W = (local.astype(np.float64) + corner) * h
+        return verts_W, faces.reshape(-1, 3).astype(np.int64), on_face
 
     def mesh(self) -> trimesh.Trimesh:
-        """All cached chunk meshes, concatenated and welded."""
+        """All cached chunk meshes, concatenated, with the vertices on chunk faces welded.
+
+        The result is cached until a chunk changes; each call returns a copy.
+        """
+        if self._assembled is None:
+            self._assembled = self._assemble()
+        return self._assembled.copy()
+
+    def _assemble(self) -> trimesh.Trimesh:
         if not self._chunks:
             return trimesh.Trimesh(
                 np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False
             )
-        verts, faces, offset = [], [], 0
+        verts, faces, on_face, offset = [], [], [], 0
         for key in sorted(self._chunks):
-            v, f = self._chunks[key]
+            v, f, b = self._chunks[key]
             verts.append(v)
             faces.append(f + offset)
+            on_face.append(b)
             offset += v.shape[0]
-        mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
-        digits = int(np.ceil(-np.log10(self.voxel_size_m / self.subdivisions * 1e-4)))
-        mesh.merge_vertices(digits_vertex=digits)
-        mesh.update_faces(mesh.nondegenerate_faces())
-        mesh.remove_unreferenced_vertices()
-        return mesh
+        V = np.concatenate(verts)
+        F = np.concatenate(faces)
+        shared = np.flatnonzero(np.concatenate(on_face))
+        if len(shared):
+            # weld on a 1/4096 lattice-step grid (the same vertex from two chunks differs only
+            # by float rounding)
+            h = self.voxel_size_m / self.subdivisions
+            quantised = np.round(V[shared] * (4096.0 / h)).astype(np.int64)
+            _, first, inverse = np.unique(quantised, axis=0, return_index=True, return_inverse=True)
+            target = np.arange(len(V))
+            target[shared] = shared[first[inverse.reshape(-1)]]
+            keep = target == np.arange(len(V))
+            new_index = np.cumsum(keep) - 1
+            F = new_index[target][F]
+            V = V[keep]
+            good = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])
+            if not good.all():
+                F = F[good]
+                used = np.zeros(len(V), dtype=bool)
+                used[F.reshape(-1)] = True
+                if not used.all():
+                    V = V[used]
+                    F = (np.cumsum(used) - 1)[F]
+        return trimesh.Trimesh(V, F, process=False)

@@ -588,11 +588,18 @@ class RunConfig(_Strict):
     mapping: MapConfig = Field(default_factory=MapConfig, description="the neural implicit map")
     viz: VizConfig = Field(default_factory=VizConfig, description="Rerun logging")
     output: OutputConfig = Field(default_factory=OutputConfig, description="run folder")
-    torch_threads: int = Field(
-        1,
-        ge=1,
-        description="torch CPU threads; 1 is fastest when other work shares the cores "
-        "(OpenMP threads spin and thrash under oversubscription)",
+    threads: int = Field(
+        0,
+        ge=0,
+        description="CPU thread budget of the run (0 = the machine's cores): KISS-ICP and OpenCV "
+        "get all of it, torch all but one when map_worker is on, numpy/scipy BLAS one "
+        "(slam/threads.py; idle pool threads spin, so oversubscribed pools thrash)",
+    )
+    map_worker: bool = Field(
+        True,
+        description="run encoding, fusion, remapping and map logging on a worker thread while "
+        "the main thread runs odometry, keyframing and loop detection; results do not depend on "
+        "it (the worker applies map work in submap order)",
     )
 
 

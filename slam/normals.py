@@ -41,7 +41,7 @@ def estimate_normals(
         return normals, valid
     tree = cKDTree(points)
     upper = np.inf if max_radius_m is None else max_radius_m
-    dist, idx = tree.query(points, k=k, distance_upper_bound=upper)
+    dist, idx = tree.query(points, k=k, distance_upper_bound=upper, workers=-1)
     dist = dist.reshape(n, k)
     idx = idx.reshape(n, k)
     found = np.isfinite(dist)

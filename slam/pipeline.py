@@ -7,7 +7,14 @@ anchor's current estimate composed with the frame's odometry pose relative to th
 whole trajectory follows every optimisation. The world frame is the first anchor (frame 0).
 
 Everything is reported to a :class:`~slam.viz.Logger`, unconditionally; what is recorded depends
-only on which logger the runner built.
+only on which logger the runner built. What only a recording needs (voxel centres, meshes, the
+error so far) is handed over as a callable that the null logger never calls, and per-frame
+logging is O(1): trajectories grow by one position, and the optimised one is recomputed only
+when a loop moved the graph.
+
+Map work (encode, fuse, remap) runs on a :class:`~slam.map_worker.MapWorker` (a worker thread when
+``cfg.map_worker``), in submission order with pose snapshots taken here, so results do not
+depend on timing.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ from frontends.frame import Frame
 from frontends.odometry.base import Odometry
 from slam.config import RunConfig
 from slam.loops import LoopCandidate, LoopDetector
+from slam.map_worker import MapWorker
 from slam.pose_graph import PoseGraph
 from slam.remap import RemapEvent, Remapper
 from slam.submaps import Keyframer, SubmapRecord, transform_points
@@ -31,6 +39,27 @@ from slam.viz import Logger
 logger = logging.getLogger(__name__)
 
 SCAN_LOG_MAX_POINTS = 30_000
+
+
+class _Track:
+    """A growing (N, 3) array with amortised O(1) append; :meth:`view` shares memory."""
+
+    def __init__(self) -> None:
+        self._data = np.zeros((256, 3))
+        self._size = 0
+
+    def append(self, position: np.ndarray) -> None:
+        if self._size == len(self._data):
+            self._data = np.concatenate([self._data, np.zeros_like(self._data)])
+        self._data[self._size] = position
+        self._size += 1
+
+    def replace(self, positions: np.ndarray) -> None:
+        self._data = np.array(positions, dtype=np.float64).reshape(-1, 3)
+        self._size = len(self._data)
+
+    def view(self) -> np.ndarray:
+        return self._data[: self._size]
 
 
 @dataclass
@@ -44,7 +73,8 @@ class FrameResult:
         submap_id: the submap the frame belongs to.
         closed_submap_id: the submap this frame closed, or None.
         loops: loop candidates examined at this frame.
-        remap: the remapping pass run at this frame, or None.
+        remap: the remapping pass run at this frame, or None (also None while the map worker
+            has not run it yet: see :attr:`SlamPipeline.remapper` for every pass).
     """
 
     index: int
@@ -98,6 +128,12 @@ class SlamPipeline:
         self.records: dict[int, SubmapRecord] = {}
         self.loop_candidates: list[LoopCandidate] = []
         self.timings_s: dict[str, list[float]] = defaultdict(list)
+        for stage in ("mapping", "remap", "map_logging", "map_worker_wait"):  # worker writes too
+            self.timings_s[stage] = []
+        self.worker = MapWorker(threaded=cfg.map_worker)
+        self._tracks = {"odometry": _Track(), "optimized": _Track(), "gt": _Track()}
+        self._num_accepted = 0
+        self._last_remap_moved = False
         self._frame_submap: list[int] = []
         self._frames_of: dict[int, list[int]] = {}
         self._frame_T_A_S: list[np.ndarray] = []
@@ -159,6 +195,7 @@ class SlamPipeline:
             result.closed_submap_id = closed.submap_id
             result.loops, result.remap = self._on_submap_closed(closed, frame.index)
             result.T_W_S = self.graph.pose(current.submap_id) @ T_A_S
+        self._track_frame(result, graph_moved=any(c.accepted for c in result.loops))
         self.timings_s["frame"].append(time.perf_counter() - start)
         self._log_frame(frame, result)
         return result
@@ -191,31 +228,51 @@ class SlamPipeline:
                 )
                 candidate.graph_inlier = edge.inlier
                 added = True
+                self._num_accepted += 1
         self.loop_candidates.extend(candidates)
-        t = self._timed("pose_graph", t)
+        self._timed("pose_graph", t)
 
-        self._encode(record)
-        t = self._timed("mapping", t)
-
+        # the keyframe's images were for loop detection; the map only needs the points
+        record.keyframe = None
+        self.records[record.submap_id] = record
+        T_W_A = self.graph.pose(record.submap_id).copy()
+        remap_poses = self.graph.poses() if added else None
+        t = time.perf_counter()
+        self.worker.submit(self._map_job, record, T_W_A, remap_poses, frame_index)
+        self._timed("map_worker_wait", t)  # only when the worker is two submaps behind
         remap = None
         if added:
-            remap = self.remapper.apply(self.submaps, self.graph.poses(), frame_index)
-            self._timed("remap", t)
+            if not self.worker.threaded:
+                remap = self.remapper.events[-1] if self._last_remap_moved else None
             self._refresh_graph_inliers()
             self._log_loops()
         periodic = self._closed_count % self.cfg.viz.mesh_every_submaps == 0
-        remapped = remap is not None and remap.num_moved > 0
-        self._log_map(with_mesh=periodic or (remapped and self.cfg.viz.mesh_after_remap))
-        self._log_errors_so_far()
+        self.viz.log_map_from(lambda: self._map_snapshot(periodic, added))
+        self.viz.log_metrics_from(self._errors_so_far)
         return candidates, remap
 
-    def _encode(self, record: SubmapRecord) -> None:
-        record.keyframe = None  # loop detection has taken what it needs
-        self.records[record.submap_id] = record
+    def _map_job(
+        self,
+        record: SubmapRecord,
+        T_W_A: np.ndarray,
+        remap_poses: dict[int, np.ndarray] | None,
+        frame_index: int,
+    ) -> None:
+        """Encode and fuse a closed submap, then remap if the graph moved (worker thread)."""
+        start = time.perf_counter()
+        self._encode(record, T_W_A)
+        self.timings_s["mapping"].append(time.perf_counter() - start)
+        self._last_remap_moved = False
+        if remap_poses is not None:
+            start = time.perf_counter()
+            event = self.remapper.apply(self.submaps, remap_poses, frame_index)
+            self._last_remap_moved = event.num_moved > 0
+            self.timings_s["remap"].append(time.perf_counter() - start)
+
+    def _encode(self, record: SubmapRecord, T_W_A: np.ndarray) -> None:
         if len(record.points_A) == 0:
             logger.warning("submap %d has no points; nothing to encode", record.submap_id)
             return
-        T_W_A = self.graph.pose(record.submap_id)
         logger.info(
             "submap %d: frames %d-%d, %d points",
             record.submap_id,
@@ -253,14 +310,17 @@ class SlamPipeline:
         start = time.perf_counter()
         self.graph.optimize_batch()
         t = self._timed("pose_graph", start)
+        self.worker.close()
+        t = self._timed("map_worker_wait", t)
         remap = self.remapper.apply(self.submaps, self.graph.poses(), -1)
         self._timed("remap", t)
         self._refresh_graph_inliers()
         self._finished = True
         self._log_loops()
+        self._tracks["optimized"].replace(self.slam_poses()[:, :3, 3])
         self._log_trajectories()
-        self._log_map(with_mesh=True)
-        self._log_errors_so_far()
+        self.viz.log_map_from(lambda: self._map_snapshot(True, False))
+        self.viz.log_metrics_from(self._errors_so_far)
         return remap
 
     # --- results ------------------------------------------------------------------------------
@@ -304,10 +364,24 @@ class SlamPipeline:
         poses[mask] = np.array([g for g in self._gt if g is not None])
         return poses, mask
 
+    def drain(self) -> None:
+        """Wait for the map worker (the map then reflects every submap closed so far)."""
+        self.worker.drain()
+
     def accepted_loops(self) -> list[LoopCandidate]:
         return [c for c in self.loop_candidates if c.accepted]
 
     # --- logging ------------------------------------------------------------------------------
+
+    def _track_frame(self, result: FrameResult, graph_moved: bool) -> None:
+        self._tracks["odometry"].append(result.T_W_S_odometry[:3, 3])
+        if graph_moved:  # a loop moved the anchors: every frame's estimate changed
+            self._tracks["optimized"].replace(self.slam_poses()[:, :3, 3])
+        else:
+            self._tracks["optimized"].append(result.T_W_S[:3, 3])
+        gt = self._gt[-1]
+        if gt is not None and self._T_W_Wgt is not None:
+            self._tracks["gt"].append((self._T_W_Wgt @ gt)[:3, 3])
 
     def _log_frame(self, frame: Frame, result: FrameResult) -> None:
         viz = self.viz
@@ -324,18 +398,17 @@ class SlamPipeline:
         viz.log_metrics(
             frame_ms=1e3 * self.timings_s["frame"][-1],
             odometry_ms=1e3 * self.timings_s["odometry"][-1],
-            submaps=float(len(self.submaps)),
-            loops_accepted=float(len(self.accepted_loops())),
+            submaps=float(self._closed_count),
+            loops_accepted=float(self._num_accepted),
             loop_candidates=float(len(self.loop_candidates)),
-            map_voxels=float(self.map.num_voxels),
         )
 
     def _log_trajectories(self) -> None:
-        self.viz.log_trajectory("odometry", self.odometry_poses()[:, :3, 3])
-        self.viz.log_trajectory("optimized", self.slam_poses()[:, :3, 3])
-        gt = self.gt_poses()
-        if gt is not None and self._T_W_Wgt is not None:
-            self.viz.log_trajectory("gt", (self._T_W_Wgt @ gt)[:, :3, 3])
+        for name in ("odometry", "optimized"):
+            self.viz.log_trajectory(name, self._tracks[name].view())
+        gt = self._tracks["gt"].view()
+        if len(gt) == self.num_frames and len(gt) > 0:
+            self.viz.log_trajectory("gt", gt)
 
     def _log_loops(self) -> None:
         anchors = self.graph.poses()
@@ -351,20 +424,27 @@ class SlamPipeline:
             [s for s in accepted if s is not None], [s for s in rejected if s is not None]
         )
 
-    def _log_map(self, with_mesh: bool) -> None:
+    def _map_snapshot(self, periodic: bool, loop_added: bool):
+        """What a recording shows of the map now (waits for the map worker); see
+        :meth:`slam.viz.Logger.log_map_from`."""
+        self.worker.drain()
         start = time.perf_counter()
         centers, weights = self.map.voxel_centers()
-        mesh = self.map.extract_mesh() if with_mesh else None
-        self.viz.log_map(np.asarray(centers), np.asarray(weights, dtype=np.float64), mesh)
-        self._timed("map_logging", start)
+        remapped = loop_added and self._last_remap_moved and self.cfg.viz.mesh_after_remap
+        mesh = self.map.extract_mesh() if periodic or remapped else None
+        self.timings_s["map_logging"].append(time.perf_counter() - start)
+        return np.asarray(centers), np.asarray(weights, dtype=np.float64), mesh
 
-    def _log_errors_so_far(self) -> None:
+    def _errors_so_far(self) -> dict[str, float]:
+        """Map size and, with ground truth, the ATE of both trajectories so far (waits for the
+        map worker)."""
+        self.worker.drain()
+        scalars = {"map_voxels": float(self.map.num_voxels)}
         gt = self.gt_poses()
         if gt is None or len(gt) < 3:
-            return
+            return scalars
         from slam.metrics.trajectory import ate_rmse
 
-        self.viz.log_metrics(
-            ate_odometry_m=ate_rmse(self.odometry_poses(), gt),
-            ate_slam_m=ate_rmse(self.slam_poses(), gt),
-        )
+        scalars["ate_odometry_m"] = ate_rmse(self.odometry_poses(), gt)
+        scalars["ate_slam_m"] = ate_rmse(self.slam_poses(), gt)
+        return scalars

@@ -342,19 +342,19 @@ def execute(
     ``announce(line)`` receives what the user must see while the run goes on (the viewer URL of
     ``viz.mode: serve``, and the summary before serving on after the run).
     """
-    import torch
 
     from slam.builders import build_logger, build_map, build_odometry, build_source
     from slam.outputs import RunOutputs
     from slam.pipeline import SlamPipeline
     from slam.run_metrics import collect_metrics
+    from slam.threads import apply_thread_budget
 
     def say(line: str) -> None:
         logger.info(line)
         if announce is not None:
             announce(line)
 
-    torch.set_num_threads(cfg.torch_threads)
+    apply_thread_budget(cfg)
     if cfg.viz.mode == "none":  # nobody would see intermediate meshes
         cfg.viz.mesh_every_submaps = 10**9
         cfg.viz.mesh_after_remap = False

@@ -62,7 +62,9 @@ def voxel_downsample(
 ) -> tuple[np.ndarray, ...]:
     """Average points (and per-point float attributes) over the voxels of a grid.
 
-    Returns ``(points, *attributes)`` with one row per occupied voxel.
+    Returns ``(points, *attributes)`` with one row per occupied voxel. An attribute that is the
+    same for every row (a broadcast array, e.g. one viewpoint per frame) or all zero (LiDAR
+    frames carry no normals) is not averaged: its mean is that row.
     """
     if len(points) == 0:
         return (points, *attributes)
@@ -72,6 +74,9 @@ def voxel_downsample(
     inverse = inverse.ravel()
     out = []
     for array in (points, *attributes):
+        if array is not points and (array.strides[0] == 0 or not array.any()):
+            out.append(np.repeat(np.asarray(array[:1], dtype=np.float64), len(counts), axis=0))
+            continue
         columns = [
             np.bincount(inverse, weights=array[:, k], minlength=len(counts))
             for k in range(array.shape[1])

@@ -279,10 +279,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     command = "python -m slam.eval transform " + " ".join(argv)
     try:
-        import torch
+        from slam.threads import apply_thread_budget
 
         _, cfg = resolve_config(run_args)
-        torch.set_num_threads(cfg.torch_threads)
+        apply_thread_budget(cfg)
         source = build_source(cfg)
         rows = run_transform_experiment(
             source,

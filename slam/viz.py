@@ -8,7 +8,7 @@ themselves: the runner hands their results to the logger.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import trimesh
@@ -62,6 +62,18 @@ class Logger(ABC):
     def log_metrics(self, **scalars: float) -> None:
         """Scalar time series under ``metrics/<name>``."""
 
+    def log_map_from(
+        self,
+        snapshot: Callable[[], tuple[np.ndarray, np.ndarray, trimesh.Trimesh | None]],
+    ) -> None:
+        """:meth:`log_map` of what ``snapshot()`` returns. The pipeline passes the costly part
+        (voxel centres, a mesh) as a callable so that a logger recording nothing never pays it."""
+        self.log_map(*snapshot())
+
+    def log_metrics_from(self, scalars: Callable[[], dict[str, float]]) -> None:
+        """:meth:`log_metrics` of what ``scalars()`` returns (e.g. the error so far)."""
+        self.log_metrics(**scalars())
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Flush and close the recording."""
 
@@ -88,4 +100,10 @@ class NullLogger(Logger):
         pass
 
     def log_metrics(self, **scalars):
+        pass
+
+    def log_map_from(self, snapshot):
+        pass
+
+    def log_metrics_from(self, scalars):
         pass

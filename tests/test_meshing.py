@@ -155,3 +155,61 @@ def test_shipped_prior_meshes_a_box_accurately() -> None:
     assert len(mesh.faces) > 500
     dist = _surface_distance(mesh.vertices, box)
     assert np.mean(dist) < 0.01
+
+
+def _sphere_map() -> NeuralMap:
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    points, face = trimesh.sample.sample_surface_even(sphere, 8000, seed=3)
+    nm = NeuralMap(_cfg(), planar_prior())
+    nm.fuse(nm.encode(0, points, sphere.face_normals[face], np.eye(4)))
+    return nm
+
+
+def test_welded_mesh_is_watertight_across_chunks() -> None:
+    """Only vertices on chunk faces are welded; the sphere must come out closed."""
+    nm = _sphere_map()
+    mesh = nm.extract_mesh()
+    assert nm._mesher.num_chunks > 1  # the sphere spans several chunks
+    assert len(mesh.faces) > 100 and mesh.is_watertight
+    merged = mesh.copy()
+    merged.merge_vertices()  # trimesh's own weld finds nothing left to merge
+    assert len(merged.vertices) == len(mesh.vertices)
+
+
+def test_failed_marching_cubes_is_reported(monkeypatch, caplog) -> None:
+    import skimage.measure
+
+    nm = _sphere_map()
+    reference = nm.extract_mesh()
+    chunks = nm._mesher.num_chunks
+    real = skimage.measure.marching_cubes
+    calls = []
+
+    def failing_once(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError("simulated failure")
+        return real(*args, **kwargs)
+
+    fresh = _sphere_map()
+    monkeypatch.setattr(skimage.measure, "marching_cubes", failing_once)
+    with caplog.at_level("WARNING", logger="mapping.meshing"):
+        mesh = fresh.extract_mesh()
+    assert fresh._mesher.failed_chunks == 1
+    assert fresh._mesher.num_chunks == chunks - 1  # the failed chunk is missing ...
+    assert 0 < len(mesh.faces) < len(reference.faces)
+    warning = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warning) == 1 and f"failed on 1 of {chunks} " in warning[0]  # ... and said so
+    assert "simulated failure" in warning[0]
+
+
+def test_no_surface_in_observed_cells_is_an_empty_chunk_not_a_failure() -> None:
+    from mapping.meshing import ChunkMesher
+
+    mesher = ChunkMesher(V, 2, 4, max_sigma_vu=1.0, min_weight=1.0)
+    n = 9
+    sdf = np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None] - 4.5, (n, n, n)).copy()
+    valid = np.ones((n, n, n), dtype=bool)
+    valid[4:6] = False  # the sign change lies only in cells with unobserved corners
+    out = mesher._march(sdf, np.full((n, n, n), 0.1, np.float32), valid, np.zeros(3))
+    assert out is None and mesher.failed_chunks == 0

@@ -1,0 +1,482 @@
+"""LiDAR throughput: KISS-ICP alone, KISS-SLAM and ours on the same generated KITTI-00 scans.
+
+    python -m benchmarks.bench_throughput [--frames N] [--label after] [--skip-kiss-slam]
+    python -m benchmarks.bench_throughput --report-only
+
+The sequence is the 64-beam LiDAR simulated along all 4,541 poses of the real KITTI 00 trajectory
+(2048 firings per revolution, cached by ``frontends.sources.generated``); ``--frames N`` runs the
+first N scans (KISS-SLAM: ``--n-scans N``). Every method runs in its own
+process, one after the other, so its peak memory is its own. Ours runs as ``slam.run`` does with
+``--no-viz``: configs/kitti.yaml, the whole pipeline, the final optimisation, the final mesh and
+``map.npz``; RSS is sampled at 1,000 / 2,000 / ... frames and at the end.
+
+Results accumulate in ``benchmarks/results/throughput.json`` under ``--label`` (``before`` was
+measured with the code of the commit before issue 11, by running this file with that checkout
+first on PYTHONPATH); the report ``benchmarks/results/throughput.md`` shows all labels.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import datetime as dt
+import json
+import logging
+import multiprocessing
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+KITTI_POSES = DATA / "kitti" / "poses" / "00.txt"
+KITTI_CALIB = DATA / "kitti" / "sequences" / "00" / "calib.txt"
+KISS_SLAM_VENV = Path("/tmp/kissslam-venv")
+FULL_FRAMES = 4541
+RSS_EVERY = 1000
+RESULTS = REPO / "benchmarks" / "results" / "throughput.json"
+REPORT = REPO / "benchmarks" / "results" / "throughput.md"
+STAGES = (
+    "odometry",
+    "keyframing",
+    "mapping",
+    "loop_detection",
+    "pose_graph",
+    "remap",
+    "map_logging",
+)
+
+log = logging.getLogger("benchmarks.bench_throughput")
+
+
+def _rss_mb() -> tuple[float, float]:
+    """(current, peak) resident memory of this process in MB."""
+    current = peak = float("nan")
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                current = int(line.split()[1]) / 1024
+            elif line.startswith("VmHWM:"):
+                peak = int(line.split()[1]) / 1024
+    return current, peak
+
+
+def _source(num_frames: int):
+    from frontends.sources import make_source
+
+    return make_source(
+        "generated",
+        kind="lidar",
+        trajectory="kitti",
+        kitti_poses=KITTI_POSES,
+        kitti_calib=KITTI_CALIB,
+        start=0,
+        num_frames=FULL_FRAMES,
+        step=1,
+        azimuth_steps=2048,
+        frames=slice(0, num_frames),
+    )
+
+
+def _config():
+    from slam.config import default_config_path, load_run_config
+
+    overrides: dict[str, Any] = {
+        "source": {"dataset": "generated"},
+        "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
+        "mapping": {"device": "cpu"},
+    }
+    return load_run_config(default_config_path("kitti"), overrides)
+
+
+def _apply_thread_budget(cfg) -> str:
+    """The run's thread budget where this code has one (issue 11), else slam.run's old setting."""
+    try:
+        from slam.threads import apply_thread_budget
+    except ImportError:
+        import torch
+
+        torch.set_num_threads(cfg.torch_threads)
+        return (
+            f"torch {cfg.torch_threads}, KISS-ICP {cfg.odometry.kiss_icp.max_num_threads or 'all'}"
+        )
+    return apply_thread_budget(cfg).describe()
+
+
+def scenario_ours(num_frames: int) -> dict:
+    logging.basicConfig(level=logging.WARNING)
+    from slam.builders import build_map, build_odometry
+    from slam.metrics.trajectory import ate_rmse
+    from slam.pipeline import SlamPipeline
+    from slam.viz import NullLogger
+
+    cfg = _config()
+    threads = _apply_thread_budget(cfg)
+    source = _source(num_frames)
+    odometry = build_odometry(cfg, "lidar")
+    neural_map = build_map(cfg)
+    pipeline = SlamPipeline(cfg, "lidar", odometry, neural_map, NullLogger())
+    rss: dict[str, float] = {}
+    start = time.perf_counter()
+    count = 0
+    for frame in source:
+        pipeline.process(frame)
+        count += 1
+        if count % RSS_EVERY == 0:
+            rss[str(count)] = _rss_mb()[0]
+    pipeline.finish()
+    mesh = neural_map.extract_mesh()
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "map.npz"
+        neural_map.save(path, list(pipeline.submaps.values()))
+        map_bytes = path.stat().st_size
+    wall = time.perf_counter() - start
+    rss[str(count)] = _rss_mb()[0]
+    gt = source.gt_poses
+    from slam.metrics.trajectory import align_se3
+    from slam.run_metrics import mesh_errors
+
+    errors = mesh_errors(
+        mesh,
+        source.gt_mesh_path,
+        align_se3(pipeline.slam_poses(), gt),
+        50_000,
+        gt,
+        lidar_range_m=cfg.submaps.max_range_m,
+    )
+    stage = {k: float(sum(v)) for k, v in pipeline.timings_s.items() if k != "frame"}
+    return {
+        "frames": count,
+        "wall_s": wall,
+        "fps": count / wall,
+        "stage_s": stage,
+        "rss_mb": rss,
+        "peak_rss_mb": _rss_mb()[1],
+        "map_npz_mb": map_bytes / 1e6,
+        "map_voxels": neural_map.num_voxels,
+        "submaps": len(pipeline.submaps),
+        "loops_kept": sum(1 for c in pipeline.accepted_loops() if c.graph_inlier),
+        "ate_odometry_m": ate_rmse(pipeline.odometry_poses(), gt),
+        "ate_slam_m": ate_rmse(pipeline.slam_poses(), gt),
+        "mesh_accuracy_m": errors["accuracy_m"],
+        "mesh_faces": len(mesh.faces),
+        "threads": threads,
+    }
+
+
+def scenario_kiss_icp(num_frames: int) -> dict:
+    logging.basicConfig(level=logging.WARNING)
+    from kiss_icp.kiss_icp import KissICP
+
+    from slam.metrics.trajectory import ate_rmse
+
+    cfg = _config()
+    threads = _apply_thread_budget(cfg)
+    source = _source(num_frames)
+    kiss = KissICP(cfg.odometry.kiss_icp.to_kiss())
+    poses = []
+    start = time.perf_counter()
+    for frame in source:
+        kiss.register_frame(np.asarray(frame.points, dtype=np.float64), np.zeros(0))
+        poses.append(np.array(kiss.last_pose))
+    wall = time.perf_counter() - start
+    return {
+        "frames": len(poses),
+        "wall_s": wall,
+        "fps": len(poses) / wall,
+        "peak_rss_mb": _rss_mb()[1],
+        "ate_odometry_m": ate_rmse(np.array(poses), source.gt_poses),
+        "threads": threads,
+    }
+
+
+def scenario_kiss_slam(num_frames: int) -> dict:
+    python = KISS_SLAM_VENV / "bin" / "python"
+    if not python.is_file():
+        return {"skipped": f"no KISS-SLAM venv at {KISS_SLAM_VENV}"}
+    from slam.metrics.trajectory import ate_rmse
+    from slam.trajectory_io import read_kitti
+
+    source = _source(num_frames)
+    root = Path(source.sequence_dir).parents[1]
+    with tempfile.TemporaryDirectory() as work:
+        start = time.perf_counter()
+        run = subprocess.run(
+            [
+                "/usr/bin/time",
+                "-f",
+                "MAXRSS_KB %M",
+                str(KISS_SLAM_VENV / "bin" / "kiss_slam_pipeline"),
+                str(root),
+                "--dataloader",
+                "kitti",
+                "--sequence",
+                "00",
+                "--n-scans",
+                str(num_frames),
+            ],
+            cwd=work,
+            capture_output=True,
+            text=True,
+            timeout=4 * 3600,
+        )
+        wall = time.perf_counter() - start
+        if run.returncode != 0:
+            last = (run.stderr.strip().splitlines() or ["?"])[-1]
+            return {"skipped": f"KISS-SLAM failed: {last}"}
+        found = sorted(Path(work).rglob("*_poses_kitti.txt"))
+        if not found:
+            return {"skipped": "KISS-SLAM wrote no poses file"}
+        poses = read_kitti(found[0])
+    peak = None
+    for line in run.stderr.splitlines():
+        if line.startswith("MAXRSS_KB"):
+            peak = int(line.split()[1]) / 1024
+    return {
+        "frames": len(poses),
+        "wall_s": wall,
+        "fps": len(poses) / wall,
+        "peak_rss_mb": peak,
+        "ate_slam_m": ate_rmse(poses, source.gt_poses[: len(poses)]),
+    }
+
+
+def scenario_micro(_: int) -> dict:
+    """Encode one 30k-point depth frame with Jacobians; mesh a ~20k-voxel room map from cold."""
+    import torch
+
+    from benchmarks.bench_mapping import V, depth_frame_points, room_mesh, sample_surface
+    from mapping.config import MapConfig
+    from mapping.encoding import encode_points
+    from mapping.networks import load_default_prior
+    from mapping.neural_map import NeuralMap
+
+    model = load_default_prior().eval()
+    room = room_mesh((5.0, 4.0, 2.6))
+    points, normals, _ = depth_frame_points(room, keep=30000)
+    p, n = torch.from_numpy(points), torch.from_numpy(normals)
+    out: dict[str, Any] = {"encode_points": len(points)}
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        encode_points(model, p, n, V)
+        walls, cpus = [], []
+        for _ in range(5):
+            t, c = time.perf_counter(), time.process_time()
+            block = encode_points(model, p, n, V)
+            walls.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
+        out[f"encode_wall_s_{threads}t"] = float(np.median(walls))
+        out[f"encode_cpu_s_{threads}t"] = float(np.median(cpus))
+    out["encode_voxels"] = block.num_voxels
+    torch.set_num_threads(1)
+    cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
+    surface, surface_normals = sample_surface(room, 1500, seed=1)
+    neural_map = NeuralMap(cfg, model)
+    submap = neural_map.encode(0, surface, surface_normals, np.eye(4))
+    neural_map.fuse(submap)
+    t, c = time.perf_counter(), time.process_time()
+    mesh = neural_map.extract_mesh()
+    out["mesh_cold_wall_s"] = time.perf_counter() - t
+    out["mesh_cold_cpu_s"] = time.process_time() - c
+    out["mesh_voxels"] = neural_map.num_voxels
+    out["mesh_faces"] = len(mesh.faces)
+    t = time.perf_counter()
+    neural_map.extract_mesh()
+    out["mesh_again_wall_s"] = time.perf_counter() - t
+    out["load"] = os.getloadavg()[0]
+    return out
+
+
+def scenario_rgbd(_: int) -> dict:
+    """bench_slam's RGB-D scenarios (generated room with the demo config, 7-Scenes 0-399), with
+    this code's thread budget where it has one."""
+    from benchmarks import bench_slam
+
+    _apply_thread_budget(_config())
+    keep = (
+        "frames",
+        "fps",
+        "wall_s",
+        "ate_odometry_m",
+        "ate_slam_m",
+        "mesh_accuracy_m",
+        "mesh_completion_m",
+        "stage_s",
+        "peak_rss_mb",
+    )
+    out = {}
+    for name, fn in (("room", bench_slam.scenario_room), ("7scenes", bench_slam.scenario_7scenes)):
+        r = fn()
+        out[name] = None if r is None else {k: r.get(k) for k in keep}
+    out["load"] = os.getloadavg()[0]
+    return out
+
+
+def _in_child(fn, *args):
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
+        return pool.submit(fn, *args).result()
+
+
+# --------------------------------------------------------------------------- report
+
+
+def _f(value, digits: int = 1) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}f}"
+
+
+def write_report(results: dict) -> None:
+    lines = [
+        "## LiDAR throughput (issue 11)",
+        "",
+        "Generated 64-beam LiDAR along the real KITTI 00 trajectory (2048 firings per revolution, "
+        "~128k points per scan), configs/kitti.yaml, `NullLogger` (as `--no-viz`), CPU only, "
+        "2 cores shared with other jobs (the load average is part of each row). Ours includes "
+        "reading the scans, the final optimisation, the final mesh and writing `map.npz`; "
+        "KISS-ICP alone is reading + `register_frame`; KISS-SLAM is its `kiss_slam_pipeline` "
+        "process (0.0.2, default config).",
+        "",
+        "| run | code | frames | method | wall [s] | frames/s | vs KISS-ICP | vs KISS-SLAM | "
+        "peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in sorted(results):
+        run = results[key]
+        icp = run.get("kiss_icp") or {}
+        kslam = run.get("kiss_slam") or {}
+        for name in ("kiss_icp", "kiss_slam", "ours"):
+            r = run.get(name)
+            if not r or "skipped" in r or "frames" not in r:
+                continue
+            vs_icp = r["wall_s"] / icp["wall_s"] if icp.get("wall_s") else None
+            vs_slam = r["wall_s"] / kslam["wall_s"] if kslam.get("wall_s") else None
+            lines.append(
+                f"| {key} | {run['code']} | {r['frames']} | {name} | {_f(r['wall_s'])} | "
+                f"{_f(r['fps'], 2)} | {_f(vs_icp, 2)} | {_f(vs_slam, 2)} | "
+                f"{_f(r.get('peak_rss_mb'), 0)} | {_f(r.get('ate_odometry_m'), 3)} | "
+                f"{_f(r.get('ate_slam_m'), 3)} | {_f(run.get('load'), 1)} |"
+            )
+    lines += [
+        "",
+        "Ours, per stage [s] (`map_logging` is the null logger's share), memory and map:",
+        "",
+        "| run | " + " | ".join(STAGES) + " | whole run | RSS at "
+        f"{RSS_EVERY:,}-frame steps [MB] | map.npz [MB] | voxels | mesh accuracy [cm] | "
+        "threads |",
+        "|---|" + "---|" * (len(STAGES) + 6),
+    ]
+    for key in sorted(results):
+        r = results[key].get("ours")
+        if not r:
+            continue
+        cells = [_f(r["stage_s"].get(s, 0.0)) for s in STAGES]
+        rss = ", ".join(f"{k}: {v:.0f}" for k, v in r["rss_mb"].items())
+        lines.append(
+            f"| {key} | " + " | ".join(cells) + f" | {_f(r['wall_s'])} | {rss} | "
+            f"{r['map_npz_mb']:.1f} | {r['map_voxels']:,} | {100 * r['mesh_accuracy_m']:.2f} | "
+            f"{r['threads']} |"
+        )
+    lines += [
+        "",
+        "Micro-benchmarks (`--only micro`): one 640x480 depth frame of the benchmark room "
+        "subsampled to 30,000 points, encoded with Jacobians (V = 0.1 m, median of 5); a room "
+        "map meshed from cold (first `extract_mesh`, torch on 1 thread) and again unchanged.",
+        "",
+        "| run | encode, 1 thread [s] (CPU s) | frames/s | encode, 2 threads [s] | "
+        "mesh voxels | mesh cold [s] (CPU s) | mesh again [s] | load |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for key in sorted(results):
+        m = results[key].get("micro")
+        if not m:
+            continue
+        lines.append(
+            f"| {key} | {m['encode_wall_s_1t']:.3f} ({m['encode_cpu_s_1t']:.3f}) | "
+            f"{1 / m['encode_wall_s_1t']:.2f} | {m['encode_wall_s_2t']:.3f} | "
+            f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
+            f"{m['mesh_again_wall_s']:.3f} | {m['load']:.1f} |"
+        )
+    lines += [
+        "",
+        "RGB-D (`--only rgbd`: bench_slam's room and 7-Scenes scenarios, `NullLogger`):",
+        "",
+        "| run | sequence | frames | frames/s | ATE odometry [m] | ATE SLAM [m] | "
+        "mesh accuracy [cm] | peak RSS [MB] | load |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in sorted(results):
+        rgbd = results[key].get("rgbd")
+        if not rgbd:
+            continue
+        for name in ("room", "7scenes"):
+            r = rgbd.get(name)
+            if not r:
+                continue
+            accuracy = r.get("mesh_accuracy_m")
+            lines.append(
+                f"| {key} | {name} | {r['frames']} | {r['fps']:.2f} | "
+                f"{r['ate_odometry_m']:.4f} | {r['ate_slam_m']:.4f} | "
+                f"{'n/a' if accuracy is None else f'{100 * accuracy:.2f}'} | "
+                f"{r['peak_rss_mb']:.0f} | {rgbd['load']:.1f} |"
+            )
+    lines.append("")
+    REPORT.parent.mkdir(parents=True, exist_ok=True)
+    REPORT.write_text("\n".join(lines))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=FULL_FRAMES, help="first N scans")
+    parser.add_argument("--label", default="after", help="code label of this run")
+    parser.add_argument(
+        "--only", choices=["ours", "kiss_icp", "kiss_slam", "micro", "rgbd"], action="append"
+    )
+    parser.add_argument("--skip-kiss-slam", action="store_true")
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args(argv)
+    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+    if not args.report_only:
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+        key = f"{args.frames} frames, {args.label}"
+        run = results.get(key, {})
+        run.update(
+            code=args.label,
+            date=dt.datetime.now().isoformat(timespec="seconds"),
+            load=os.getloadavg()[0],
+        )
+        methods = args.only or ["kiss_icp", "kiss_slam", "ours"]
+        if args.skip_kiss_slam and "kiss_slam" in methods:
+            methods.remove("kiss_slam")
+        for name in methods:
+            log.info("%s, %d frames", name, args.frames)
+            if name == "kiss_slam":
+                run[name] = scenario_kiss_slam(args.frames)
+            else:
+                fn = {
+                    "ours": scenario_ours,
+                    "kiss_icp": scenario_kiss_icp,
+                    "micro": scenario_micro,
+                    "rgbd": scenario_rgbd,
+                }[name]
+                run[name] = _in_child(fn, args.frames)
+            log.info("%s: %s", name, {k: v for k, v in run[name].items() if k != "stage_s"})
+            # re-read before writing: several invocations may run side by side
+            results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+            merged = results.setdefault(key, {})
+            merged.update({k: run[k] for k in ("code", "date", "load", name)})
+            RESULTS.parent.mkdir(parents=True, exist_ok=True)
+            RESULTS.write_text(json.dumps(results, indent=2, default=str))
+    write_report(results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,40 @@
+"""One thread budget sets torch, KISS-ICP, OpenCV and BLAS together."""
+
+from __future__ import annotations
+
+import torch
+
+from slam.config import RunConfig
+from slam.threads import apply_thread_budget, machine_cores, plan_thread_budget
+
+
+def test_plan_splits_the_budget() -> None:
+    worker = plan_thread_budget(4, map_worker=True)
+    assert (worker.torch, worker.kiss_icp, worker.opencv, worker.blas) == (3, 4, 4, 1)
+    inline = plan_thread_budget(4, map_worker=False)
+    assert inline.torch == 4
+    assert plan_thread_budget(1, map_worker=True).torch == 1
+    assert plan_thread_budget(0, map_worker=False).budget == machine_cores()
+
+
+def test_apply_sets_every_pool() -> None:
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    previous = (torch.get_num_threads(), cv2.getNumThreads())
+    try:
+        cfg = RunConfig.model_validate({"threads": 3, "map_worker": True})
+        plan = apply_thread_budget(cfg)
+        assert torch.get_num_threads() == plan.torch == 2
+        assert cfg.odometry.kiss_icp.max_num_threads == 3
+        assert cv2.getNumThreads() == 3
+        blas = [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+        assert blas and all(n == 1 for n in blas)
+        explicit = RunConfig.model_validate(
+            {"threads": 3, "odometry": {"kiss_icp": {"max_num_threads": 1}}}
+        )
+        apply_thread_budget(explicit)
+        assert explicit.odometry.kiss_icp.max_num_threads == 1  # an explicit setting is kept
+    finally:
+        torch.set_num_threads(previous[0])
+        cv2.setNumThreads(previous[1])
