@@ -229,8 +229,12 @@ def scenario_kiss_slam(num_frames: int) -> dict:
         )
         wall = time.perf_counter() - start
         if run.returncode != 0:
-            last = (run.stderr.strip().splitlines() or ["?"])[-1]
-            return {"skipped": f"KISS-SLAM failed: {last}"}
+            said = [
+                line
+                for line in (run.stderr + run.stdout).strip().splitlines()
+                if not line.startswith(("MAXRSS_KB", "Command exited"))
+            ]
+            return {"skipped": f"KISS-SLAM exited with {run.returncode}: {(said or ['?'])[-1]}"}
         found = sorted(Path(work).rglob("*_poses_kitti.txt"))
         if not found:
             return {"skipped": "KISS-SLAM wrote no poses file"}

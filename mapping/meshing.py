@@ -159,9 +159,14 @@ class ChunkMesher:
         if dirty_voxel_keys.numel() == 0:
             return dirty_voxel_keys
         grid = unpack_keys(dirty_voxel_keys)
-        shifts = _NEIGHBOUR_SHIFTS.to(grid.device)
-        chunk = torch.div(grid.unsqueeze(1) + shifts, self.chunk_voxels, rounding_mode="floor")
-        return torch.unique(pack_keys(chunk.reshape(-1, 3)))
+        # one shift at a time: a (D, 27, 3) array of a whole map is hundreds of MB
+        found = [
+            torch.unique(
+                pack_keys(torch.div(grid + shift, self.chunk_voxels, rounding_mode="floor"))
+            )
+            for shift in _NEIGHBOUR_SHIFTS.to(grid.device)
+        ]
+        return torch.unique(torch.cat(found))
 
     @torch.no_grad()
     def update(self, store: VoxelStore, decoder: Decoder, dirty_voxel_keys: torch.Tensor) -> None:
@@ -213,18 +218,22 @@ class ChunkMesher:
         cs = self.chunk_voxels
         own = torch.div(grid, cs, rounding_mode="floor")
         local = grid - own * cs
-        shifts = _NEIGHBOUR_SHIFTS.to(grid.device)
-        # shift -1 along an axis only for local == 0, +1 only for local == cs - 1
-        ok = (
-            (shifts == 0)
-            | ((shifts == -1) & (local.unsqueeze(1) == 0))
-            | ((shifts == 1) & (local.unsqueeze(1) == cs - 1))
-        ).all(-1)  # (D, 27)
-        voxel = torch.arange(grid.shape[0], device=grid.device).unsqueeze(1).expand_as(ok)[ok]
-        chunk = pack_keys((own.unsqueeze(1) + shifts)[ok])
-        pos = torch.searchsorted(chunks, chunk).clamp_(max=chunks.shape[0] - 1)
-        wanted = chunks[pos] == chunk
-        voxel, chunk = voxel[wanted], chunk[wanted]
+        low, high = local == 0, local == cs - 1
+        voxels, chunk_keys = [], []
+        # one shift at a time (memory O(D), not O(27 D)): shift -1 along an axis only for
+        # local == 0, +1 only for local == cs - 1
+        for shift in _NEIGHBOUR_SHIFTS.tolist():
+            ok = torch.ones(grid.shape[0], dtype=torch.bool, device=grid.device)
+            for axis, step in enumerate(shift):
+                if step:
+                    ok &= (low if step < 0 else high)[:, axis]
+            voxel = ok.nonzero().squeeze(1)
+            chunk = pack_keys(own[voxel] + torch.tensor(shift, device=grid.device))
+            pos = torch.searchsorted(chunks, chunk).clamp_(max=chunks.shape[0] - 1)
+            wanted = chunks[pos] == chunk
+            voxels.append(voxel[wanted])
+            chunk_keys.append(chunk[wanted])
+        voxel, chunk = torch.cat(voxels), torch.cat(chunk_keys)
         order = torch.argsort(voxel)
         order = order[torch.argsort(chunk[order], stable=True)]
         return voxel[order], chunk[order]
