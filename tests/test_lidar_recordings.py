@@ -1,6 +1,6 @@
 """``python -m slam.run lidar PATH --dataloader NAME`` on real files written with the real
-libraries (trimesh PLY scans, a ROS2 bag and an MCAP file with sensor_msgs/PointCloud2 written by
-``rosbags``), made from the first scans of the generated street, run end to end; the estimated
+libraries (trimesh PLY scans, ROS2 and ROS1 bags and an MCAP file with sensor_msgs/PointCloud2
+written by ``rosbags``), made from the first scans of the generated street, run end to end; the estimated
 poses are scored against the generated ground truth.
 """
 
@@ -43,12 +43,13 @@ def _write_ply_folder(folder: Path, scans: list[np.ndarray]) -> None:
         trimesh.PointCloud(points).export(folder / f"{i:06d}.ply")
 
 
-def _pointcloud2(typestore, points: np.ndarray, stamp_ns: int):
+def _pointcloud2(typestore, points: np.ndarray, stamp_ns: int, seq: int | None = None):
     types = typestore.types
-    header = types["std_msgs/msg/Header"](
-        stamp=types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9),
-        frame_id="velodyne",
-    )
+    stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    if seq is None:  # ROS2
+        header = types["std_msgs/msg/Header"](stamp=stamp, frame_id="velodyne")
+    else:  # ROS1 headers carry a sequence number
+        header = types["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id="velodyne")
     field = types["sensor_msgs/msg/PointField"]
     fields = [field(name=n, offset=4 * k, datatype=7, count=1) for k, n in enumerate("xyz")]
     data = np.ascontiguousarray(points, dtype=np.float32).view(np.uint8).reshape(-1)
@@ -85,6 +86,22 @@ def _write_ros2_bag(path: Path, scans: list[np.ndarray], storage: str) -> None:
             writer.write(clouds, stamp, typestore.serialize_cdr(message, msgtype))
             note = typestore.serialize_cdr(string(data=f"scan {i}"), "std_msgs/msg/String")
             writer.write(notes, stamp + 1, note)
+
+
+def _write_ros1_bag(path: Path, scans: list[np.ndarray]) -> None:
+    """A ROS1 ``.bag`` with one PointCloud2 per scan."""
+    pytest.importorskip("rosbags", reason='the rosbag extra: pip install -e ".[rosbag]"')
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS1_NOETIC)
+    msgtype = "sensor_msgs/msg/PointCloud2"
+    with Writer(path) as writer:
+        clouds = writer.add_connection(TOPIC, msgtype, typestore=typestore)
+        for i, points in enumerate(scans):
+            stamp = START_TIME_NS + i * PERIOD_NS
+            message = _pointcloud2(typestore, points, stamp, seq=i)
+            writer.write(clouds, stamp, typestore.serialize_ros1(message, msgtype))
 
 
 def _run(args: list[str], out: Path) -> dict:
@@ -148,19 +165,21 @@ def test_ply_folder_runs_end_to_end(tmp_path: Path, street_scans) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("dataloader", "storage"), [("rosbag", "sqlite3"), ("rosbag", "mcap"), ("mcap", "mcap")]
+    ("dataloader", "storage"),
+    [("rosbag", "sqlite3"), ("rosbag", "mcap"), ("mcap", "mcap"), ("rosbag", "ros1")],
 )
-def test_ros2_bag_runs_end_to_end(
-    tmp_path: Path, street_scans, dataloader: str, storage: str
-) -> None:
+def test_bag_runs_end_to_end(tmp_path: Path, street_scans, dataloader: str, storage: str) -> None:
+    """ROS2 bags (sqlite3, MCAP storage), the standalone MCAP file, and a ROS1 bag."""
     scans, gt = street_scans
-    bag = tmp_path / "recording"
-    _write_ros2_bag(bag, scans, storage)
+    if storage == "ros1":
+        path = tmp_path / "recording.bag"
+        _write_ros1_bag(path, scans)
+    else:
+        path = tmp_path / "recording"  # the ROS2 bag folder
+        _write_ros2_bag(path, scans, storage)
     if dataloader == "mcap":
         pytest.importorskip("mcap_ros2", reason='the mcap extra: pip install -e ".[mcap]"')
-        (path,) = bag.glob("*.mcap")  # the standalone MCAP file
-    else:
-        path = bag  # the ROS2 bag folder
+        (path,) = path.glob("*.mcap")  # the standalone MCAP file inside the bag
     out = tmp_path / "run"
     metrics = _run(["lidar", str(path), "--dataloader", dataloader, "--topic", TOPIC], out)
     assert metrics["num_frames"] == NUM_SCANS
