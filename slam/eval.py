@@ -26,7 +26,7 @@ Where the ground truth comes from, first match wins:
 Culling of ground truth the run never saw (completion only; accuracy always uses the whole
 surface), as the run does (``slam.run_metrics``):
 
-- ``observed`` (default): the ground-truth mesh is subdivided until no edge is longer than half
+- ``observed`` (default): the ground-truth mesh is subdivided until no edge is longer than
   the cull distance, and a face is kept only if its centroid lies within ``--cull-distance-m``
   (default: one map voxel) of the centre of a voxel of the run's saved map (a voxel exists only
   where points were fused), moved into the ground-truth world; ``mesh_unculled`` holds the
