@@ -31,6 +31,7 @@ from frontends.odometry.base import Odometry
 from slam.config import RunConfig
 from slam.loops import LoopCandidate, LoopDetector
 from slam.map_worker import MapWorker
+from slam.memory import release_freed_memory
 from slam.pose_graph import PoseGraph
 from slam.remap import RemapEvent, Remapper
 from slam.submaps import Keyframer, SubmapRecord, transform_points
@@ -268,6 +269,7 @@ class SlamPipeline:
             event = self.remapper.apply(self.submaps, remap_poses, frame_index)
             self._last_remap_moved = event.num_moved > 0
             self.timings_s["remap"].append(time.perf_counter() - start)
+        release_freed_memory()
 
     def _encode(self, record: SubmapRecord, T_W_A: np.ndarray) -> None:
         if len(record.points_A) == 0:
@@ -313,6 +315,7 @@ class SlamPipeline:
         self.worker.close()
         t = self._timed("map_worker_wait", t)
         remap = self.remapper.apply(self.submaps, self.graph.poses(), -1)
+        release_freed_memory()
         self._timed("remap", t)
         self._refresh_graph_inliers()
         self._finished = True
