@@ -16,36 +16,10 @@ import torch
 
 from frontends.sources import make_source
 from slam.builders import build_map
-from slam.config import RunConfig
 from slam.outputs import RunOutputs
 from slam.pipeline import SlamPipeline
 from slam.viz import NullLogger
-from tests.test_pipeline import STREET, DriftingOdometry
-
-
-def _config(map_worker: bool) -> RunConfig:
-    return RunConfig.model_validate(
-        {
-            "submaps": {
-                "max_distance_m": 15.0,
-                "max_rotation_deg": 360.0,
-                "max_frames": 1000,
-                "max_range_m": 25.0,
-                "map_voxel_m": 0.25,
-                "loop_voxel_m": 0.5,
-                "normal_radius_m": 1.0,
-                "max_map_points": 3000,
-            },
-            "loop_closure": {"min_travel_m": 40.0, "lidar": {"proximity_radius_m": 25.0}},
-            "pose_graph": {
-                "odometry_translation_sigma_per_m": 0.01,
-                "odometry_rotation_sigma_rad_per_m": 0.0005,
-            },
-            "mapping": {"voxel_size_m": 0.5, "min_points_per_voxel": 2, "device": "cpu"},
-            "viz": {"mode": "none", "mesh_every_submaps": 10**6, "mesh_after_remap": False},
-            "map_worker": map_worker,
-        }
-    )
+from tests.test_pipeline import STREET, DriftingOdometry, street_config
 
 
 def _map_checksum(pipeline: SlamPipeline) -> str:
@@ -62,7 +36,7 @@ def _map_checksum(pipeline: SlamPipeline) -> str:
 
 
 def _run(map_worker: bool, folder: Path) -> tuple[bytes, bytes, str, int]:
-    cfg = _config(map_worker)
+    cfg = street_config(map_worker=map_worker)
     source = make_source("generated", **STREET)
     odometry = DriftingOdometry(yaw_deg_per_frame=0.015, scale=1.0, up_axis=2)
     pipeline = SlamPipeline(cfg, source.sensor, odometry, build_map(cfg), NullLogger())

@@ -1,7 +1,7 @@
 """``python -m slam.run lidar PATH --dataloader NAME`` on real files written with the real
 libraries (trimesh PLY scans, ROS2 and ROS1 bags and an MCAP file with sensor_msgs/PointCloud2
-written by ``rosbags``), made from the first scans of the generated street, run end to end; the estimated
-poses are scored against the generated ground truth.
+written by ``rosbags``), made from the first scans of the generated street, run end to end; the
+estimated poses are scored against the generated ground truth.
 """
 
 from __future__ import annotations

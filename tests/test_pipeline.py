@@ -175,9 +175,9 @@ def test_a_false_loop_edge_does_not_spoil_the_trajectory(room, room_run):
     assert ate_corrupted <= 1.1 * ate_clean + 1e-3, (ate_corrupted, ate_clean)
 
 
-def test_lidar_loop_is_closed_and_lowers_ate():
-    street = make_source("generated", **STREET)
-    cfg = RunConfig.model_validate(
+def street_config(**top_level) -> RunConfig:
+    """The generated street's LiDAR setup (15 m submaps, 0.5 m map voxels, proximity loops)."""
+    return RunConfig.model_validate(
         {
             "submaps": {
                 "max_distance_m": 15.0,
@@ -198,8 +198,14 @@ def test_lidar_loop_is_closed_and_lowers_ate():
             },
             "mapping": {"voxel_size_m": 0.5, "min_points_per_voxel": 2, "device": "cpu"},
             "viz": {"mode": "none", "mesh_every_submaps": 10**6, "mesh_after_remap": False},
+            **top_level,
         }
     )
+
+
+def test_lidar_loop_is_closed_and_lowers_ate():
+    street = make_source("generated", **STREET)
+    cfg = street_config()
     odometry = DriftingOdometry(yaw_deg_per_frame=0.015, scale=1.0, up_axis=2)
     pipeline = run(cfg, street, odometry)
     kept = [c for c in pipeline.loop_candidates if c.accepted and c.graph_inlier]
