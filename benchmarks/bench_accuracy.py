@@ -306,6 +306,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS / "accuracy.md")
     parser.add_argument("--only", choices=sorted(SCENARIOS), action="append")
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument(
+        "--quick", action="store_true", help="the generated room only (run_all --quick)"
+    )
     parser.add_argument("--revision", help="revision name to record (default: git describe)")
     parser.add_argument(
         "--override",
@@ -325,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         runs = saved["runs"].setdefault(args.label, {})
         runs["_revision"] = args.revision or _revision()
         runs["_date"] = dt.datetime.now().isoformat(timespec="seconds")
-        for key in args.only or sorted(SCENARIOS):
+        for key in args.only or (["room"] if args.quick else sorted(SCENARIOS)):
             _title, config_name, overrides, dataset = SCENARIOS[key]
             if dataset == "7scenes" and not (DATA / "7scenes_redkitchen").is_dir():
                 log.warning("no 7-Scenes data under %s: skipped", DATA)

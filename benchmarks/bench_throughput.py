@@ -1,6 +1,6 @@
 """LiDAR throughput: KISS-ICP alone, KISS-SLAM and ours on the same generated KITTI-00 scans.
 
-    python -m benchmarks.bench_throughput [--frames N] [--label after] [--skip-kiss-slam]
+    python -m benchmarks.bench_throughput [--frames N] [--label after] [--skip-kiss-slam] [--quick]
     python -m benchmarks.bench_throughput --report-only
 
 The sequence is the 64-beam LiDAR simulated along all 4,541 poses of the real KITTI 00 trajectory
@@ -40,6 +40,7 @@ KITTI_CALIB = DATA / "kitti" / "sequences" / "00" / "calib.txt"
 KISS_SLAM_VENV = Path("/tmp/kissslam-venv")
 FULL_FRAMES = 4541
 RSS_EVERY = 1000
+QUICK_FRAMES = 300
 RESULTS = REPO / "benchmarks" / "results" / "throughput.json"
 REPORT = REPO / "benchmarks" / "results" / "throughput.md"
 STAGES = (
@@ -446,7 +447,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--skip-kiss-slam", action="store_true")
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"the first {QUICK_FRAMES} scans, KISS-ICP and ours only (run_all --quick)",
+    )
     args = parser.parse_args(argv)
+    if args.quick:
+        args.frames = min(args.frames, QUICK_FRAMES)
+        args.skip_kiss_slam = True
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
     if not args.report_only:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
