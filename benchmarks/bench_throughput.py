@@ -348,7 +348,9 @@ def write_report(results: dict) -> None:
         "2 cores shared with other jobs (the load average is part of each row). Ours includes "
         "reading the scans, the final optimisation, the final mesh and writing `map.npz`; "
         "KISS-ICP alone is reading + `register_frame`; KISS-SLAM is its `kiss_slam_pipeline` "
-        "process (0.0.2, default config).",
+        "process (0.0.2, default config). Ours' peak RSS is taken before its mesh is scored "
+        "against ground truth (evaluation, not SLAM; `peak_rss_with_scoring_mb` in "
+        "throughput.json).",
         "",
         "| run | code | frames | method | wall [s] | frames/s | vs KISS-ICP | vs KISS-SLAM | "
         "peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load |",
@@ -372,7 +374,9 @@ def write_report(results: dict) -> None:
             )
     lines += [
         "",
-        "Ours, per stage [s] (`map_logging` is the null logger's share), memory and map:",
+        "Ours, per stage [s] (`map_logging` is the null logger's share; with the map worker, "
+        "mapping and remap run on a second thread, overlapped with odometry, so the stages can "
+        "add up to more than the whole run), memory and map:",
         "",
         "| run | " + " | ".join(STAGES) + " | whole run | RSS at "
         f"{RSS_EVERY:,}-frame steps [MB] | map.npz [MB] | voxels | mesh accuracy [cm] | "
