@@ -414,6 +414,11 @@ def write_report(results: dict) -> None:
             f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
             f"{m['mesh_again_wall_s']:.3f} | {m['load']:.1f} |"
         )
+    if not any(results[key].get("rgbd") for key in results):
+        lines.append("")
+        REPORT.parent.mkdir(parents=True, exist_ok=True)
+        REPORT.write_text("\n".join(lines))
+        return
     lines += [
         "",
         "RGB-D (`--only rgbd`: bench_slam's room and 7-Scenes scenarios, `NullLogger`):",
