@@ -414,19 +414,15 @@ def write_report(results: dict) -> None:
             f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
             f"{m['mesh_again_wall_s']:.3f} | {m['load']:.1f} |"
         )
-    if not any(results[key].get("rgbd") for key in results):
-        lines.append("")
-        REPORT.parent.mkdir(parents=True, exist_ok=True)
-        REPORT.write_text("\n".join(lines))
-        return
-    lines += [
-        "",
-        "RGB-D (`--only rgbd`: bench_slam's room and 7-Scenes scenarios, `NullLogger`):",
-        "",
-        "| run | sequence | frames | frames/s | ATE odometry [m] | ATE SLAM [m] | "
-        "mesh accuracy [cm] | peak RSS [MB] | load |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
+    lines += _rgbd_lines(results)
+    lines.append("")
+    REPORT.parent.mkdir(parents=True, exist_ok=True)
+    REPORT.write_text("\n".join(lines))
+
+
+def _rgbd_lines(results: dict) -> list[str]:
+    """The RGB-D table of ``--only rgbd`` runs; nothing when there are none."""
+    rows = []
     for key in sorted(results):
         rgbd = results[key].get("rgbd")
         if not rgbd:
@@ -436,15 +432,23 @@ def write_report(results: dict) -> None:
             if not r:
                 continue
             accuracy = r.get("mesh_accuracy_m")
-            lines.append(
+            rows.append(
                 f"| {key} | {name} | {r['frames']} | {r['fps']:.2f} | "
                 f"{r['ate_odometry_m']:.4f} | {r['ate_slam_m']:.4f} | "
                 f"{'n/a' if accuracy is None else f'{100 * accuracy:.2f}'} | "
                 f"{r['peak_rss_mb']:.0f} | {rgbd['load']:.1f} |"
             )
-    lines.append("")
-    REPORT.parent.mkdir(parents=True, exist_ok=True)
-    REPORT.write_text("\n".join(lines))
+    if not rows:
+        return []
+    return [
+        "",
+        "RGB-D (`--only rgbd`: bench_slam's room and 7-Scenes scenarios, `NullLogger`):",
+        "",
+        "| run | sequence | frames | frames/s | ATE odometry [m] | ATE SLAM [m] | "
+        "mesh accuracy [cm] | peak RSS [MB] | load |",
+        "|---|---|---|---|---|---|---|---|---|",
+        *rows,
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:
