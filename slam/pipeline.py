@@ -174,8 +174,7 @@ class SlamPipeline:
 
         closed, current, T_A_S = self.keyframer.add(self._map_frame(frame), T_W_S_odometry)
         if current.submap_id not in self.graph:
-            take_covariance = getattr(self.odometry, "take_covariance", None)
-            covariance = take_covariance() if take_covariance is not None else None
+            covariance = self.odometry.take_covariance()
             self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, covariance)
         self._timed("keyframing", t)
 

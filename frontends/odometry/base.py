@@ -27,6 +27,11 @@ class Odometry(ABC):
     def register(self, frame: Frame) -> np.ndarray:
         """Consume the next frame and return its 4x4 float64 pose ``T_W_S``."""
 
+    def take_covariance(self) -> np.ndarray | None:
+        """6x6 covariance (GTSAM order ``[rx, ry, rz, tx, ty, tz]``) of the motion registered
+        since the last call, and start a new interval; None when the odometry gives none."""
+        return None
+
 
 def register_odometry(name: str) -> Callable[[type[Odometry]], type[Odometry]]:
     """Class decorator adding an odometry to :data:`ODOMETRIES` under ``name``."""
