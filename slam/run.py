@@ -368,7 +368,7 @@ def execute(
     odometry = build_odometry(cfg, sensor)
     neural_map = build_map(cfg)
     viz = build_logger(cfg, sensor, outputs.recording_path)
-    viewer_url = getattr(viz, "viewer_url", None)
+    viewer_url = viz.viewer_url
     if viewer_url:
         say(f"viewer: {viewer_url}")
     pipeline = SlamPipeline(cfg, sensor, odometry, neural_map, viz)

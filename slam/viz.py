@@ -19,6 +19,9 @@ from frontends.frame import Intrinsics
 class Logger(ABC):
     """What a run reports. All poses are 4x4 float64 ``T_W_*``, all points in the world frame."""
 
+    viewer_url: str | None = None
+    """The page a user opens to watch the run live (a served web viewer), else None."""
+
     @abstractmethod
     def set_time(self, frame_index: int, timestamp_s: float) -> None:
         """Set the current time on the ``frame`` and ``sensor_time`` timelines."""
