@@ -254,7 +254,9 @@ def scenario_kiss_slam(num_frames: int) -> dict:
 
 
 def scenario_micro(_: int) -> dict:
-    """Encode one 30k-point depth frame with Jacobians; mesh a ~20k-voxel room map from cold."""
+    """Encode one 30k-point depth frame with Jacobians (eager, and compiled: the first call with
+    its compile time, then steady state, and the largest per-voxel relative difference to eager);
+    mesh a ~20k-voxel room map from cold (1 thread)."""
     import torch
 
     from benchmarks.bench_mapping import V, depth_frame_points, room_mesh, sample_surface
@@ -263,6 +265,19 @@ def scenario_micro(_: int) -> dict:
     from mapping.networks import load_default_prior
     from mapping.neural_map import NeuralMap
 
+    def timed(fn, repeats: int = 5) -> tuple[float, float]:
+        walls, cpus = [], []
+        for _ in range(repeats):
+            t, c = time.perf_counter(), time.process_time()
+            fn()
+            walls.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
+        return float(np.median(walls)), float(np.median(cpus))
+
+    def rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
+        scale = b.flatten(1).norm(dim=1).clamp_min(1e-12)
+        return float(((a - b).flatten(1).norm(dim=1) / scale).max())
+
     model = load_default_prior().eval()
     room = room_mesh((5.0, 4.0, 2.6))
     points, normals, _ = depth_frame_points(room, keep=30000)
@@ -270,21 +285,29 @@ def scenario_micro(_: int) -> dict:
     out: dict[str, Any] = {"encode_points": len(points)}
     for threads in (1, 2):
         torch.set_num_threads(threads)
-        encode_points(model, p, n, V)
-        walls, cpus = [], []
-        for _ in range(5):
-            t, c = time.perf_counter(), time.process_time()
-            block = encode_points(model, p, n, V)
-            walls.append(time.perf_counter() - t)
-            cpus.append(time.process_time() - c)
-        out[f"encode_wall_s_{threads}t"] = float(np.median(walls))
-        out[f"encode_cpu_s_{threads}t"] = float(np.median(cpus))
+        block = encode_points(model, p, n, V)
+        wall, cpu = timed(lambda: encode_points(model, p, n, V))
+        out[f"encode_wall_s_{threads}t"], out[f"encode_cpu_s_{threads}t"] = wall, cpu
     out["encode_voxels"] = block.num_voxels
     torch.set_num_threads(1)
+    out["encode_nojac_wall_s_1t"] = timed(
+        lambda: encode_points(model, p, n, V, with_jacobian=False)
+    )[0]
+    t = time.perf_counter()
+    compiled = encode_points(model, p, n, V, compiled=True)
+    out["encode_compiled_first_call_s"] = time.perf_counter() - t  # includes compiling
+    out["encode_compiled_latent_rel_diff"] = rel_diff(compiled.latents, block.latents)
+    out["encode_compiled_jacobian_rel_diff"] = rel_diff(compiled.jacobians, block.jacobians)
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        wall, cpu = timed(lambda: encode_points(model, p, n, V, compiled=True))
+        out[f"encode_compiled_wall_s_{threads}t"] = wall
+        out[f"encode_compiled_cpu_s_{threads}t"] = cpu
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
     surface, surface_normals = sample_surface(room, 1500, seed=1)
+    submap = NeuralMap(cfg, model).encode(0, surface, surface_normals, np.eye(4))
+    torch.set_num_threads(1)
     neural_map = NeuralMap(cfg, model)
-    submap = neural_map.encode(0, surface, surface_normals, np.eye(4))
     neural_map.fuse(submap)
     t, c = time.perf_counter(), time.process_time()
     mesh = neural_map.extract_mesh()
@@ -414,6 +437,32 @@ def write_report(results: dict) -> None:
             f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
             f"{m['mesh_again_wall_s']:.3f} | {m['load']:.1f} |"
         )
+    compiled = [
+        k for k in sorted(results) if "encode_compiled_wall_s_1t" in results[k].get("micro", {})
+    ]
+    if compiled:
+        lines += [
+            "",
+            "The same frame through `encode_points(..., compiled=True)` (torch.compile, inductor): "
+            "the first call includes compiling (shorter when inductor's on-disk cache is warm); "
+            "rel. diff = largest per-voxel relative difference to the eager result.",
+            "",
+            "| run | encode no Jacobian, 1 thread [s] | compiled first call [s] | "
+            "compiled, 1 thread [s] (CPU s) | frames/s | compiled, 2 threads [s] | "
+            "rel. diff latents / Jacobians | mesh cold, 2 threads [s] | load |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for key in compiled:
+            m = results[key]["micro"]
+            lines.append(
+                f"| {key} | {m['encode_nojac_wall_s_1t']:.3f} | "
+                f"{m['encode_compiled_first_call_s']:.1f} | "
+                f"{m['encode_compiled_wall_s_1t']:.3f} ({m['encode_compiled_cpu_s_1t']:.3f}) | "
+                f"{1 / m['encode_compiled_wall_s_1t']:.2f} | "
+                f"{m['encode_compiled_wall_s_2t']:.3f} | "
+                f"{m['encode_compiled_latent_rel_diff']:.1e} / "
+                f"{m['encode_compiled_jacobian_rel_diff']:.1e} | {m['load']:.1f} |"
+            )
     lines += _rgbd_lines(results)
     lines.append("")
     REPORT.parent.mkdir(parents=True, exist_ok=True)
