@@ -449,8 +449,8 @@ def write_report(results: dict) -> None:
             "",
             "| run | encode no Jacobian, 1 thread [s] | compiled first call [s] | "
             "compiled, 1 thread [s] (CPU s) | frames/s | compiled, 2 threads [s] | "
-            "rel. diff latents / Jacobians | mesh cold, 2 threads [s] | load |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "rel. diff latents / Jacobians | load |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for key in compiled:
             m = results[key]["micro"]
