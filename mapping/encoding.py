@@ -24,6 +24,7 @@ with inductor's on-disk cache); the result equals the eager path to float roundi
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 
 import torch
@@ -32,6 +33,8 @@ from torch import nn
 from mapping import networks
 from mapping.networks import PointEncoder, PriorModel, VNLeakyReLU, VNLinear
 from mapping.voxel_block import VoxelBlock, pack_keys, unpack_keys
+
+log = logging.getLogger(__name__)
 
 ENCODE_CHUNK = 4096
 _COMPILE_BACKEND = "inductor"  # tests swap in "eager" to check the padding without compiling
@@ -280,7 +283,7 @@ def _chunk_features(
     compiled: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`point_features` of one chunk; the compiled path pads it to ``chunk`` rows."""
-    if not compiled:
+    if not compiled or encoder.__dict__.get("_compile_failed", False):
         h, dh, _ = point_features(encoder, r, n, with_jacobian)
         return h, dh
     rows = r.shape[0]
@@ -292,10 +295,14 @@ def _chunk_features(
     try:
         h, dh = _compiled_point_features(encoder, with_jacobian)(r, n)
     except Exception as exc:  # a missing C++ compiler etc. surfaces here, on the first call
-        raise RuntimeError(
-            f"encode_points: torch.compile of the encoder failed ({exc.__class__.__name__}: "
-            f"{str(exc).splitlines()[0] if str(exc) else ''}); encode with compiled=False"
-        ) from exc
+        log.warning(
+            "torch.compile of the point encoder failed (%s: %s); encoding eagerly from now on "
+            "(set mapping.encoder_compiled=false to skip the attempt)",
+            exc.__class__.__name__,
+            str(exc).splitlines()[0] if str(exc) else "",
+        )
+        encoder.__dict__["_compile_failed"] = True
+        return _chunk_features(encoder, r[:rows], n[:rows], with_jacobian, chunk, False)
     return h[:rows], None if dh is None else dh[:rows]
 
 

@@ -114,6 +114,7 @@ class NeuralMap:
             torch.from_numpy(normals_W[good] / norm[good]),
             self.voxel_size_m,
             min_points_per_voxel=self.cfg.min_points_per_voxel,
+            compiled=self.cfg.encoder_compiled,
         )
         return Submap(
             submap_id=int(submap_id),

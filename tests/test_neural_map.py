@@ -125,6 +125,26 @@ def test_compiled_encoding_pads_chunks_and_matches_eager(monkeypatch) -> None:
     assert eager.jacobians.abs().max() > 1e-3
 
 
+def test_compiled_encoding_falls_back_to_eager_when_compiling_fails(monkeypatch, caplog) -> None:
+    """A backend that cannot compile (as without a C++ compiler) costs a warning, not the run:
+    the block equals the eager one and later calls do not try again."""
+    from mapping import encoding
+
+    monkeypatch.setattr(encoding, "_COMPILE_BACKEND", "no-such-backend")
+    model = _random_model(3)
+    points, normals = _sphere(300)
+    pts, nrm = torch.from_numpy(points), torch.from_numpy(normals)
+    eager = encode_points(model, pts, nrm, V)
+    with caplog.at_level("WARNING", logger="mapping.encoding"):
+        first = encode_points(model, pts, nrm, V, compiled=True)
+        second = encode_points(model, pts, nrm, V, compiled=True)
+    assert sum("encoding eagerly" in r.getMessage() for r in caplog.records) == 1
+    for block in (first, second):
+        assert torch.equal(block.keys, eager.keys)
+        assert torch.equal(block.latents, eager.latents)
+        assert torch.equal(block.jacobians, eager.jacobians)
+
+
 @pytest.mark.parametrize("moves", [0, 2])
 def test_fuse_then_remove_restores_the_map(moves: int) -> None:
     """The placed block is not stored: removal recomputes it and must subtract exactly what was
