@@ -94,8 +94,8 @@ def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
     safe_p = np.where(p > 0, p, 1.0)
     ba, bb, bc = (a - q) / safe_p, (b - q) / safe_p, (c - q) / safe_p
     bd, be, bf = d / safe_p, e / safe_p, f / safe_p
-    half_det = 0.5 * (ba * (bb * bc - bf * bf) - bd * (bd * bc - bf * be) + be * (bd * bf - bb * be))
-    phi = np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0
+    det = ba * (bb * bc - bf * bf) - bd * (bd * bc - bf * be) + be * (bd * bf - bb * be)
+    phi = np.arccos(np.clip(0.5 * det, -1.0, 1.0)) / 3.0
     smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
     middle = q + 2.0 * p * np.cos(phi - 2.0 * np.pi / 3.0)
     rows = cov - smallest[:, None, None] * np.eye(3)
