@@ -135,3 +135,23 @@ def test_keyframer_keeps_points_within_the_range_limits_inclusive() -> None:
     expected = points[1:4]
     order = np.argsort(voxel_keys(expected, cfg.map_voxel_m))
     np.testing.assert_allclose(kept, expected[order], atol=1e-12)
+
+
+def test_a_scan_is_averaged_over_the_voxels_of_the_anchor_frame() -> None:
+    rng = np.random.default_rng(11)
+    cfg = _cfg(min_range_m=1.0, max_range_m=20.0, map_voxel_m=0.35)
+    scans = [rng.uniform(-25.0, 25.0, size=(30_000, 3)) for _ in range(2)]
+    T_A_S = np.eye(4)
+    T_A_S[:3, :3] = [[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]]
+    T_A_S[:3, 3] = [3.0, -1.0, 0.2]
+    keyframer = Keyframer(cfg)
+    keyframer.add(Frame(index=0, timestamp=0.0, points=scans[0]), np.eye(4))
+    keyframer.add(Frame(index=1, timestamp=0.1, points=scans[1]), T_A_S)
+    for (points_A, _, viewpoint_A), scan, T in zip(
+        keyframer._chunks, scans, [np.eye(4), T_A_S], strict=True
+    ):
+        ranges = np.linalg.norm(scan, axis=1)
+        in_range = scan[(ranges >= 1.0) & (ranges <= 20.0)]
+        (expected,) = voxel_downsample(0.35, transform_points(T, in_range))
+        np.testing.assert_allclose(points_A, expected, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(viewpoint_A, np.tile(T[:3, 3], (len(expected), 1)))
