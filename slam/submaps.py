@@ -292,9 +292,9 @@ class Keyframer:
             self._compact()
 
     def _scan_voxel_means(self, points_S: np.ndarray, T_A_S: np.ndarray) -> np.ndarray:
-        """``voxel_downsample`` of the scan moved into the anchor frame, computed on (3, N)
-        coordinate rows, where every step runs over contiguous memory (about 2 ms less per
-        126k-point scan than on (N, 3) points; same values)."""
+        """``voxel_downsample(transform_points(T_A_S, points_S))`` computed on (3, N) coordinate
+        rows, where every step runs over contiguous memory: about 2 ms less per 126k-point scan.
+        The values agree to rounding (bit for bit with single-threaded OpenBLAS)."""
         columns_A = T_A_S[:3, :3] @ points_S.T
         columns_A += T_A_S[:3, 3:]
         inverse, counts = _column_voxel_groups(columns_A, self.cfg.map_voxel_m)
