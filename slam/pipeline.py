@@ -153,16 +153,19 @@ class SlamPipeline:
         return now
 
     def _map_frame(self, frame: Frame) -> Frame:
-        """The frame whose points go into the map: the odometry's deskewed scan when it has one."""
-        deskewed = getattr(self.odometry, "last_points", None)
-        if frame.normals is None and deskewed is not None and len(deskewed) > 0:
-            return Frame(
-                index=frame.index,
-                timestamp=frame.timestamp,
-                points=np.asarray(deskewed, dtype=np.float64),
-                T_W_S_gt=frame.T_W_S_gt,
-            )
-        return frame
+        """The frame whose points go into the map: the odometry's :meth:`Odometry.map_points`
+        (e.g. KISS-ICP's deskewed scan) for frames without normals of their own."""
+        if frame.normals is not None:
+            return frame
+        points = self.odometry.map_points(frame)
+        if points is frame.points:
+            return frame
+        return Frame(
+            index=frame.index,
+            timestamp=frame.timestamp,
+            points=np.asarray(points, dtype=np.float64),
+            T_W_S_gt=frame.T_W_S_gt,
+        )
 
     def process(self, frame: Frame) -> FrameResult:
         """Consume the next frame."""

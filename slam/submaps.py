@@ -47,7 +47,10 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
 
 def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Points from frame b to frame a."""
-    return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+    points_a = points_b @ T_a_b[:3, :3].T
+    for axis in range(3):  # column by column: broadcasting over rows of 3 is ~5x slower
+        points_a[:, axis] += T_a_b[axis, 3]
+    return points_a
 
 
 def voxel_keys(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -57,21 +60,65 @@ def voxel_keys(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
     return (grid[:, 0] << 42) | (grid[:, 1] << 21) | grid[:, 2]
 
 
+GRID_HALF_EXTENT = 1 << 20
+"""Voxel indices per axis that :func:`voxel_keys` keeps apart (it clips beyond +-2**20)."""
+
+DENSE_GROUPING_CELLS_PER_POINT = 8
+""":func:`voxel_groups` counts the points into the cells of their bounding box when it holds at
+most this many cells per point (one KITTI scan within 30 m at 0.35 m: ~2), and sorts their keys
+otherwise (counting costs about as much per cell as sorting per point)."""
+
+
+def voxel_groups(points: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel of every point: ``(inverse, counts)``.
+
+    Voxels are numbered in increasing :func:`voxel_keys` order, so this equals
+    ``np.unique(voxel_keys(points, voxel_size_m), return_inverse=True, return_counts=True)[1:]``.
+    Where the bounding box of the points holds few enough cells (one LiDAR scan, one submap) the
+    points are counted into those cells in linear time instead of sorting their keys, which was
+    the largest cost of keyframing a 126k-point scan.
+    """
+    return _column_voxel_groups(np.asarray(points, dtype=np.float64).T, voxel_size_m)
+
+
+def _column_voxel_groups(columns: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`voxel_groups` of points given as (3, N) coordinate rows."""
+    grid = [np.floor(column / voxel_size_m).astype(np.int64) for column in columns]
+    low = [int(g.min()) for g in grid]
+    high = [int(g.max()) for g in grid]
+    dims = [h - lo + 1 for lo, h in zip(low, high, strict=True)]
+    cells = dims[0] * dims[1] * dims[2]
+    inside = min(low) >= -GRID_HALF_EXTENT and max(high) < GRID_HALF_EXTENT
+    if not inside or cells > DENSE_GROUPING_CELLS_PER_POINT * columns.shape[1]:
+        _, inverse, counts = np.unique(
+            voxel_keys(columns.T, voxel_size_m), return_inverse=True, return_counts=True
+        )
+        return inverse.ravel(), counts
+    cell = grid[0] - low[0]
+    cell *= dims[1]
+    cell += grid[1] - low[1]
+    cell *= dims[2]
+    cell += grid[2] - low[2]
+    cell_counts = np.bincount(cell, minlength=cells)
+    occupied = np.flatnonzero(cell_counts)
+    voxel_of_cell = np.empty(cells, dtype=np.intp)
+    voxel_of_cell[occupied] = np.arange(len(occupied))
+    return voxel_of_cell[cell], cell_counts[occupied]
+
+
 def voxel_downsample(
     voxel_size_m: float, points: np.ndarray, *attributes: np.ndarray
 ) -> tuple[np.ndarray, ...]:
     """Average points (and per-point float attributes) over the voxels of a grid.
 
-    Returns ``(points, *attributes)`` with one row per occupied voxel. An attribute that is the
-    same for every row (a broadcast array, e.g. one viewpoint per frame) or all zero (LiDAR
-    frames carry no normals) is not averaged: its mean is that row.
+    Returns ``(points, *attributes)`` with one row per occupied voxel, in increasing
+    :func:`voxel_keys` order. An attribute that is the same for every row (a broadcast array,
+    e.g. one viewpoint per frame) or all zero (LiDAR frames carry no normals) is not averaged:
+    its mean is that row.
     """
     if len(points) == 0:
         return (points, *attributes)
-    _, inverse, counts = np.unique(
-        voxel_keys(points, voxel_size_m), return_inverse=True, return_counts=True
-    )
-    inverse = inverse.ravel()
+    inverse, counts = voxel_groups(points, voxel_size_m)
     out = []
     for array in (points, *attributes):
         if array is not points and (array.strides[0] == 0 or not array.any()):
@@ -214,12 +261,14 @@ class Keyframer:
 
     def _frame_points(self, frame: Frame) -> tuple[np.ndarray, np.ndarray | None]:
         points = np.asarray(frame.points, dtype=np.float64)
-        normals = frame.normals
-        ranges = np.linalg.norm(points, axis=1)
+        squares = points * points
+        # the same sum as np.linalg.norm(points, axis=1), without its slow (N, 3) reduction
+        ranges = np.sqrt(squares[:, 0] + squares[:, 1] + squares[:, 2])
         keep = (ranges >= self.cfg.min_range_m) & (ranges <= self.cfg.max_range_m)
-        points = points[keep]
+        points = np.compress(keep, points, axis=0)
+        normals = frame.normals
         if normals is not None:
-            normals = np.asarray(normals, dtype=np.float64)[keep]
+            normals = np.compress(keep, np.asarray(normals, dtype=np.float64), axis=0)
         return points, normals
 
     def _accumulate(self, frame: Frame, T_A_S: np.ndarray) -> None:
@@ -228,19 +277,29 @@ class Keyframer:
             return
         if normals_S is None:
             self._has_normals = False
-            normals_S = np.zeros_like(points_S)
-        points_A = transform_points(T_A_S, points_S)
-        normals_A = normals_S @ T_A_S[:3, :3].T
-        viewpoint_A = np.broadcast_to(T_A_S[:3, 3], points_A.shape)
-        points_A, normals_A, viewpoint_A = voxel_downsample(
-            self.cfg.map_voxel_m, points_A, normals_A, viewpoint_A
-        )
+            points_A = self._scan_voxel_means(points_S, T_A_S)
+            normals_A = np.zeros_like(points_A)
+        else:
+            points_A = transform_points(T_A_S, points_S)
+            normals_A = normals_S @ T_A_S[:3, :3].T
+            points_A, normals_A = voxel_downsample(self.cfg.map_voxel_m, points_A, normals_A)
+        viewpoint_A = np.repeat(T_A_S[None, :3, 3], len(points_A), axis=0)
         if self.cfg.max_surface_views is not None:
             self._track_surface(points_A)
         self._chunks.append((points_A, normals_A, viewpoint_A))
         self._accumulated += len(points_A)
         if len(self._chunks) > 1 and self._accumulated > self.cfg.compact_every_points:
             self._compact()
+
+    def _scan_voxel_means(self, points_S: np.ndarray, T_A_S: np.ndarray) -> np.ndarray:
+        """``voxel_downsample(transform_points(T_A_S, points_S))`` computed on (3, N) coordinate
+        rows, where every step runs over contiguous memory: about 2 ms less per 126k-point scan.
+        The values agree to rounding (bit for bit with single-threaded OpenBLAS)."""
+        columns_A = T_A_S[:3, :3] @ points_S.T
+        columns_A += T_A_S[:3, 3:]
+        inverse, counts = _column_voxel_groups(columns_A, self.cfg.map_voxel_m)
+        sums = [np.bincount(inverse, weights=row, minlength=len(counts)) for row in columns_A]
+        return np.stack(sums, axis=1) / counts[:, None]
 
     def _track_surface(self, points_A: np.ndarray) -> None:
         """Grow the set of surface cells the submap covers, and its largest single view."""

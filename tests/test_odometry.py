@@ -215,14 +215,20 @@ def test_kiss_icp_recovers_a_known_motion_of_a_synthetic_scene() -> None:
     scene = trimesh.util.concatenate([box, *pillars])
     points_W, _ = trimesh.sample.sample_surface(scene, 60_000, seed=1)
     step = _se3((0.0, 0.0, 0.02), (0.5, 0.1, 0.0))
-    odometry = KissIcpOdometry(max_range_m=60.0, deskew=False)
+    odometry = KissIcpOdometry(max_range_m=60.0, min_range_m=3.0, deskew=False)
     T_W_S = np.eye(4)
     for i in range(6):
         points_S = (points_W - T_W_S[:3, 3]) @ T_W_S[:3, :3]
-        est = odometry.register(Frame(i, 0.1 * i, points_S))
+        frame = Frame(i, 0.1 * i, points_S)
+        est = odometry.register(frame)
         np.testing.assert_allclose(est[:3, 3], T_W_S[:3, 3], atol=0.02)
         assert _angle_deg(np.linalg.inv(T_W_S) @ est) < 0.2
         T_W_S = T_W_S @ step
+        # the map gets the scan KISS-ICP registered: the frame's points within its range limits
+        ranges = np.linalg.norm(points_S, axis=1)
+        map_points = odometry.map_points(frame)
+        assert len(map_points) == np.count_nonzero((ranges > 3.0) & (ranges < 60.0))
+        assert np.linalg.norm(map_points, axis=1).min() > 3.0
 
 
 def test_kiss_icp_empty_scan_names_the_frame() -> None:
@@ -255,6 +261,9 @@ def test_ground_truth_odometry_is_relative_to_the_first_frame() -> None:
     est = [odometry.register(Frame(i, 0.0, np.zeros((0, 3)), T_W_S_gt=T)) for i, T in enumerate(gt)]
     np.testing.assert_allclose(est[0], np.eye(4), atol=1e-12)
     np.testing.assert_allclose(est[1], np.linalg.inv(gt[0]) @ gt[1], atol=1e-12)
+    frame = Frame(1, 0.0, np.ones((4, 3)), T_W_S_gt=gt[1])
+    odometry.register(frame)
+    assert odometry.map_points(frame) is frame.points  # the map gets the frame's own points
     with pytest.raises(DatasetError, match="frame 2: the source has no ground-truth pose"):
         odometry.register(Frame(2, 0.0, np.zeros((0, 3))))
 

@@ -1,12 +1,20 @@
-"""Keyframing policies: when a submap closes."""
+"""Keyframing: when a submap closes, and how its points are gathered."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from frontends.frame import Frame
 from slam.config import SubmapConfig
-from slam.submaps import Keyframer
+from slam.submaps import (
+    DENSE_GROUPING_CELLS_PER_POINT,
+    Keyframer,
+    transform_points,
+    voxel_downsample,
+    voxel_groups,
+    voxel_keys,
+)
 
 
 def _wall_view(index: int, half_width_m: float = 0.5) -> Frame:
@@ -56,3 +64,94 @@ def test_a_sweeping_sensor_closes_once_it_covers_the_surface_budget() -> None:
     # a larger budget gives proportionally longer submaps
     longer = _closing_frames(_cfg(max_frames=1000, max_surface_views=3.0), 0.05, 80)
     assert len(longer) < len(closed_at)
+
+
+def _reference_downsample(voxel_size_m: float, points: np.ndarray, normals: np.ndarray):
+    """The sorting implementation the keyframer used before counting into cells."""
+    _, inverse, counts = np.unique(
+        voxel_keys(points, voxel_size_m), return_inverse=True, return_counts=True
+    )
+    means = []
+    for array in (points, normals):
+        sums = [np.bincount(inverse, weights=array[:, k]) for k in range(3)]
+        means.append(np.stack(sums, axis=1) / counts[:, None])
+    return means
+
+
+@pytest.mark.parametrize(
+    ("spread_m", "voxel_size_m", "dense"),
+    [(10.0, 0.35, True), (2.0, 0.05, True), (300.0, 0.05, False), (1e6, 0.35, False)],
+)
+def test_voxel_grouping_equals_sorting_the_voxel_keys(spread_m, voxel_size_m, dense) -> None:
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-spread_m, spread_m, size=(20_000, 3))
+    points[:, 2] *= 0.1  # flat, like a scan
+    # points on cell borders and duplicates
+    points[:100] = np.round(points[:100] / voxel_size_m) * voxel_size_m
+    points[100:200] = points[:100]
+    low = np.floor(points.min(axis=0) / voxel_size_m)
+    cells = np.prod(np.floor(points.max(axis=0) / voxel_size_m) - low + 1)
+    assert (cells <= DENSE_GROUPING_CELLS_PER_POINT * len(points)) == dense  # both ways tested
+
+    inverse, counts = voxel_groups(points, voxel_size_m)
+    _, ref_inverse, ref_counts = np.unique(
+        voxel_keys(points, voxel_size_m), return_inverse=True, return_counts=True
+    )
+    assert np.array_equal(inverse, ref_inverse.ravel())
+    assert np.array_equal(counts, ref_counts)
+
+    normals = rng.normal(size=points.shape)
+    means, mean_normals = voxel_downsample(voxel_size_m, points, normals)
+    ref_means, ref_normals = _reference_downsample(voxel_size_m, points, normals)
+    np.testing.assert_allclose(means, ref_means, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(mean_normals, ref_normals, rtol=0, atol=1e-9)
+    if spread_m < 1e5:  # within voxel_keys' range: every output point is in its own voxel
+        keys = voxel_keys(means, voxel_size_m)
+        assert len(np.unique(keys)) == len(means)
+        assert np.array_equal(keys, np.unique(voxel_keys(points, voxel_size_m)))
+
+
+def test_transform_points_is_the_rigid_motion() -> None:
+    rng = np.random.default_rng(3)
+    angle = 0.7
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    T[:3, 3] = [4.0, -2.0, 0.5]
+    points = rng.normal(size=(500, 3))
+    homogeneous = np.c_[points, np.ones(len(points))] @ T.T
+    np.testing.assert_allclose(transform_points(T, points), homogeneous[:, :3], atol=1e-12)
+    assert transform_points(T, points[:0]).shape == (0, 3)
+
+
+def test_keyframer_keeps_points_within_the_range_limits_inclusive() -> None:
+    cfg = _cfg(min_range_m=1.0, max_range_m=5.0, map_voxel_m=0.01)
+    # ranges 0.5, 1, 3, 5, 5 + 1e-9 and 7 m, exact in floating point
+    points = np.array(
+        [[0.5, 0, 0], [0, 1, 0], [1, 2, 2], [0, 0, 5], [0, 5 + 1e-9, 0], [-7, 0, 0]], dtype=float
+    )
+    keyframer = Keyframer(cfg)
+    keyframer.add(Frame(index=0, timestamp=0.0, points=points), np.eye(4))
+    kept = np.concatenate([chunk[0] for chunk in keyframer._chunks])
+    expected = points[1:4]
+    order = np.argsort(voxel_keys(expected, cfg.map_voxel_m))
+    np.testing.assert_allclose(kept, expected[order], atol=1e-12)
+
+
+def test_a_scan_is_averaged_over_the_voxels_of_the_anchor_frame() -> None:
+    rng = np.random.default_rng(11)
+    cfg = _cfg(min_range_m=1.0, max_range_m=20.0, map_voxel_m=0.35)
+    scans = [rng.uniform(-25.0, 25.0, size=(30_000, 3)) for _ in range(2)]
+    T_A_S = np.eye(4)
+    T_A_S[:3, :3] = [[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]]
+    T_A_S[:3, 3] = [3.0, -1.0, 0.2]
+    keyframer = Keyframer(cfg)
+    keyframer.add(Frame(index=0, timestamp=0.0, points=scans[0]), np.eye(4))
+    keyframer.add(Frame(index=1, timestamp=0.1, points=scans[1]), T_A_S)
+    for (points_A, _, viewpoint_A), scan, T in zip(
+        keyframer._chunks, scans, [np.eye(4), T_A_S], strict=True
+    ):
+        ranges = np.linalg.norm(scan, axis=1)
+        in_range = scan[(ranges >= 1.0) & (ranges <= 20.0)]
+        (expected,) = voxel_downsample(0.35, transform_points(T, in_range))
+        np.testing.assert_allclose(points_A, expected, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(viewpoint_A, np.tile(T[:3, 3], (len(expected), 1)))

@@ -27,6 +27,12 @@ class Odometry(ABC):
     def register(self, frame: Frame) -> np.ndarray:
         """Consume the next frame and return its 4x4 float64 pose ``T_W_S``."""
 
+    def map_points(self, frame: Frame) -> np.ndarray:
+        """(N, 3) points in the sensor frame S that the map should hold for ``frame``, the frame
+        :meth:`register` consumed last: the frame's own points unless the odometry corrects them
+        (KISS-ICP returns its motion-compensated scan)."""
+        return frame.points
+
     def take_covariance(self) -> np.ndarray | None:
         """6x6 covariance (GTSAM order ``[rx, ry, rz, tx, ty, tz]``) of the motion registered
         since the last call, and start a new interval; None when the odometry gives none."""

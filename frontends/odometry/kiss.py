@@ -76,8 +76,8 @@ class KissIcpOdometry(Odometry):
 
     Construct with a :class:`KissIcpConfig` or its fields as keyword arguments, e.g.
     ``KissIcpOdometry(max_range_m=80.0)``. After each :meth:`register`, ``last_points`` holds the
-    deskewed, range-filtered scan (sensor frame) and ``last_keypoints`` the downsampled points
-    that were registered.
+    deskewed, range-filtered scan (sensor frame, what :meth:`map_points` returns) and
+    ``last_keypoints`` the downsampled points that were registered.
     """
 
     def __init__(self, config: KissIcpConfig | None = None, **options) -> None:
@@ -99,6 +99,11 @@ class KissIcpOdometry(Odometry):
     def voxel_size_m(self) -> float:
         """Local-map voxel size in use."""
         return float(self._kiss.config.mapping.voxel_size)
+
+    def map_points(self, frame: Frame) -> np.ndarray:
+        """The deskewed, range-filtered scan of the last registered frame (the frame's own points
+        before the first one)."""
+        return self.last_points if len(self.last_points) > 0 else frame.points
 
     def register(self, frame: Frame) -> np.ndarray:
         points = np.asarray(frame.points, dtype=np.float64)
