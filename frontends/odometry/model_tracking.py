@@ -46,9 +46,7 @@ class LocalTsdfModelConfig(BaseModel):
         description="Voxels per side of the cubic volume (side = resolution * voxel_size_m). "
         "Integration visits every voxel in front of the camera, so its cost grows with the cube.",
     )
-    truncation_voxels: float = Field(
-        3.0, gt=0, description="TSDF truncation distance, in voxels."
-    )
+    truncation_voxels: float = Field(3.0, gt=0, description="TSDF truncation distance, in voxels.")
     max_weight: int = Field(
         64, ge=1, description="Frames averaged per voxel at most (older ones fade out)."
     )
