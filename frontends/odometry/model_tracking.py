@@ -67,6 +67,11 @@ class LocalTsdfModelConfig(BaseModel):
         description="Re-place the volume when the viewing direction has turned this far from "
         "the one it was placed for (OpenCV 5.0's integration needs less than 90).",
     )
+    keyframes_only: bool = Field(
+        False,
+        description="Integrate only the frames that become keyframes (one integration and one "
+        "ray-cast per keyframe instead of an integration per frame).",
+    )
     refill_frames: int = Field(
         8, ge=0, description="Recent frames integrated again into a re-placed volume."
     )
