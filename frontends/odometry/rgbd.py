@@ -114,7 +114,7 @@ class RgbdOdometryConfig(BaseModel):
     tracking: Literal["keyframe", "model"] = Field(
         "keyframe",
         description="'keyframe': register each frame to the latest keyframe. 'model': register it "
-        "to a local TSDF model of the recent frames ray-cast at the previous pose (frame to "
+        "to a local TSDF model of the recent frames ray-cast at the keyframe's pose (frame to "
         "model, as KinectFusion), falling back to the keyframe when the model is empty, covers "
         "too little of the view or registration to it fails.",
     )
@@ -219,7 +219,8 @@ class RgbdOdometry(Odometry):
         self._model: LocalTsdfModel | None = None
         self._key_depth = None  # the keyframe's depth and grey image (tracking='model')
         self._key_gray = None
-        self._reference = None  # ((keyframe count, placement count), model OdometryFrame)
+        # ((keyframe count, placement count), model OdometryFrame or None, why none)
+        self._reference = None
         self._key_cloud = None  # (points, normals, tree) of the keyframe for the covariance
         self._prev_cloud = None
         self._cov_chain = np.zeros((6, 6))  # since take_covariance(), at the current keyframe
@@ -336,19 +337,20 @@ class RgbdOdometry(Odometry):
 
         key = (self.num_keyframes, self._model.num_placements)
         if self._reference is not None and self._reference[0] == key:
-            return self._reference[1], ""
+            return self._reference[1:]
         if self._model.is_empty:
             return None, "the model is empty"
         depth, normals = self._model.render(self._T_W_key)
         coverage = np.count_nonzero(depth) / max(1, np.count_nonzero(self._key_depth))
         if coverage < self.config.model.min_valid_fraction:
-            return None, "the model covers too little of the view"
+            self._reference = (key, None, "the model covers too little of the view")
+            return self._reference[1:]
         if self._key_gray is None:
             model_frame = cv2.OdometryFrame(depth=depth, normals=normals)
         else:
             model_frame = cv2.OdometryFrame(depth=depth, image=self._key_gray, normals=normals)
         self._odometry.prepareFrame(model_frame)
-        self._reference = (key, model_frame)
+        self._reference = (key, model_frame, "")
         return model_frame, ""
 
     def _track_model(self, current) -> tuple[np.ndarray | None, str]:
