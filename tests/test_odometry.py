@@ -344,3 +344,108 @@ def test_rgbd_odometry_covariance_grows_along_the_chain(generated_root: Path) ->
     plain.register(_render(_room(), T_W_C0, 0))
     plain.register(_render(_room(), T_W_C0 @ _se3(t=(0.01, 0.0, 0.0)), 1))
     assert plain.take_covariance() is None
+
+
+# --- frame-to-model tracking (local TSDF model) -----------------------------------------------
+
+
+def test_local_tsdf_model_ray_casts_the_integrated_depth(room: trimesh.Trimesh) -> None:
+    """One integrated view ray-cast from the same pose gives back its depth: this fails by about
+    one voxel (OpenCV 5.0 stores each TSDF value one voxel off along the volume's z axis)
+    without the shifted integration pose of LocalTsdfModel."""
+    from frontends.odometry.model_tracking import LocalTsdfModel, LocalTsdfModelConfig
+
+    frame = _render(room, T_W_C0, 0)
+    intr = INTRINSICS
+    K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+    config = LocalTsdfModelConfig(voxel_size_m=0.04, resolution=160)
+    model = LocalTsdfModel(config, K, intr.width, intr.height, max_depth_m=6.0)
+    assert model.is_empty
+    model.integrate(frame.depth, T_W_C0)
+    depth, normals = model.render(T_W_C0)
+    both = (depth > 0) & (frame.depth > 0)
+    assert both.sum() > 0.6 * (frame.depth > 0).sum()
+    error = depth[both] - frame.depth[both]
+    # Measured: median -0.2 mm, 90th percentile 6 mm (4 cm voxels); +39 mm without the
+    # correction.
+    assert abs(np.median(error)) < 0.003
+    assert np.all(np.isfinite(normals[both]))
+    assert np.all(np.isnan(normals[depth == 0]))
+
+
+def test_local_tsdf_model_is_replaced_when_the_view_turns_away(room: trimesh.Trimesh) -> None:
+    from frontends.odometry.model_tracking import LocalTsdfModel, LocalTsdfModelConfig
+
+    intr = INTRINSICS
+    K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+    config = LocalTsdfModelConfig(voxel_size_m=0.04, resolution=64, max_view_angle_deg=45.0)
+    model = LocalTsdfModel(config, K, intr.width, intr.height, max_depth_m=6.0)
+    model.integrate(_render(room, T_W_C0, 0).depth, T_W_C0)
+    turned = T_W_C0 @ _se3((0.0, np.radians(30.0), 0.0))
+    assert model.contains(turned)
+    model.integrate(_render(room, turned, 1).depth, turned)
+    assert model.num_placements == 1 and model.num_integrated == 2
+    away = T_W_C0 @ _se3((0.0, np.radians(60.0), 0.0))
+    assert not model.contains(away)
+    model.integrate(_render(room, away, 2).depth, away)
+    # Re-placed for the new view and refilled with the recent frames that fit in it.
+    assert model.num_placements == 2
+    assert model.num_integrated >= 1
+    assert not model.contains(T_W_C0 @ _se3(t=(0.0, 0.0, -2.0)))  # behind the volume
+
+
+def test_frame_to_model_beats_frame_to_frame_on_a_generated_sequence(generated_root: Path) -> None:
+    from frontends.sources import make_source
+
+    source = make_source(
+        "generated",
+        kind="rgbd",
+        root=generated_root,
+        num_frames=150,
+        width=320,
+        height=240,
+        frames=slice(0, 30),
+    )
+    frames = list(source)
+    gt = np.linalg.inv(source.gt_poses[0]) @ source.gt_poses
+    # The first 30 frames of the lap (1 m, 70 degrees). Frame to keyframe is frame to frame here:
+    # every frame moves past the 3 cm / 2 degree keyframe thresholds.
+    frame_to_frame = RgbdOdometry(keyframe_translation_m=0.0, keyframe_rotation_deg=0.0)
+    model = RgbdOdometry(tracking="model", model={"voxel_size_m": 0.04, "resolution": 160})
+    ate = {}
+    for name, odometry in (("frame", frame_to_frame), ("model", model)):
+        est = np.stack([odometry.register(frame) for frame in frames])
+        ate[name] = ate_rmse(est, gt)
+        assert odometry.num_failures == 0
+    # Every frame after the first is registered to the model; none falls back.
+    assert model.num_model_frames == len(frames) - 1 and not model.model_fallbacks
+    # Measured: ATE 1.5 mm frame to model, 2.5 mm frame to frame.
+    assert ate["model"] < 0.8 * ate["frame"]
+
+
+def test_frame_to_model_falls_back_to_the_keyframe_with_a_reason(
+    room: trimesh.Trimesh, caplog: pytest.LogCaptureFixture
+) -> None:
+    step = _se3((0.0, 0.02, 0.005), (0.02, 0.0, 0.01))
+    frames = [_render(room, T_W_C0 @ np.linalg.matrix_power(step, i), i) for i in range(5)]
+    keyframe = RgbdOdometry(downscale=1)
+    # A model that can never cover the whole view: every frame falls back to the keyframe.
+    uncovered = RgbdOdometry(
+        downscale=1, tracking="model", model={"min_valid_fraction": 1.0, "voxel_size_m": 0.04}
+    )
+    with caplog.at_level("INFO", logger="frontends.odometry.rgbd"):
+        for frame in frames:
+            np.testing.assert_allclose(
+                uncovered.register(frame), keyframe.register(frame), atol=1e-9
+            )
+    assert uncovered.model_fallbacks == {"the model covers too little of the view": 4}
+    assert uncovered.num_model_frames == 0
+    assert "frame 4: the model covers too little of the view" in caplog.text
+    # A jump no registration accepts: the model, the keyframe and the previous frame all fail.
+    jump = RgbdOdometry(downscale=1, tracking="model", model={"voxel_size_m": 0.04})
+    for frame in frames[:3]:
+        jump.register(frame)
+    far = frames[2].T_W_S_gt @ _se3(t=(0.3, 0.0, 0.15))
+    jump.register(_render(room, far, 3))
+    assert jump.model_fallbacks == {"registration to the model failed": 1}
+    assert jump.num_failures == 1
