@@ -41,6 +41,7 @@ def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
                 start=g.start,
                 step=g.step,
                 azimuth_steps=g.azimuth_steps,
+                terrain_relief_m=g.terrain_relief_m,
                 loader_options={"max_range_m": src.kitti.max_range_m},
             )
         else:

@@ -145,6 +145,16 @@ class GeneratedConfig(_Strict):
     azimuth_steps: int = Field(
         2048, ge=64, description="LiDAR firings per revolution (2048 ~ HDL-64E)"
     )
+    terrain_relief_m: float = Field(
+        0.0,
+        ge=0,
+        description=(
+            "LiDAR street: height (m) of the hills that rise beside the road, from 7 m off the "
+            "path to full height 25 m off it. The road always follows the trajectory's own "
+            "elevation (the real KITTI profile for 'kitti'); 0 keeps the ground beside it level "
+            "with the road"
+        ),
+    )
     width: int = Field(640, ge=32, description="RGB-D image width")
     height: int = Field(480, ge=32, description="RGB-D image height")
 
