@@ -108,7 +108,7 @@ def _run(cfg, source, odometry) -> tuple[Any, float]:
 
 
 def _summary(pipeline, wall_s: float, gt: np.ndarray) -> dict:
-    from slam.metrics.trajectory import ate_rmse
+    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
     errors = _loop_errors(pipeline, gt)
     events = pipeline.remapper.events
@@ -123,6 +123,8 @@ def _summary(pipeline, wall_s: float, gt: np.ndarray) -> dict:
         "loop_kept": [bool(c.graph_inlier) for c in verified],
         "ate_odometry_m": ate_rmse(pipeline.odometry_poses(), gt),
         "ate_slam_m": ate_rmse(pipeline.slam_poses(), gt),
+        "ate_xyz_odometry_m": ate_per_axis_rmse(pipeline.odometry_poses(), gt).tolist(),
+        "ate_xyz_slam_m": ate_per_axis_rmse(pipeline.slam_poses(), gt).tolist(),
         "wall_s": wall_s,
         "fps": pipeline.num_frames / wall_s,
         "remap_events": len(events),
@@ -406,9 +408,18 @@ def trajectory_table(rows: list[tuple[str, dict, tuple[float, float]]]) -> list[
     lines = [
         "| run | frames | submaps | loop candidates | verified | kept by graph | false verified "
         "/ kept (limit) | median loop error [cm / deg] | ATE odometry [m] | ATE SLAM [m] | "
-        "frames/s | peak RSS [MB] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "ATE x / y / z odometry -> SLAM [m] | frames/s | peak RSS [MB] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def axes(r: dict) -> str:
+        if "ate_xyz_slam_m" not in r:  # results saved before the per-axis split
+            return "n/a"
+        odometry, slam = (
+            " / ".join(f"{v:.3f}" for v in r[k]) for k in ("ate_xyz_odometry_m", "ate_xyz_slam_m")
+        )
+        return f"{odometry} -> {slam}"
+
     for name, r, (false_m, false_deg) in rows:
         wrong, wrong_kept = false_loops(r, false_m, false_deg)
         errors = np.array(r["loop_errors"]).reshape(-1, 2)
@@ -420,7 +431,8 @@ def trajectory_table(rows: list[tuple[str, dict, tuple[float, float]]]) -> list[
         lines.append(
             f"| {name} | {r['frames']} | {r['submaps']} | {r['candidates']} | {r['verified']} | "
             f"{r['kept']} | {wrong} / {wrong_kept} ({100 * false_m:.0f} cm, {false_deg:.0f} deg) | "
-            f"{median} | {r['ate_odometry_m']:.3f} | {r['ate_slam_m']:.3f} | {r['fps']:.2f} | "
+            f"{median} | {r['ate_odometry_m']:.3f} | {r['ate_slam_m']:.3f} | {axes(r)} | "
+            f"{r['fps']:.2f} | "
             f"{r['peak_rss_mb']:.0f} |"
         )
     return lines
