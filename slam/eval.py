@@ -623,7 +623,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
                 axes = " (x/y/z " + "/".join(cm(t[f"ate_{a}_rmse_m"]) for a in "xyz") + ")"
             lines.append(
                 f"{name:8s} ATE {cm(t['ate_rmse_m'])}{axes}, "
-                f"RPE {cm(t['rpe_trans_rmse_m'])}/frame, KITTI t_err {f'{kitti:.2f} %' if finite(kitti) else 'n/a'}"
+                f"RPE {cm(t['rpe_trans_rmse_m'])}/frame, "
+                f"KITTI t_err {f'{kitti:.2f} %' if finite(kitti) else 'n/a'}"
             )
     mesh = metrics.get("mesh")
     if mesh:
