@@ -335,11 +335,12 @@ def street_scene(
     behind a kerb on both sides; ``relief_m > 0`` adds hills up to that height away from the road
     (see :class:`_GroundHeight`), which the buildings and bushes stand on. Building blocks 8-30 m
     long stand behind it with 2-10 m gaps, varied setbacks, depths and heights, and facades with
-    pilasters, ledges, balconies and entrance canopies at irregular spacing; parked cars line the kerbs in irregular runs, poles and trees
-    stand every 10-25 m, and some blocks have a low wall or hedge in front. An open path is
-    extended by ``extension_m`` at both ends so the street also continues behind the first pose.
-    Nothing is placed on the path itself, and a place the path revisits keeps the objects of its
-    first visit (footprints are reserved), so it is not built twice.
+    pilasters, ledges, balconies and entrance canopies at irregular spacing; parked cars line the
+    kerbs in irregular runs, poles and trees stand every 10-25 m, and some blocks have a low wall
+    or hedge in front. An open path is extended by ``extension_m`` at both ends so the street
+    also continues behind the first pose. Nothing is placed on the path itself, and a place the
+    path revisits keeps the objects of its first visit (footprints are reserved), so it is not
+    built twice.
     """
     rng = np.random.default_rng([seed, 11])
     path = _StreetPath(np.asarray(path_xyz, np.float64), extension_m)
