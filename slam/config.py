@@ -465,17 +465,6 @@ class PoseGraphConfig(_Strict):
     odometry_rotation_sigma_per_rad: float = Field(
         0.02, ge=0, description="odometry edge rotation sigma per radian turned"
     )
-    odometry_tilt_sigma_scale: float = Field(
-        1.0,
-        gt=0,
-        le=1,
-        description=(
-            "scales the odometry rotation sigma about the anchor's x and y axes (roll and pitch "
-            "of a z-up LiDAR frame) against the one about z (yaw). Below 1 a loop's correction "
-            "goes into yaw and position rather than into tilting the chain, which would turn a "
-            "horizontal error into height bumps; 1: isotropic. Only for z-up sensor frames"
-        ),
-    )
     loop_translation_sigma_m: float = Field(0.05, gt=0, description="loop edge translation sigma")
     loop_rotation_sigma_rad: float = Field(0.01, gt=0, description="loop edge rotation sigma")
     use_edge_covariances: bool = Field(

@@ -113,9 +113,7 @@ class PoseGraph:
             + c.odometry_rotation_sigma_rad_per_m * distance_m
             + c.odometry_rotation_sigma_per_rad * rotation_rad
         )
-        sigmas = _sigmas(sigma_r, sigma_t)
-        sigmas[:2] *= c.odometry_tilt_sigma_scale
-        return sigmas
+        return _sigmas(sigma_r, sigma_t)
 
     def add_anchor(
         self, node_id: int, T_W_A_odometry: np.ndarray, covariance: np.ndarray | None = None
