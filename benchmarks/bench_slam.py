@@ -204,9 +204,9 @@ def scenario_lidar(
     quick: bool,
     odometry_mode: str,
     terrain_relief_m: float = 0.0,
-    pose_graph: dict[str, Any] | None = None,
+    odometry: dict[str, Any] | None = None,
 ) -> dict:
-    """One LiDAR run; ``pose_graph`` overrides fields of configs/kitti.yaml's pose graph."""
+    """One LiDAR run; ``odometry`` overrides fields of configs/kitti.yaml's odometry section."""
     _child_setup()
     from slam.builders import build_odometry
     from slam.config import default_config_path, load_run_config
@@ -216,7 +216,7 @@ def scenario_lidar(
         "source": {"dataset": "generated"},
         "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
         "mapping": {"device": "cpu"},
-        "pose_graph": pose_graph or {},
+        "odometry": odometry or {},
     }
     cfg = load_run_config(default_config_path("kitti"), overrides)
     if odometry_mode == "kiss-icp":

@@ -16,6 +16,7 @@ from frontends.odometry.kiss import KissIcpConfig
 from frontends.odometry.rgbd import RgbdOdometryConfig
 from frontends.sources._io import DepthOptions
 from mapping.config import MapConfig
+from slam.ground_refinement import GroundRefinementConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
@@ -170,6 +171,11 @@ class OdometryConfig(_Strict):
     )
     rgbd: RgbdOdometryConfig = Field(
         default_factory=RgbdOdometryConfig, description="OpenCV RGB-D options (method rgbd)"
+    )
+    ground_refinement: GroundRefinementConfig = Field(
+        default_factory=GroundRefinementConfig,
+        description="LiDAR: refine each scan's height, roll and pitch against the ground seen "
+        "so far (slam/ground_refinement.py)",
     )
 
 
