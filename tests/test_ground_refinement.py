@@ -72,7 +72,7 @@ def test_ground_map_averages_flat_cells_and_skips_walls() -> None:
     floor = np.array([[0.2, 0.2, 1.0], [0.7, 0.6, 1.1], [2.5, 0.5, -0.5], [2.6, 0.4, -0.45]])
     wall = np.array([[5.5, 0.5, 0.0], [5.5, 0.5, 2.0]])
     ground.add_flat_cells(np.vstack([floor, wall]), flatness_m=0.15)
-    ground.add_flat_cells(floor + [0.0, 0.0, 0.2], flatness_m=0.15)
+    ground.add_flat_cells(floor + np.array([0.0, 0.0, 0.2]), flatness_m=0.15)
     h = ground.height(np.array([[0.5, 0.5], [2.5, 0.5], [5.5, 0.5], [9.0, 9.0]]), 2)
     np.testing.assert_allclose(h[:2], [1.15, -0.375])
     assert np.isnan(h[2]) and np.isnan(h[3])  # a wall is not ground; an unseen cell is unknown
