@@ -85,9 +85,16 @@ def write_report(path: Path, results: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="every 3rd frame, 1024 firings")
-    parser.add_argument("--relief", type=float, nargs="+", default=[0.0, 4.0])
+    parser.add_argument(
+        "--relief",
+        type=float,
+        nargs="+",
+        help="hill heights to run (default 0 and 4 m; with --quick 4 m only: run_all budget)",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "vertical.md")
     args = parser.parse_args(argv)
+    if args.relief is None:
+        args.relief = [4.0] if args.quick else [0.0, 4.0]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     command = "python -m benchmarks.bench_vertical" + (" --quick" if args.quick else "")
     command += " --relief " + " ".join(f"{r:g}" for r in args.relief)
