@@ -62,6 +62,9 @@ class GroundRefinementConfig(BaseModel):
         200, ge=3, description="Fewer matched points: the prediction is kept as it is."
     )
     iterations: int = Field(4, ge=1, description="Gauss-Newton steps per scan at most.")
+    point_stride: int = Field(
+        1, ge=1, description="Use every n-th point of a scan (cost against accuracy)."
+    )
 
 
 class GroundHeightMap:
@@ -178,7 +181,7 @@ class GroundRefinedOdometry(Odometry):
         points = getattr(self.inner, "last_points", None)
         if points is None or len(points) == 0:
             points = frame.points
-        points = np.asarray(points, dtype=np.float64)
+        points = np.asarray(points, dtype=np.float64)[:: self.cfg.point_stride]
         r = np.linalg.norm(points[:, :2], axis=1)
         keep = (r > self.cfg.min_range_m) & (r < self.cfg.max_range_m)
         keep &= points[:, 2] < self.cfg.max_height_m
