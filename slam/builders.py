@@ -41,6 +41,7 @@ def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
                 start=g.start,
                 step=g.step,
                 azimuth_steps=g.azimuth_steps,
+                terrain_relief_m=g.terrain_relief_m,
                 loader_options={"max_range_m": src.kitti.max_range_m},
             )
         else:
@@ -94,7 +95,12 @@ def odometry_method(cfg: RunConfig, sensor: str) -> str:
 def build_odometry(cfg: RunConfig, sensor: str) -> Odometry:
     method = odometry_method(cfg, sensor)
     if method == "kiss-icp":
-        return make_odometry(method, config=cfg.odometry.kiss_icp)
+        odometry = make_odometry(method, config=cfg.odometry.kiss_icp)
+        if cfg.odometry.ground_refinement.enabled:
+            from slam.ground_refinement import GroundRefinedOdometry
+
+            return GroundRefinedOdometry(odometry, cfg.odometry.ground_refinement)
+        return odometry
     if method == "rgbd":
         return make_odometry(method, config=cfg.odometry.rgbd)
     return make_odometry(method)

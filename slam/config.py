@@ -16,6 +16,7 @@ from frontends.odometry.kiss import KissIcpConfig
 from frontends.odometry.rgbd import RgbdOdometryConfig
 from frontends.sources._io import DepthOptions
 from mapping.config import MapConfig
+from slam.ground_refinement import GroundRefinementConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
@@ -145,6 +146,16 @@ class GeneratedConfig(_Strict):
     azimuth_steps: int = Field(
         2048, ge=64, description="LiDAR firings per revolution (2048 ~ HDL-64E)"
     )
+    terrain_relief_m: float = Field(
+        0.0,
+        ge=0,
+        description=(
+            "LiDAR street: height (m) of the hills that rise beside the road, from 7 m off the "
+            "path to full height 25 m off it. The road always follows the trajectory's own "
+            "elevation (the real KITTI profile for 'kitti'); 0 keeps the ground beside it level "
+            "with the road"
+        ),
+    )
     width: int = Field(640, ge=32, description="RGB-D image width")
     height: int = Field(480, ge=32, description="RGB-D image height")
 
@@ -160,6 +171,11 @@ class OdometryConfig(_Strict):
     )
     rgbd: RgbdOdometryConfig = Field(
         default_factory=RgbdOdometryConfig, description="OpenCV RGB-D options (method rgbd)"
+    )
+    ground_refinement: GroundRefinementConfig = Field(
+        default_factory=GroundRefinementConfig,
+        description="LiDAR: refine each scan's height, roll and pitch against the ground seen "
+        "so far (slam/ground_refinement.py)",
     )
 
 

@@ -618,8 +618,12 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         for name in ("odometry", "slam"):
             t = trajectory[name]
             kitti = t["kitti_t_err_percent"]
+            axes = ""
+            if "ate_z_rmse_m" in t:  # metrics.json written before the per-axis split lacks it
+                axes = " (x/y/z " + "/".join(cm(t[f"ate_{a}_rmse_m"]) for a in "xyz") + ")"
             lines.append(
-                f"{name:8s} ATE {cm(t['ate_rmse_m'])}, RPE {cm(t['rpe_trans_rmse_m'])}/frame, "
+                f"{name:8s} ATE {cm(t['ate_rmse_m'])}{axes}, "
+                f"RPE {cm(t['rpe_trans_rmse_m'])}/frame, "
                 f"KITTI t_err {f'{kitti:.2f} %' if finite(kitti) else 'n/a'}"
             )
     mesh = metrics.get("mesh")

@@ -400,3 +400,36 @@ def test_street_has_along_track_structure_and_keeps_the_path_clear():
         assert 0.03 < open_fraction < 0.6, (side, open_fraction)
     clearance = MeshDistance(mesh, spacing_m=0.5)(path)
     assert clearance.min() > 1.5, clearance.min()
+
+
+@pytest.mark.skipif(not KITTI_POSES.is_file(), reason="needs ../shared/data/kitti (KITTI 00 poses)")
+def test_street_ground_follows_the_real_kitti_elevation():
+    """Under the car the ground is the real KITTI 00 height minus the sensor height (its slopes
+    and crests), with or without hills beside the road; the hills rise only away from it."""
+    poses = kitti_lidar_trajectory(KITTI_POSES, KITTI_CALIB, start=2000, num_frames=250, step=3)
+    path = poses[:, :3, 3]
+    assert np.ptp(path[:, 2]) > 3.0  # this stretch of KITTI 00 climbs
+    relief_m = 4.0
+    tangent = np.gradient(path[:, :2], axis=0)
+    left = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    left /= np.linalg.norm(left, axis=1, keepdims=True)
+    down = np.tile([0.0, 0.0, -1.0], (len(path), 1))
+    ground = {}
+    for relief in (0.0, relief_m):
+        raycaster = Raycaster(street_scene(path, seed=0, relief_m=relief).mesh)
+        distance, _ = raycaster.first_hit(path, down)
+        np.testing.assert_allclose(distance, 1.73, atol=0.05)
+        beside = np.column_stack([path[:, :2] + 35.0 * left, path[:, 2] + 100.0])
+        distance, _ = raycaster.first_hit(beside, down)
+        ground[relief] = beside[:, 2] - distance
+    # 35 m beside the road: level with the road without relief (up to a few rays on a bush or a
+    # wall), hills and hollows of up to relief_m with it.
+    _, nearest = cKDTree(path[:, :2]).query(path[:, :2] + 35.0 * left)
+    level = ground[0.0] - (path[nearest, 2] - 1.73)
+    not_roof = np.abs(level) < 2.0  # buildings are at least 6.5 m high
+    assert not_roof.mean() > 0.3
+    assert np.percentile(np.abs(level[not_roof]), 80) < 0.05
+    hills = ground[relief_m] - ground[0.0]
+    on_ground = not_roof & (np.abs(hills) < relief_m + 0.05)
+    assert on_ground.mean() > 0.3
+    assert np.ptp(hills[on_ground]) > 0.8 * relief_m

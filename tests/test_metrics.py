@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from frontends.errors import DatasetError
 from slam.metrics import (
     align_se3,
+    ate_per_axis_rmse,
     ate_rmse,
     kitti_relative_error,
     mesh_metrics,
@@ -84,6 +85,20 @@ def test_ate_of_alternating_error_equals_its_amplitude() -> None:
     est = gt.copy()
     est[:, 2, 3] += d * (-1.0) ** np.arange(n)
     assert ate_rmse(est, gt) == pytest.approx(d, rel=1e-6)
+    # The whole error is vertical: per axis it shows up in z only.
+    np.testing.assert_allclose(ate_per_axis_rmse(est, gt), [0.0, 0.0, d], atol=1e-6)
+
+
+def test_per_axis_ate_splits_the_ate() -> None:
+    gt = _random_trajectory(60, seed=3)
+    est = gt.copy()
+    rng = np.random.default_rng(4)
+    est[:, :3, 3] += rng.normal(size=(60, 3)) * [0.05, 0.1, 0.4]
+    per_axis = ate_per_axis_rmse(est, gt)
+    assert np.sum(per_axis**2) == pytest.approx(ate_rmse(est, gt) ** 2, rel=1e-9)
+    assert per_axis[2] > per_axis[1] > per_axis[0]
+    metrics = trajectory_metrics(est, gt)
+    assert metrics.ate_z_rmse_m == pytest.approx(per_axis[2])
 
 
 def test_ate_matches_kiss_icp() -> None:

@@ -38,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     lidar.add_argument("--start", type=int, default=0, help="first KITTI frame")
     lidar.add_argument("--step", type=int, default=1, help="KITTI frame step")
     lidar.add_argument("--azimuth-steps", type=int, default=2048, help="firings per revolution")
+    lidar.add_argument(
+        "--terrain-relief", type=float, default=0.0, help="height (m) of hills beside the road"
+    )
     rgbd = sub.add_parser("rgbd", help="RGB-D room sequence in TUM RGB-D layout")
     rgbd.add_argument("root", type=Path, help="sequence folder to create")
     rgbd.add_argument("--width", type=int, default=640)
@@ -64,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
                 step=args.step,
                 seed=args.seed,
                 azimuth_steps=args.azimuth_steps,
+                terrain_relief_m=args.terrain_relief,
                 overwrite=args.overwrite,
                 workers=args.workers,
             )

@@ -118,20 +118,49 @@ def _resample_polyline(points: np.ndarray, spacing_m: float) -> np.ndarray:
 
 
 class _GroundHeight:
-    """Ground height as the inverse-distance-weighted path height minus the sensor height."""
+    """Ground height: the inverse-distance-weighted path height minus the sensor height.
 
-    def __init__(self, path_xyz: np.ndarray, sensor_height_m: float) -> None:
+    With ``relief_m > 0`` smooth hills and hollows (a few random plane waves of 40-160 m
+    wavelength, at most ``relief_m`` high) rise away from the road: zero within
+    ``ROAD_FLAT_M`` of the path, full beyond ``ROAD_FLAT_M + RELIEF_RAMP_M``, so the road and its
+    kerbs keep the path's height and slope while the surroundings stop being a continuation of
+    the road's plane.
+    """
+
+    ROAD_FLAT_M = 7.0
+    RELIEF_RAMP_M = 18.0
+
+    def __init__(
+        self, path_xyz: np.ndarray, sensor_height_m: float, relief_m: float = 0.0, seed: int = 0
+    ) -> None:
         self._tree = cKDTree(path_xyz[:, :2])
         self._z = path_xyz[:, 2] - sensor_height_m
         self._k = min(8, len(path_xyz))
+        self._relief_m = relief_m
+        rng = np.random.default_rng([seed, 13])
+        waves = 5
+        angle = rng.uniform(0.0, 2 * np.pi, waves)
+        wavelength = rng.uniform(40.0, 160.0, waves)
+        self._k_xy = np.stack([np.cos(angle), np.sin(angle)], 1) * (2 * np.pi / wavelength)[:, None]
+        self._phase = rng.uniform(0.0, 2 * np.pi, waves)
+        self._amplitude = rng.uniform(0.5, 1.0, waves)
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         xy = np.atleast_2d(xy)
         dist, idx = self._tree.query(xy, k=self._k)
         if self._k == 1:
-            return self._z[idx]
-        w = 1.0 / np.maximum(dist, 0.5) ** 2
-        return (w * self._z[idx]).sum(axis=1) / w.sum(axis=1)
+            z = self._z[idx]
+            nearest = dist
+        else:
+            w = 1.0 / np.maximum(dist, 0.5) ** 2
+            z = (w * self._z[idx]).sum(axis=1) / w.sum(axis=1)
+            nearest = dist[:, 0]
+        if self._relief_m > 0:
+            u = np.clip((nearest - self.ROAD_FLAT_M) / self.RELIEF_RAMP_M, 0.0, 1.0)
+            ramp = u * u * (3 - 2 * u)
+            waves = np.sin(xy @ self._k_xy.T + self._phase) @ self._amplitude
+            z = z + self._relief_m * ramp * waves / self._amplitude.sum()
+        return z
 
 
 def _ground_mesh(
@@ -297,21 +326,25 @@ def street_scene(
     margin_m: float = 45.0,
     ground_cell_m: float = 2.0,
     extension_m: float = 40.0,
+    relief_m: float = 0.0,
 ) -> Scene:
     """A street built along ``path_xyz`` (N, 3 sensor positions in a z-up world).
 
-    Ground follows the path at ``sensor_height_m`` below it, with a raised sidewalk behind a kerb
-    on both sides. Building blocks 8-30 m long stand behind it with 2-10 m gaps, varied
-    setbacks, depths and heights, and facades with pilasters, ledges, balconies and entrance
-    canopies at irregular spacing; parked cars line the kerbs in irregular runs, poles and trees
-    stand every 10-25 m, and some blocks have a low wall or hedge in front. An open path is
-    extended by ``extension_m`` at both ends so the street also continues behind the first pose.
-    Nothing is placed on the path itself, and a place the path revisits keeps the objects of its
-    first visit (footprints are reserved), so it is not built twice.
+    Ground follows the path at ``sensor_height_m`` below it (so the road has the path's slopes,
+    crests and dips: the real elevation profile for a KITTI trajectory), with a raised sidewalk
+    behind a kerb on both sides; ``relief_m > 0`` adds hills up to that height away from the road
+    (see :class:`_GroundHeight`), which the buildings and bushes stand on. Building blocks 8-30 m
+    long stand behind it with 2-10 m gaps, varied setbacks, depths and heights, and facades with
+    pilasters, ledges, balconies and entrance canopies at irregular spacing; parked cars line the
+    kerbs in irregular runs, poles and trees stand every 10-25 m, and some blocks have a low wall
+    or hedge in front. An open path is extended by ``extension_m`` at both ends so the street
+    also continues behind the first pose. Nothing is placed on the path itself, and a place the
+    path revisits keeps the objects of its first visit (footprints are reserved), so it is not
+    built twice.
     """
     rng = np.random.default_rng([seed, 11])
     path = _StreetPath(np.asarray(path_xyz, np.float64), extension_m)
-    height = _GroundHeight(path.xyz, sensor_height_m)
+    height = _GroundHeight(path.xyz, sensor_height_m, relief_m, seed)
     footprints = _Footprints(path.xyz[:, :2])
     builder = _SceneBuilder()
     builder.add(
@@ -400,9 +433,10 @@ def street_scene(
         h = 3.0 * storeys + rng.uniform(0.5, 1.5)
         T = _pose_xy_yaw(center[0], center[1], z0, yaw)
         shade = rng.uniform(0.35, 0.85)
+        below = 1.0 + relief_m  # on a hillside the footprint's corners lie lower than its centre
         boxes.add(
-            (width, depth, h + 1.0),
-            T @ _pose_xy_yaw(0.0, 0.0, (h - 1.0) / 2, 0.0),
+            (width, depth, h + below),
+            T @ _pose_xy_yaw(0.0, 0.0, (h - below) / 2, 0.0),
             reflectance=rng.uniform(0.2, 0.6),
             albedo=(shade,) * 3,
         )

@@ -145,6 +145,7 @@ def generate_lidar_sequence(
     seed: int = 0,
     azimuth_steps: int = 2048,
     lidar: LidarConfig | None = None,
+    terrain_relief_m: float = 0.0,
     overwrite: bool = False,
     workers: int | None = None,
 ) -> Path:
@@ -167,6 +168,9 @@ def generate_lidar_sequence(
         seed: seed of the scene and the sensor noise.
         azimuth_steps: firings per revolution (2048 ~ HDL-64E); ignored when ``lidar`` is given.
         lidar: full scanner configuration.
+        terrain_relief_m: height of the hills that rise away from the road (0: the ground beside
+            the road continues the road's height; the road itself always follows the
+            trajectory's elevation, e.g. the real KITTI profile).
         overwrite: replace an existing sequence of the same name.
         workers: processes rendering frames (default: up to 2, one per CPU); the output does
             not depend on it.
@@ -200,7 +204,7 @@ def generate_lidar_sequence(
     path_xyz = T_scene_S[:, :3, 3]
     if closed:
         path_xyz = np.vstack([path_xyz, path_xyz[:1]])
-    scene = street_scene(path_xyz, seed=seed)
+    scene = street_scene(path_xyz, seed=seed, relief_m=terrain_relief_m)
     T_W_scene = np.linalg.inv(T_scene_S[0])
     T_W_S = T_W_scene @ T_scene_S
     T_W_S[0] = np.eye(4)

@@ -59,6 +59,8 @@ class GeneratedSource(Source):
         trajectory: LiDAR only: ``"loop"`` or ``"kitti"`` (a window of a real KITTI trajectory,
             needs ``kitti_poses`` and ``kitti_calib``; ``start``/``step`` select it).
         azimuth_steps: LiDAR firings per revolution (2048 ~ HDL-64E; lower for speed).
+        terrain_relief_m: LiDAR only: height of hills beside the road (0: none; the key is then
+            left out of the cache key, so sequences generated before the option are reused).
         width, height: RGB-D image size.
         workers: generation processes (None: up to 2).
         loader_options: extra keyword arguments for the wrapped KITTI/TUM loader.
@@ -89,6 +91,7 @@ class GeneratedSource(Source):
         start: int = 0,
         step: int = 1,
         azimuth_steps: int = 2048,
+        terrain_relief_m: float = 0.0,
         width: int = 640,
         height: int = 480,
         workers: int | None = None,
@@ -106,6 +109,8 @@ class GeneratedSource(Source):
                 "trajectory": trajectory,
                 "azimuth_steps": azimuth_steps,
             }
+            if terrain_relief_m != 0.0:
+                params["terrain_relief_m"] = float(terrain_relief_m)
             if trajectory == "kitti":
                 if kitti_poses is None or kitti_calib is None:
                     raise DatasetError(
@@ -154,6 +159,7 @@ class GeneratedSource(Source):
             step=p.get("step", 1),
             seed=p["seed"],
             azimuth_steps=p["azimuth_steps"],
+            terrain_relief_m=p.get("terrain_relief_m", 0.0),
             workers=workers,
         )
 

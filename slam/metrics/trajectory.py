@@ -5,7 +5,7 @@ frame ``i`` of the ground truth.
 
 - :func:`ate_rmse` follows KISS-ICP's ``absolute_trajectory_error`` and evo's ``evo_ape --align``:
   positions are aligned with Umeyama's method without scale (rotation + translation), then the RMSE
-  of the position differences is taken.
+  of the position differences is taken; :func:`ate_per_axis_rmse` splits it into x, y and z.
 - :func:`kitti_relative_error` follows the KITTI odometry devkit (the same algorithm as
   ``kiss_icp.metrics.sequence_error``): segments of 100, 200, ..., 800 m of ground-truth path
   length starting every 10th frame; the error of each segment's relative motion is divided by
@@ -86,6 +86,18 @@ def ate_rmse(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
     if align:
         est = align_se3(est, gt) @ est
     return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def ate_per_axis_rmse(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> np.ndarray:
+    """(3,) RMSE (metres) of the x, y and z position differences after the same alignment as ATE.
+
+    The axes are the ground truth's world axes (z up for KITTI's LiDAR frame and the generated
+    LiDAR street), so the last entry is the vertical error; their squares sum to ATE squared.
+    """
+    est, gt = _check_pair(est, gt)
+    if align:
+        est = align_se3(est, gt) @ est
+    return np.sqrt(np.mean((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=0))
 
 
 def ate_rotation_rmse_deg(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
@@ -199,6 +211,7 @@ class TrajectoryMetrics:
     Attributes:
         ate_rmse_m: ATE RMSE after SE(3) alignment.
         ate_rot_rmse_deg: orientation RMSE after the same alignment.
+        ate_x_rmse_m, ate_y_rmse_m, ate_z_rmse_m: ATE per world axis (z: vertical for LiDAR).
         rpe_trans_rmse_m: RPE translation RMSE for consecutive frames.
         rpe_rot_rmse_deg: RPE rotation RMSE for consecutive frames.
         kitti_t_err_percent: KITTI relative translation error (nan when too short).
@@ -210,6 +223,9 @@ class TrajectoryMetrics:
 
     ate_rmse_m: float
     ate_rot_rmse_deg: float
+    ate_x_rmse_m: float
+    ate_y_rmse_m: float
+    ate_z_rmse_m: float
     rpe_trans_rmse_m: float
     rpe_rot_rmse_deg: float
     kitti_t_err_percent: float
@@ -235,9 +251,13 @@ def trajectory_metrics(
     est, gt = _check_pair(est, gt)
     relative = rpe(est, gt, 1)
     t_err, r_err = kitti_relative_error(est, gt, lengths_m=kitti_lengths_m)
+    per_axis = ate_per_axis_rmse(est, gt)
     return TrajectoryMetrics(
         ate_rmse_m=ate_rmse(est, gt),
         ate_rot_rmse_deg=ate_rotation_rmse_deg(est, gt),
+        ate_x_rmse_m=float(per_axis[0]),
+        ate_y_rmse_m=float(per_axis[1]),
+        ate_z_rmse_m=float(per_axis[2]),
         rpe_trans_rmse_m=relative.trans_rmse_m,
         rpe_rot_rmse_deg=relative.rot_rmse_deg,
         kitti_t_err_percent=t_err,
