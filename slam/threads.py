@@ -53,7 +53,9 @@ def plan_thread_budget(threads: int, map_worker: bool) -> ThreadBudget:
         return ThreadBudget(budget=budget, torch=budget, kiss_icp=budget, opencv=budget, blas=1)
     kiss_icp = max(1, budget // 2)
     torch_threads = max(1, budget - kiss_icp)
-    return ThreadBudget(budget=budget, torch=torch_threads, kiss_icp=kiss_icp, opencv=budget, blas=1)
+    return ThreadBudget(
+        budget=budget, torch=torch_threads, kiss_icp=kiss_icp, opencv=budget, blas=1
+    )
 
 
 def apply_thread_budget(cfg) -> ThreadBudget:
