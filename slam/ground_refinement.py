@@ -155,7 +155,7 @@ def refine_vertical(
 class GroundRefinedOdometry(Odometry):
     """A LiDAR odometry whose scans' height, roll and pitch are refined against the ground map.
 
-    ``inner`` provides the motion between scans (and ``last_points``, the scan it registered);
+    ``inner`` provides the motion between scans (and :meth:`map_points`, the scan it registered);
     the poses returned are the refined chain: each scan's pose is the previous refined pose
     composed with the inner odometry's motion, then its height, roll and pitch are fitted to the
     ground map (its heading and x, y only move to first order in those corrections).
@@ -169,19 +169,15 @@ class GroundRefinedOdometry(Odometry):
         self._pose: np.ndarray | None = None
         self.last_matched = 0
 
-    @property
-    def last_points(self) -> np.ndarray | None:
-        """The inner odometry's last registered scan (sensor frame), if it exposes one."""
-        return getattr(self.inner, "last_points", None)
+    def map_points(self, frame: Frame) -> np.ndarray:
+        return self.inner.map_points(frame)
 
     def take_covariance(self) -> np.ndarray | None:
         return self.inner.take_covariance()
 
     def _ground_points(self, frame: Frame) -> np.ndarray:
-        points = getattr(self.inner, "last_points", None)
-        if points is None or len(points) == 0:
-            points = frame.points
-        points = np.asarray(points, dtype=np.float64)[:: self.cfg.point_stride]
+        points = np.asarray(self.inner.map_points(frame), dtype=np.float64)
+        points = points[:: self.cfg.point_stride]
         r = np.linalg.norm(points[:, :2], axis=1)
         keep = (r > self.cfg.min_range_m) & (r < self.cfg.max_range_m)
         keep &= points[:, 2] < self.cfg.max_height_m
