@@ -607,10 +607,9 @@ class RunConfig(_Strict):
     threads: int = Field(
         0,
         ge=0,
-        description="CPU thread budget of the run (0 = the machine's cores): with map_worker on, "
-        "KISS-ICP gets half (at least one) and torch the rest, else both get all of it; OpenCV "
-        "gets all of it, numpy/scipy BLAS one (slam/threads.py; idle pool threads spin, so "
-        "oversubscribed pools thrash)",
+        description="CPU thread budget of the run (0 = the machine's cores): KISS-ICP and OpenCV "
+        "get all of it, torch all but one when map_worker is on, numpy/scipy BLAS one "
+        "(slam/threads.py; idle pool threads spin, so oversubscribed pools thrash)",
     )
     map_worker: bool = Field(
         True,

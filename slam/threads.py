@@ -5,12 +5,9 @@ pool (registration), OpenCV's pool (RGB-D odometry, ORB) and the OpenBLAS pools 
 scipy (every ``(N, 3) @ (3, 3)`` point transform). Each defaults to all cores and their idle
 threads spin, so on a small machine they thrash each other: on 2 cores a 128k-point transform took
 30 ms with OpenBLAS on 2 threads next to KISS-ICP, against 1 ms on one thread.
-:func:`apply_thread_budget` sets them all from ``RunConfig.threads``. When the map runs on its own
-worker thread (:mod:`slam.map_worker`), the budget is halved between the two threads of work:
-KISS-ICP gets half (rounded down, at least one) and torch the rest, so on 2 cores each gets one and
-they never wait for each other (measured on 500 generated KITTI scans: as fast as KISS-ICP on 2,
-and a single-threaded KISS-ICP is bitwise reproducible run to run). OpenCV gets the whole budget
-and BLAS one thread (its matrices here are ``N x 3``).
+:func:`apply_thread_budget` sets them all from ``RunConfig.threads``: KISS-ICP and OpenCV get the
+whole budget, torch gets the budget minus the odometry's share when the map runs on its own worker
+thread (:mod:`slam.map_worker`), and BLAS gets one thread (its matrices here are ``N x 3``).
 """
 
 from __future__ import annotations
@@ -49,13 +46,8 @@ def machine_cores() -> int:
 def plan_thread_budget(threads: int, map_worker: bool) -> ThreadBudget:
     """The split of ``threads`` (0 = the machine's cores) between the pools."""
     budget = threads if threads > 0 else machine_cores()
-    if not map_worker:
-        return ThreadBudget(budget=budget, torch=budget, kiss_icp=budget, opencv=budget, blas=1)
-    kiss_icp = max(1, budget // 2)
-    torch_threads = max(1, budget - kiss_icp)
-    return ThreadBudget(
-        budget=budget, torch=torch_threads, kiss_icp=kiss_icp, opencv=budget, blas=1
-    )
+    torch_threads = max(1, budget - 1) if map_worker else budget
+    return ThreadBudget(budget=budget, torch=torch_threads, kiss_icp=budget, opencv=budget, blas=1)
 
 
 def apply_thread_budget(cfg) -> ThreadBudget:
