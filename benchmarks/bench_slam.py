@@ -6,8 +6,7 @@ Scenarios (each in its own process, so that its peak memory is its own):
 
 * LiDAR: a 64-beam LiDAR simulated along the real KITTI 00 ground-truth trajectory (frames
   0-1700 in full mode, every 3rd frame of 0-1650 in quick mode; both contain the revisit of the
-  start area from frame 1559 on), run with configs/kitti.yaml, once with KISS-ICP odometry, once
-  with KISS-ICP through the same street with hills beside the road (``terrain_relief_m``), and
+  start area from frame 1559 on), run with configs/kitti.yaml, once with KISS-ICP odometry and
   once with ground truth plus an injected yaw drift (a stand-in for a drifting front-end, so that
   the loop closure has something to correct). KISS-SLAM runs side by side when it can be
   installed into /tmp/kissslam-venv.
@@ -45,8 +44,6 @@ KITTI_POSES = DATA / "kitti" / "poses" / "00.txt"
 KITTI_CALIB = DATA / "kitti" / "sequences" / "00" / "calib.txt"
 KISS_SLAM_VENV = Path("/tmp/kissslam-venv")
 PAPER_REMAP_FPS = 50.0
-RELIEF_M = 4.0
-"""Hills beside the road in the terrain-relief LiDAR run (the road keeps KITTI 00's elevations)."""
 DRIFT_TOTAL_DEG = 1.65
 """Injected yaw drift over the LiDAR window (the revisit stays within the proximity radius)."""
 
@@ -499,9 +496,8 @@ def write_report(path: Path, results: dict, quick: bool, command: str) -> None:
         "1559 on the car passes the places of frames 112 on again). configs/kitti.yaml: "
         "30 m submaps, V = 1 m, loop candidates from "
         "map_closures and anchor proximity (20 m), verified by ICP and overlap above the ground. "
-        "The road follows KITTI 00's real elevation profile (its slopes, crests and dips); the "
-        f"second row adds hills of up to {RELIEF_M:.0f} m beside it (`generated.terrain_relief_m`"
-        "), so that the ground around the car is not the road's plane continued. The third row "
+        "The road follows KITTI 00's real elevation profile (its slopes, crests and dips; the "
+        "street with hills beside it is benchmarks/bench_vertical.py's). The second row "
         "replaces KISS-ICP by the ground truth with an injected yaw drift, so that the loop "
         "closure has a drift to remove. Per-axis ATE: RMSE along the world x, y and z (up) axes "
         "after the same alignment, KISS-ICP alone (odometry) -> SLAM.",
@@ -511,7 +507,6 @@ def write_report(path: Path, results: dict, quick: bool, command: str) -> None:
         (name, results[key], (1.0, 2.0))
         for name, key in (
             ("KISS-ICP odometry", "lidar_kiss"),
-            (f"KISS-ICP odometry, {RELIEF_M:.0f} m hills beside the road", "lidar_relief"),
             (f"GT + {DRIFT_TOTAL_DEG} deg yaw drift over the window", "lidar_drift"),
         )
         if results.get(key)
@@ -613,8 +608,6 @@ def main(argv: list[str] | None = None) -> int:
     if KITTI_POSES.is_file():
         log.info("LiDAR, KISS-ICP")
         results["lidar_kiss"] = _in_child(scenario_lidar, args.quick, "kiss-icp")
-        log.info("LiDAR, KISS-ICP, terrain relief")
-        results["lidar_relief"] = _in_child(scenario_lidar, args.quick, "kiss-icp", RELIEF_M)
         log.info("LiDAR, drifting ground truth")
         results["lidar_drift"] = _in_child(scenario_lidar, args.quick, "drift")
         if not args.skip_kiss_slam:
