@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
 
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry
@@ -140,11 +141,7 @@ def refine_vertical(
         A = np.column_stack([np.ones(matched), d[:, 1], -d[:, 0]])
         dz, wx, wy = np.linalg.lstsq(A, -residual[use], rcond=None)[0]
         angle = float(np.hypot(wx, wy))
-        R = np.eye(3)
-        if angle > 0:
-            axis = np.array([wx, wy, 0.0]) / angle
-            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-            R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+        R = Rotation.from_rotvec([wx, wy, 0.0]).as_matrix()
         T[:3, :3] = R @ T[:3, :3]  # about the sensor: its position only moves by dz
         T[2, 3] += dz
         if abs(dz) < 1e-4 and angle < 1e-6:
