@@ -371,17 +371,16 @@ class RgbdOdometry(Odometry):
         self._check(frame)
         if self._odometry is None:
             self._build(frame)
-        prepared = self._prepare(frame)
-        current = prepared[0]
+        current, depth, gray = self._prepare(frame)
         if self._keyframe is None:
             self._keyframe = self._previous = current
             self._T_W_key = self._T_W_prev = np.eye(4)
             self._key_cloud = self._prev_cloud = self._cloud(frame)
             self._cov_key_prev = np.zeros((6, 6))
             self.num_keyframes = 1
-            self._key_depth, self._key_gray = prepared[1], prepared[2]
+            self._key_depth, self._key_gray = depth, gray
             if self._model is not None:
-                self._model.integrate(prepared[1], np.eye(4))
+                self._model.integrate(depth, np.eye(4))
             return np.eye(4)
 
         T_W_cur = None
@@ -438,14 +437,14 @@ class RgbdOdometry(Odometry):
             cov_key_cur = np.zeros((6, 6))
             self._keyframe, self._T_W_key = current, T_W_cur
             self._key_cloud = cloud
-            self._key_depth, self._key_gray = prepared[1], prepared[2]
+            self._key_depth, self._key_gray = depth, gray
             self.num_keyframes += 1
         self._cov_key_cur = self._cov_key_prev = cov_key_cur
         self._prev_cloud = cloud
         self._T_prev_prev2 = np.linalg.inv(self._T_W_prev) @ T_W_cur
         self._previous, self._T_W_prev = current, T_W_cur
         if self._model is not None and (self._keyframe is current or not c.model.keyframes_only):
-            self._model.integrate(prepared[1], T_W_cur)
+            self._model.integrate(depth, T_W_cur)
         return T_W_cur.copy()
 
     def _cloud(self, frame: Frame):
