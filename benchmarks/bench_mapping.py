@@ -47,6 +47,7 @@ log = logging.getLogger("benchmarks.bench_mapping")
 
 RESULTS = Path(__file__).resolve().parent / "results" / "mapping.md"
 V = 0.1
+JACOBIAN_PAIRS = MapConfig().jacobian_pairs_per_voxel
 
 
 # ---------------------------------------------------------------------------- scene
@@ -191,6 +192,7 @@ class Variant:
     sigma_vu: float = 0.5
     target_rule: str | None = None
     storage: tuple[str, int, int, str] | None = None  # see STORAGE_VARIANTS
+    jacobian_pairs: int = 0  # mapping.jacobian_pairs_per_voxel of the encoding (0: every pair)
 
 
 def timed(fn, repeats: int) -> tuple[float, float]:
@@ -215,6 +217,13 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
     t = time.perf_counter()
     base = encode_points(model, torch.from_numpy(points), torch.from_numpy(normals), V)
     encode_s = time.perf_counter() - t
+    capped = encode_points(
+        model,
+        torch.from_numpy(points),
+        torch.from_numpy(normals),
+        V,
+        jacobian_pairs_per_voxel=JACOBIAN_PAIRS,
+    )
     samples = 30_000 if quick else 150_000
     lines += [
         "### Transform fidelity (two paths)",
@@ -243,6 +252,14 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
             Variant(f"ours, stored {label}", "gaussian", True, storage=storage)
             for label, storage in STORAGE_VARIANTS
         ),
+        Variant(
+            f"ours, stored {STORAGE_VARIANTS[0][0]}, Jacobian from <= {JACOBIAN_PAIRS} pairs "
+            "per voxel (the default since stop 17)",
+            "gaussian",
+            True,
+            storage=STORAGE_VARIANTS[0][1],
+            jacobian_pairs=JACOBIAN_PAIRS,
+        ),
         Variant("ours without Jacobian", "gaussian", False),
         Variant(
             "ours, paper's target rule (nearest source < 1 voxel)", "gaussian", True, 0.5, "radius"
@@ -265,7 +282,8 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
         ref_mesh = mesh_of(model, cfg, ref_block)
         ref_gt = mesh_distance(ref_mesh, gt, samples)[0]
         for var in variants:
-            source = base if var.storage is None else stored(base, *var.storage)
+            source = base if var.jacobian_pairs == 0 else capped
+            source = source if var.storage is None else stored(source, *var.storage)
             block = transform_block(
                 source,
                 D,
@@ -316,8 +334,18 @@ def speed(model, quick: bool, lines: list[str]) -> None:
     size = (
         f"{len(frame_pts):,} points (of {hits:,} hits) -> {frame_sub.original.num_voxels:,} voxels"
     )
-    rows.append(("encode one 640x480 depth frame, with Jacobians", size, enc, "frames", ">= 30/s"))
+    rows.append(
+        (
+            f"encode one 640x480 depth frame, with Jacobians (<= {JACOBIAN_PAIRS} pairs per voxel)",
+            size,
+            enc,
+            "frames",
+            ">= 30/s",
+        )
+    )
     pts_t, nrm_t = torch.from_numpy(frame_pts), torch.from_numpy(frame_nrm)
+    enc_all = timed(lambda: encode_points(nm.model, pts_t, nrm_t, V), repeats)
+    rows.append(("encode, Jacobians from every pair", "same", enc_all, "frames", "-"))
     enc_nj = timed(lambda: encode_points(nm.model, pts_t, nrm_t, V, with_jacobian=False), repeats)
     rows.append(("encode, latents only (no Jacobians)", "same", enc_nj, "frames", "-"))
 

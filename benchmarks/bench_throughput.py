@@ -127,6 +127,7 @@ def scenario_ours(num_frames: int) -> dict:
     pipeline = SlamPipeline(cfg, "lidar", odometry, neural_map, NullLogger())
     rss: dict[str, float] = {}
     start = time.perf_counter()
+    cpu_start = time.process_time()
     count = 0
     for frame in source:
         pipeline.process(frame)
@@ -142,6 +143,7 @@ def scenario_ours(num_frames: int) -> dict:
         neural_map.save(path, list(pipeline.submaps.values()))
         map_bytes = path.stat().st_size
     wall = time.perf_counter() - start
+    cpu_s = time.process_time() - cpu_start
     map_save_s = wall - final_mesh_s - (mark - start)
     rss[str(count)], peak_rss_mb = _rss_mb()  # before scoring: the run's own peak
     gt = source.gt_poses
@@ -161,6 +163,7 @@ def scenario_ours(num_frames: int) -> dict:
     return {
         "frames": count,
         "wall_s": wall,
+        "cpu_s": cpu_s,
         "fps": count / wall,
         "stage_s": stage,
         "rss_mb": rss,
@@ -190,6 +193,7 @@ def scenario_kiss_icp(num_frames: int) -> dict:
     kiss = KissICP(cfg.odometry.kiss_icp.to_kiss())
     poses = []
     start = time.perf_counter()
+    cpu_start = time.process_time()
     for frame in source:
         kiss.register_frame(np.asarray(frame.points, dtype=np.float64), np.zeros(0))
         poses.append(np.array(kiss.last_pose))
@@ -197,6 +201,7 @@ def scenario_kiss_icp(num_frames: int) -> dict:
     return {
         "frames": len(poses),
         "wall_s": wall,
+        "cpu_s": time.process_time() - cpu_start,
         "fps": len(poses) / wall,
         "peak_rss_mb": _rss_mb()[1],
         "ate_odometry_m": ate_rmse(np.array(poses), source.gt_poses),
@@ -219,7 +224,7 @@ def scenario_kiss_slam(num_frames: int) -> dict:
             [
                 "/usr/bin/time",
                 "-f",
-                "MAXRSS_KB %M",
+                "MAXRSS_KB %M\nCPU_S %U %S",
                 str(KISS_SLAM_VENV / "bin" / "kiss_slam_pipeline"),
                 str(root),
                 "--dataloader",
@@ -239,20 +244,23 @@ def scenario_kiss_slam(num_frames: int) -> dict:
             said = [
                 line
                 for line in (run.stderr + run.stdout).strip().splitlines()
-                if not line.startswith(("MAXRSS_KB", "Command exited"))
+                if not line.startswith(("MAXRSS_KB", "CPU_S", "Command exited"))
             ]
             return {"skipped": f"KISS-SLAM exited with {run.returncode}: {(said or ['?'])[-1]}"}
         found = sorted(Path(work).rglob("*_poses_kitti.txt"))
         if not found:
             return {"skipped": "KISS-SLAM wrote no poses file"}
         poses = read_kitti(found[0])
-    peak = None
+    peak = cpu_s = None
     for line in run.stderr.splitlines():
         if line.startswith("MAXRSS_KB"):
             peak = int(line.split()[1]) / 1024
+        elif line.startswith("CPU_S"):
+            cpu_s = sum(float(v) for v in line.split()[1:])
     return {
         "frames": len(poses),
         "wall_s": wall,
+        "cpu_s": cpu_s,
         "fps": len(poses) / wall,
         "peak_rss_mb": peak,
         "ate_slam_m": ate_rmse(poses, source.gt_poses[: len(poses)]),
@@ -309,6 +317,19 @@ def scenario_micro(_: int) -> dict:
         wall, cpu = timed(lambda: encode_points(model, p, n, V, compiled=True))
         out[f"encode_compiled_wall_s_{threads}t"] = wall
         out[f"encode_compiled_cpu_s_{threads}t"] = cpu
+    torch.set_num_threads(1)
+    cap = MapConfig().jacobian_pairs_per_voxel
+    capped = encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
+    scale = block.jacobians.flatten(1).norm(dim=1).clamp_min(1e-12)
+    jacobian_error = (capped.jacobians - block.jacobians).flatten(1).norm(dim=1) / scale
+    out["encode_capped_pairs"] = cap
+    out["encode_capped_jacobian_rel_diff_median"] = float(jacobian_error.median())
+    out["encode_capped_wall_s_1t"], out["encode_capped_cpu_s_1t"] = timed(
+        lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
+    )
+    out["encode_capped_compiled_wall_s_1t"] = timed(
+        lambda: encode_points(model, p, n, V, compiled=True, jacobian_pairs_per_voxel=cap)
+    )[0]
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
     surface, surface_normals = sample_surface(room, 1500, seed=1)
     submap = NeuralMap(cfg, model).encode(0, surface, surface_normals, np.eye(4))
@@ -379,11 +400,13 @@ def write_report(results: dict) -> None:
         "KISS-ICP alone is reading + `register_frame`; KISS-SLAM is its `kiss_slam_pipeline` "
         "process (0.0.2, default config). Ours' peak RSS is taken before its mesh is scored "
         "against ground truth (evaluation, not SLAM; `peak_rss_with_scoring_mb` in "
-        "throughput.json).",
+        "throughput.json). CPU = user + system time of all the method's threads (where "
+        "recorded): on two cores that are both busy, the wall time is about half of it, and it "
+        "varies less between runs than the wall time.",
         "",
-        "| run | code | frames | method | wall [s] | frames/s | vs KISS-ICP | vs KISS-SLAM | "
-        "peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| run | code | frames | method | wall [s] | CPU [s] | frames/s | vs KISS-ICP | "
+        "vs KISS-SLAM | peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key in sorted(results):
         run = results[key]
@@ -397,7 +420,8 @@ def write_report(results: dict) -> None:
             vs_slam = r["wall_s"] / kslam["wall_s"] if kslam.get("wall_s") else None
             lines.append(
                 f"| {key} | {run['code']} | {r['frames']} | {name} | {_f(r['wall_s'])} | "
-                f"{_f(r['fps'], 2)} | {_f(vs_icp, 2)} | {_f(vs_slam, 2)} | "
+                f"{_f(r.get('cpu_s'), 0)} | {_f(r['fps'], 2)} | {_f(vs_icp, 2)} | "
+                f"{_f(vs_slam, 2)} | "
                 f"{_f(r.get('peak_rss_mb'), 0)} | {_f(r.get('ate_odometry_m'), 3)} | "
                 f"{_f(r.get('ate_slam_m'), 3)} | {_f(run.get('load'), 1)} |"
             )
@@ -470,6 +494,30 @@ def write_report(results: dict) -> None:
                 f"{m['encode_compiled_wall_s_2t']:.3f} | "
                 f"{m['encode_compiled_latent_rel_diff']:.1e} / "
                 f"{m['encode_compiled_jacobian_rel_diff']:.1e} | {m['load']:.1f} |"
+            )
+    capped = [
+        k for k in sorted(results) if "encode_capped_wall_s_1t" in results[k].get("micro", {})
+    ]
+    if capped:
+        lines += [
+            "",
+            "The same frame with each voxel's Jacobian taken from at most "
+            "`mapping.jacobian_pairs_per_voxel` of its point-voxel pairs (the default since stop "
+            "17; the latents still use every pair): rel. diff = median per-voxel relative "
+            "difference of the Jacobians to those of every pair.",
+            "",
+            "| run | pairs | eager, 1 thread [s] (CPU s) | frames/s | compiled, 1 thread [s] | "
+            "frames/s | Jacobian rel. diff (median) | load |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for key in capped:
+            m = results[key]["micro"]
+            lines.append(
+                f"| {key} | {m['encode_capped_pairs']} | {m['encode_capped_wall_s_1t']:.3f} "
+                f"({m['encode_capped_cpu_s_1t']:.3f}) | {1 / m['encode_capped_wall_s_1t']:.2f} | "
+                f"{m['encode_capped_compiled_wall_s_1t']:.3f} | "
+                f"{1 / m['encode_capped_compiled_wall_s_1t']:.2f} | "
+                f"{m['encode_capped_jacobian_rel_diff_median']:.3f} | {m['load']:.1f} |"
             )
     lines += _rgbd_lines(results)
     lines.append("")

@@ -91,6 +91,17 @@ class MapConfig(BaseModel):
             "first-order term); 4 matches full rank on the two-path benchmark, 2 does not"
         ),
     )
+    jacobian_pairs_per_voxel: int = Field(
+        16,
+        ge=0,
+        description=(
+            "a voxel's Jacobian (the transform's first-order term) is the mean of dF/dr over at "
+            "most this many of its point-voxel pairs, spread over the voxel; its latent always "
+            "uses every pair. The tangents cost about 4x the latent, so this halves encoding on "
+            "LiDAR submaps; 0 uses every pair. Transform fidelity and mesh accuracy for both "
+            "settings: BENCHMARKS.md (Mapping, LiDAR throughput)"
+        ),
+    )
     mesh_subdivisions: int = Field(
         4,
         ge=1,

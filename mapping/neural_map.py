@@ -115,6 +115,7 @@ class NeuralMap:
             self.voxel_size_m,
             min_points_per_voxel=self.cfg.min_points_per_voxel,
             compiled=self.cfg.encoder_compiled,
+            jacobian_pairs_per_voxel=self.cfg.jacobian_pairs_per_voxel,
         )
         return Submap(
             submap_id=int(submap_id),

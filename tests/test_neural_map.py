@@ -107,6 +107,50 @@ def test_stored_jacobian_matches_finite_differences() -> None:
     assert (err / scale).max() < 1e-3
 
 
+def test_capped_jacobian_is_the_mean_over_an_even_subset_of_pairs() -> None:
+    """With ``jacobian_pairs_per_voxel`` the latents and weights are those of every pair; each
+    voxel's Jacobian is the exact mean of dF/dr over at most that many of its pairs, every
+    ``ceil(c / cap)``-th in Z-order, and voxels with fewer pairs keep their exact Jacobian."""
+    from mapping.encoding import jacobian_pair_mask, point_latents
+    from mapping.voxel_block import pack_keys
+
+    cap = 5
+    model = _random_model(4).double()
+    points, normals = _sphere(2000, radius=0.25)
+    pts, nrm = torch.from_numpy(points), torch.from_numpy(normals)
+    full = encode_points(model, pts, nrm, V)
+    capped = encode_points(model, pts, nrm, V, jacobian_pairs_per_voxel=cap)
+    assert torch.equal(capped.keys, full.keys)
+    assert torch.equal(capped.weights, full.weights)
+    assert torch.allclose(capped.latents, full.latents, rtol=0, atol=1e-12)
+
+    grid, r = point_voxel_pairs(pts, V)
+    _, inverse = torch.unique(pack_keys(grid.reshape(-1, 3)), return_inverse=True)
+    counts = torch.bincount(inverse)
+    assert (counts > 3 * cap).any() and (counts <= cap).any()
+    mask = jacobian_pair_mask(inverse, counts, r.reshape(-1, 3), cap)
+    kept = torch.bincount(inverse[mask], minlength=len(counts))
+    assert torch.equal(kept, -(-counts // -(-counts // cap)))  # ceil(c / ceil(c / cap))
+    assert (kept <= cap).all()
+    # spread over the voxel: every octant holding at least `stride` of a voxel's pairs is sampled
+    stride = -(-counts // cap)
+    octant = ((r.reshape(-1, 3) >= 0).long() * torch.tensor([1, 2, 4])).sum(1)
+    cell = inverse * 8 + octant
+    in_cell = torch.bincount(cell, minlength=8 * len(counts))
+    sampled = torch.bincount(cell[mask], minlength=8 * len(counts))
+    crowded = in_cell >= stride.repeat_interleave(8)
+    assert crowded.sum() > 100 and (sampled[crowded] > 0).all()
+
+    _, dF = point_latents(model.encoder, r.reshape(-1, 3), nrm.repeat_interleave(8, dim=0), True)
+    jac = torch.zeros(len(counts), *dF.shape[1:], dtype=dF.dtype)
+    jac.index_add_(0, inverse[mask], dF[mask])
+    expected = (jac / kept.view(-1, 1, 1, 1)).permute(0, 3, 2, 1)
+    assert torch.allclose(capped.jacobians.double(), expected, rtol=0, atol=1e-6)
+    small = counts <= cap
+    assert torch.allclose(capped.jacobians[small], full.jacobians[small], rtol=0, atol=1e-6)
+    assert not torch.allclose(capped.jacobians[~small], full.jacobians[~small], atol=1e-3)
+
+
 def test_compiled_encoding_pads_chunks_and_matches_eager(monkeypatch) -> None:
     """The compiled path (here traced by dynamo, run without inductor) pads every chunk to the
     full size and drops the padding: the voxel block equals the eager one."""
