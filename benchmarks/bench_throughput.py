@@ -87,15 +87,16 @@ def _source(num_frames: int):
     )
 
 
-def _config():
-    from slam.config import default_config_path, load_run_config
+def _config(extra: dict[str, Any] | None = None):
+    """configs/kitti.yaml for the generated scans, without viewer, with ``extra`` on top."""
+    from slam.config import default_config_path, load_run_config, merge_overrides
 
     overrides: dict[str, Any] = {
         "source": {"dataset": "generated"},
         "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
         "mapping": {"device": "cpu"},
     }
-    return load_run_config(default_config_path("kitti"), overrides)
+    return load_run_config(default_config_path("kitti"), merge_overrides(overrides, extra or {}))
 
 
 def _apply_thread_budget(cfg) -> str:
@@ -112,14 +113,14 @@ def _apply_thread_budget(cfg) -> str:
     return apply_thread_budget(cfg).describe()
 
 
-def scenario_ours(num_frames: int) -> dict:
+def scenario_ours(num_frames: int, override: dict[str, Any] | None = None) -> dict:
     logging.basicConfig(level=logging.WARNING)
     from slam.builders import build_map, build_odometry
     from slam.metrics.trajectory import ate_rmse
     from slam.pipeline import SlamPipeline
     from slam.viz import NullLogger
 
-    cfg = _config()
+    cfg = _config(override)
     threads = _apply_thread_budget(cfg)
     source = _source(num_frames)
     odometry = build_odometry(cfg, "lidar")
@@ -564,6 +565,13 @@ def main(argv: list[str] | None = None) -> int:
         "--only", choices=["ours", "kiss_icp", "kiss_slam", "micro", "rgbd"], action="append"
     )
     parser.add_argument("--skip-kiss-slam", action="store_true")
+    parser.add_argument(
+        "--override",
+        type=json.loads,
+        default=None,
+        help="config overrides for ours, as JSON (e.g. "
+        '\'{"mapping": {"jacobian_pairs_per_voxel": 0}}\'); recorded with the run',
+    )
     parser.add_argument("--report-only", action="store_true")
     parser.add_argument(
         "--quick",
@@ -584,6 +592,8 @@ def main(argv: list[str] | None = None) -> int:
             date=dt.datetime.now().isoformat(timespec="seconds"),
             load=os.getloadavg()[0],
         )
+        if args.override:
+            run["override"] = args.override
         methods = args.only or ["kiss_icp", "kiss_slam", "ours"]
         if args.skip_kiss_slam and "kiss_slam" in methods:
             methods.remove("kiss_slam")
@@ -598,12 +608,14 @@ def main(argv: list[str] | None = None) -> int:
                     "micro": scenario_micro,
                     "rgbd": scenario_rgbd,
                 }[name]
-                run[name] = _in_child(fn, args.frames)
+                extra = (args.override,) if name == "ours" else ()
+                run[name] = _in_child(fn, args.frames, *extra)
             log.info("%s: %s", name, {k: v for k, v in run[name].items() if k != "stage_s"})
             # re-read before writing: several invocations may run side by side
             results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
             merged = results.setdefault(key, {})
-            merged.update({k: run[k] for k in ("code", "date", "load", name)})
+            fields = ("code", "date", "load", "override", name)
+            merged.update({k: run[k] for k in fields if k in run})
             RESULTS.parent.mkdir(parents=True, exist_ok=True)
             RESULTS.write_text(json.dumps(results, indent=2, default=str))
     write_report(results)

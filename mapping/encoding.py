@@ -281,7 +281,7 @@ def jacobian_pair_mask(
     if per_voxel <= 0 or int(pair_counts.max()) <= per_voxel:
         return torch.ones_like(inverse, dtype=torch.bool)
     bits = 4
-    order = torch.argsort((inverse << (3 * bits)) | _morton_code(r, bits))
+    order = torch.argsort((inverse << (3 * bits)) | _morton_code(r, bits), stable=True)
     starts = torch.cumsum(pair_counts, 0) - pair_counts
     rank = torch.empty_like(inverse)
     rank[order] = torch.arange(inverse.shape[0], device=inverse.device) - starts[inverse[order]]

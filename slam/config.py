@@ -638,11 +638,12 @@ def describe_validation_error(error: ValidationError, origin: str) -> str:
     return f"{origin}: invalid value {shown} for '{key}': {first['msg']}"
 
 
-def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+def merge_overrides(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with the nested mapping ``override`` applied on top (neither is modified)."""
     out = dict(base)
     for key, value in override.items():
         if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
+            out[key] = merge_overrides(out[key], value)
         else:
             out[key] = value
     return out
@@ -685,7 +686,7 @@ def load_run_config(path: Path | None = None, overrides: dict[str, Any] | None =
     data = read_yaml(path) if path is not None else {}
     origin = str(path) if path is not None else "config"
     if overrides:
-        data = _merge(data, overrides)
+        data = merge_overrides(data, overrides)
     return build_run_config(data, origin)
 
 
