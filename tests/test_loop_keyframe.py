@@ -69,7 +69,7 @@ def test_keyframe_refinement_removes_the_submap_drift_from_the_edge(room):
     errors = {}
     for keyframe_refine in (False, True):
         # The depth agreement check as loose as noisy real depth needs: on this noise-free room
-        # it rejects the drifted submap edge outright, and the point here is the edge's pose.
+        # it rejects the drifted submap edge (below), and the point here is the edge's pose.
         cfg = RgbdLoopConfig(
             keyframe_refine=keyframe_refine, min_depth_agreement=0.3, max_depth_residual_m=0.05
         )
@@ -82,6 +82,23 @@ def test_keyframe_refinement_removes_the_submap_drift_from_the_edge(room):
     # The bent submaps pull the submap-level edge off; the keyframes' own depth does not.
     assert errors[False][0] > 0.01 or errors[False][1] > 0.5, errors
     assert errors[True][0] < 0.005 and errors[True][1] < 0.1, errors
+
+
+def test_keyframe_refinement_keeps_a_loop_that_drifted_submaps_would_lose(room):
+    """Default checks: the drifted submaps' edge fails the keyframe depth agreement, so without
+    the keyframe stage the loop is lost; with it, the edge is corrected and accepted."""
+    truth = np.linalg.inv(room.gt_poses[REFERENCE]) @ room.gt_poses[QUERY]
+    plain = RgbdVerifier(RgbdLoopConfig(keyframe_refine=False))
+    reference, query = _pair(plain, room, drift_deg=1.5, drift_m=0.02)
+    accepted, reason, _, _ = plain.verify_dense(reference, query, _guess(truth))
+    assert not accepted and "depth agreement" in reason, reason
+    verifier = RgbdVerifier(RgbdLoopConfig())
+    reference, query = _pair(verifier, room, drift_deg=1.5, drift_m=0.02)
+    accepted, reason, T, scores = verifier.verify_dense(reference, query, _guess(truth))
+    assert accepted, (reason, scores)
+    error_m, error_deg = relative_motion(truth, T)
+    assert error_m < 0.005 and error_deg < 0.1
+    assert scores["final_depth_agreement"] > 0.9
 
 
 def _single_plane(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
