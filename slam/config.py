@@ -413,6 +413,29 @@ class RgbdLoopConfig(_Strict):
         "their depth agreed no better than the ground truth's (the cost could not fix them); "
         "a single plane gives 0, the generated room's loop 0.022",
     )
+    keyframe_refine: bool = Field(
+        True,
+        description="after the submap ICP, refine the edge once more by point-to-plane ICP "
+        "between the two anchor keyframes' own depth clouds, from the submap ICP's result, and "
+        "make that the edge (its ICP checks as for the submap ICP, then the keyframe depth "
+        "agreement; a failure rejects the loop). A submap cloud is fused with its frames' "
+        "estimated poses, so their errors bend it and the pose that aligns two whole submaps "
+        "best is not the anchors' relative pose; measured on 7-Scenes: loop error median "
+        "4.5 -> 2.8 cm against the ground truth, SLAM ATE 4.0 -> 2.6 cm",
+    )
+    keyframe_refine_stride_px: int = Field(
+        4,
+        ge=1,
+        description="keyframe refinement: every stride-th depth pixel (rows and columns) is "
+        "lifted (7-Scenes, 640x480: stride 4 registered as well as stride 2, in 0.56 s a pair "
+        "instead of 1.4 s)",
+    )
+    keyframe_refine_voxel_m: float = Field(
+        0.01, gt=0, description="keyframe refinement: voxel size the keyframe clouds are thinned to"
+    )
+    keyframe_refine_max_points: int = Field(
+        20000, ge=100, description="keyframe refinement: at most this many points per keyframe"
+    )
     proximity_candidates: int = Field(
         2,
         ge=0,
