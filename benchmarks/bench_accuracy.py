@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from slam.config import merge_overrides
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 RESULTS = REPO / "benchmarks" / "results"
@@ -218,7 +220,7 @@ def _run(
         "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
         "mapping": {"device": "cpu"},
     }
-    cfg = load_run_config(default_config_path(config_name), _merge(base, overrides))
+    cfg = load_run_config(default_config_path(config_name), merge_overrides(base, overrides))
     source = make_source(dataset, **source_kwargs(cfg))
     odometry = build_odometry(cfg, "rgbd")
     pipeline = SlamPipeline(cfg, source.sensor, odometry, build_map(cfg), NullLogger())
@@ -244,16 +246,6 @@ SCENARIOS = {
     ),
     "room": ("generated room (demo config)", "demo", {}, "generated"),
 }
-
-
-def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in extra.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
-        else:
-            out[key] = value
-    return out
 
 
 def _revision() -> str:
@@ -430,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
                 log.warning("no 7-Scenes data under %s: skipped", DATA)
                 continue
             runs[key] = _run(
-                config_name, _merge(overrides, args.override), dataset, args.diagnose_loops
+                config_name, merge_overrides(overrides, args.override), dataset, args.diagnose_loops
             )
             r = runs[key]
             log.info(

@@ -291,18 +291,31 @@ class RgbdVerifier:
             return False, reason, T_dense, scores
         if c.keyframe_refine:
             return self._verify_keyframes(reference, query, T_dense, scores)
+        return self._judge_edge(
+            reference, query, T_dense, result, scores, "refine: keyframe depth agreement"
+        )
+
+    def _judge_edge(
+        self,
+        reference: KeyframeFeatures,
+        query: KeyframeFeatures,
+        T_edge: np.ndarray,
+        result: IcpResult,
+        scores: dict[str, float],
+        failure: str,
+    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
+        """The final check of a registered edge, the keyframes' depth agreement; an edge that
+        passes gets its ICP covariance (:attr:`last_covariance`)."""
+        c = self.cfg
         fraction, median = depth_agreement(
-            reference, query, np.linalg.inv(T_dense), c.depth_inlier_distance_m
+            reference, query, np.linalg.inv(T_edge), c.depth_inlier_distance_m
         )
         scores["final_depth_agreement"] = fraction
         scores["final_depth_residual_m"] = median
         if not (fraction >= c.min_depth_agreement and median <= c.max_depth_residual_m):
-            reason = f"refine: keyframe depth agreement {fraction:.2f}, residual {median:.3f} m"
-            return False, reason, T_dense, scores
-        if c.keyframe_refine:
-            return self._verify_keyframes(reference, query, T_dense, scores)
+            return False, f"{failure} {fraction:.2f}, residual {median:.3f} m", T_edge, scores
         self.last_covariance = result.covariance(c.covariance_factor)
-        return True, "accepted", T_dense, scores
+        return True, "accepted", T_edge, scores
 
     def keyframe_cloud(self, features: KeyframeFeatures) -> RefineCloud | None:
         """The keyframe's own depth image as a refinement cloud (None: too few points)."""
@@ -330,7 +343,6 @@ class RgbdVerifier:
         scores: dict[str, float],
     ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
         """Keyframe-to-keyframe ICP from the submap ICP's edge, its checks; sets the covariance."""
-        c = self.cfg
         reference_cloud = self.keyframe_cloud(reference)
         query_cloud = self.keyframe_cloud(query)
         if reference_cloud is None or query_cloud is None:
@@ -344,16 +356,8 @@ class RgbdVerifier:
         )
         if not accepted:
             return False, "keyframe: " + reason.removeprefix("refine: "), T_edge, scores
-        fraction, median = depth_agreement(
-            reference, query, np.linalg.inv(T_edge), c.depth_inlier_distance_m
-        )
-        scores["final_depth_agreement"] = fraction
-        scores["final_depth_residual_m"] = median
-        if not (fraction >= c.min_depth_agreement and median <= c.max_depth_residual_m):
-            reason = f"keyframe: depth agreement {fraction:.2f}, residual {median:.3f} m"
-            return False, reason, T_edge, scores
-        self.last_covariance = result.covariance(c.covariance_factor)
-        return True, "accepted", T_edge, scores
+        failure = "keyframe: depth agreement"
+        return self._judge_edge(reference, query, T_edge, result, scores, failure)
 
     def _odometry_stage(
         self,
