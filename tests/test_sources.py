@@ -120,6 +120,25 @@ def test_kitti_layout(tmp_path):
     assert 0 < shift.max() < 0.01 * np.linalg.norm(scans[1][:, :3], axis=1).max()
 
 
+@pytest.mark.parametrize("depth", [1, 2, 5])
+def test_read_ahead_yields_the_frames_in_order_and_raises_at_a_bad_one(tmp_path, depth):
+    """Frames loaded ahead on a background thread are the frames, in order; a truncated scan
+    raises its one-line error when its turn comes, after the frames before it."""
+    make_kitti(tmp_path, n=4)
+    source = make_source("kitti", root=tmp_path, sequence="3")
+    for ahead, frame in zip(source.read_ahead(depth), source, strict=True):
+        assert ahead.index == frame.index
+        np.testing.assert_array_equal(ahead.points, frame.points)
+    velodyne = tmp_path / "sequences" / "03" / "velodyne"
+    (velodyne / "000002.bin").write_bytes((velodyne / "000002.bin").read_bytes()[:-5])
+    seen = []
+    with pytest.raises(DatasetError) as exc:
+        for frame in source.read_ahead(depth):
+            seen.append(frame.index)
+    assert seen == [0, 1]
+    assert_one_line_error(exc, "000002.bin", "truncated")
+
+
 def test_kitti_without_poses_has_no_ground_truth(tmp_path):
     make_kitti(tmp_path, with_poses=False)
     source = make_source("kitti", root=tmp_path, sequence="03")

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import ClassVar, Literal
 
@@ -90,6 +92,28 @@ class Source(ABC):
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
             yield self[i]
+
+    def read_ahead(self, depth: int = 2) -> Iterator[Frame]:
+        """The frames in order, the next ``depth`` of them loaded on a background thread while
+        the caller works on the current one (file reads and image decoding release the GIL).
+
+        Frames are loaded one at a time, in order, so a source needs no locking; a frame that
+        fails to load raises here, at its turn.
+        """
+        count = len(self)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="read-ahead") as pool:
+            pending = deque(pool.submit(self.__getitem__, i) for i in range(min(depth, count)))
+            following = len(pending)
+            try:
+                while pending:
+                    frame = pending.popleft().result()
+                    if following < count:
+                        pending.append(pool.submit(self.__getitem__, following))
+                        following += 1
+                    yield frame
+            finally:
+                for future in pending:
+                    future.cancel()
 
     @property
     def gt_poses(self) -> np.ndarray | None:
