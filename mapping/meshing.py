@@ -19,6 +19,7 @@ changes. A chunk whose marching cubes fails is left out with a warning that coun
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -169,8 +170,18 @@ class ChunkMesher:
         return torch.unique(torch.cat(found))
 
     @torch.no_grad()
-    def update(self, store: VoxelStore, decoder: Decoder, dirty_voxel_keys: torch.Tensor) -> None:
-        """Re-mesh every chunk touched by ``dirty_voxel_keys`` (packed)."""
+    def update(
+        self,
+        store: VoxelStore,
+        decoder: Decoder,
+        dirty_voxel_keys: torch.Tensor,
+        threads: int = 1,
+    ) -> None:
+        """Re-mesh every chunk touched by ``dirty_voxel_keys`` (packed).
+
+        ``threads > 1`` meshes batches of chunks on that many Python threads (torch and
+        scikit-image release the GIL); each batch is meshed alone, so the result is the same.
+        """
         chunks = self.dirty_chunks(dirty_voxel_keys)
         self.last_remeshed = chunks
         if chunks.numel() == 0:
@@ -183,13 +194,22 @@ class ChunkMesher:
         grid = unpack_keys(keys[decodable])
         rows = rows[decodable]
         pair_voxel, pair_chunk = self._voxel_chunk_pairs(grid, chunks)
-        for start in range(0, chunks.shape[0], CHUNKS_PER_BATCH):
-            batch = chunks[start : start + CHUNKS_PER_BATCH]
+        batches = torch.split(chunks, CHUNKS_PER_BATCH)
+
+        @torch.no_grad()  # grad mode is per thread: the pool's threads do not inherit it
+        def mesh_batch(batch: torch.Tensor) -> list:
             lo = torch.searchsorted(pair_chunk, batch[0])
             hi = torch.searchsorted(pair_chunk, batch[-1], right=True)
-            meshes = self._mesh_batch(
+            return self._mesh_batch(
                 store, decoder, batch, grid, rows, pair_voxel[lo:hi], pair_chunk[lo:hi]
             )
+
+        if threads > 1 and len(batches) > 1:
+            with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="mesh") as pool:
+                results = list(pool.map(mesh_batch, batches))
+        else:
+            results = map(mesh_batch, batches)
+        for batch, meshes in zip(batches, results, strict=True):
             for key, mesh in zip(batch.tolist(), meshes, strict=True):
                 if isinstance(mesh, str):
                     failures.append((key, mesh))

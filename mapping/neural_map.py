@@ -200,9 +200,16 @@ class NeuralMap:
             valid.cpu().numpy(),
         )
 
-    def extract_mesh(self) -> trimesh.Trimesh:
-        """The map's mesh; only chunks touched since the last call are re-meshed."""
-        self._mesher.update(self._store, self.model.decoder, self._store.take_dirty())
+    def extract_mesh(self, threads: int = 1) -> trimesh.Trimesh:
+        """The map's mesh; only chunks touched since the last call are re-meshed.
+
+        ``threads > 1`` meshes on that many threads, each running torch with its intra-op
+        threads: give more than one only where torch has a single intra-op thread and the
+        cores are otherwise idle (the whole-map mesh after a run).
+        """
+        self._mesher.update(
+            self._store, self.model.decoder, self._store.take_dirty(), threads=threads
+        )
         return self._mesher.mesh()
 
     # ------------------------------------------------------------------ inspection

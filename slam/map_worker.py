@@ -13,6 +13,7 @@ An exception in a job is raised again by the next :meth:`MapWorker.submit` or
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -35,6 +36,7 @@ class MapWorker:
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-worker") if threaded else None
         )
         self._pending: deque[Future] = deque()
+        self.cpu_s: float | None = None  # CPU seconds of the worker thread, set by close()
 
     def submit(self, job: Callable[..., Any], *args: Any) -> None:
         """Queue ``job(*args)`` after every job submitted before it."""
@@ -56,5 +58,6 @@ class MapWorker:
             self.drain()
         finally:
             if self._pool is not None:
+                self.cpu_s = self._pool.submit(time.thread_time).result()
                 self._pool.shutdown(wait=True)
                 self._pool = None

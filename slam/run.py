@@ -354,7 +354,7 @@ def execute(
         if announce is not None:
             announce(line)
 
-    apply_thread_budget(cfg)
+    threads = apply_thread_budget(cfg)
     if cfg.viz.mode == "none":  # nobody would see intermediate meshes
         cfg.viz.mesh_every_submaps = 10**9
         cfg.viz.mesh_after_remap = False
@@ -389,7 +389,7 @@ def execute(
     intrinsics = None
     loop_start = time.perf_counter()
     try:
-        for frame in source:
+        for frame in source.read_ahead():
             result = pipeline.process(frame)
             if intrinsics is None and frame.intrinsics is not None:
                 intrinsics = frame.intrinsics
@@ -415,7 +415,7 @@ def execute(
     pipeline_s = time.perf_counter() - loop_start
     write_poses()
     outputs.write_loops(pipeline.loop_candidates)
-    mesh = neural_map.extract_mesh()
+    mesh = neural_map.extract_mesh(threads=threads.mesh_threads)
     if cfg.output.write_mesh:
         outputs.write_mesh(mesh)
     if cfg.output.write_map:

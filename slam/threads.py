@@ -29,6 +29,13 @@ class ThreadBudget:
     opencv: int
     blas: int
 
+    @property
+    def mesh_threads(self) -> int:
+        """Threads for the whole-map mesh after the run, when the map worker and the odometry
+        are idle: the budget in units of torch's intra-op threads (each meshing thread runs
+        torch with those)."""
+        return max(1, self.budget // self.torch)
+
     def describe(self) -> str:
         return (
             f"budget {self.budget}: torch {self.torch}, KISS-ICP {self.kiss_icp}, "

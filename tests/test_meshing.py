@@ -176,6 +176,22 @@ def test_welded_mesh_is_watertight_across_chunks() -> None:
     assert len(merged.vertices) == len(mesh.vertices)
 
 
+def test_meshing_on_threads_gives_the_same_mesh() -> None:
+    """Chunk batches meshed on two threads assemble into the mesh of one thread: the same
+    vertices and faces."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    points, face = trimesh.sample.sample_surface_even(sphere, 8000, seed=3)
+    meshes = []
+    for threads in (1, 2):
+        nm = NeuralMap(_cfg(mesh_chunk_voxels=2), planar_prior())  # > 32 chunks: several batches
+        nm.fuse(nm.encode(0, points, sphere.face_normals[face], np.eye(4)))
+        meshes.append(nm.extract_mesh(threads=threads))
+    assert nm._mesher.num_chunks > 32  # CHUNKS_PER_BATCH: more than one batch
+    assert len(meshes[0].faces) > 100
+    np.testing.assert_array_equal(meshes[0].faces, meshes[1].faces)
+    np.testing.assert_array_equal(meshes[0].vertices, meshes[1].vertices)
+
+
 def test_failed_marching_cubes_is_reported(monkeypatch, caplog) -> None:
     import skimage.measure
 

@@ -14,6 +14,10 @@ def test_plan_splits_the_budget() -> None:
     inline = plan_thread_budget(4, map_worker=False)
     assert inline.torch == 4
     assert plan_thread_budget(1, map_worker=True).torch == 1
+    # the whole-map mesh after the run: the budget in units of torch's threads
+    assert plan_thread_budget(2, map_worker=True).mesh_threads == 2
+    assert plan_thread_budget(2, map_worker=False).mesh_threads == 1
+    assert plan_thread_budget(1, map_worker=True).mesh_threads == 1
     assert plan_thread_budget(0, map_worker=False).budget == machine_cores()
 
 
