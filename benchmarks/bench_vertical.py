@@ -55,8 +55,6 @@ def _timed_run(quick: bool, relief_m: float, refined: bool) -> dict:
 def write_report(path: Path, results: dict) -> None:
     w = lidar_window(results["quick"])
     lines = [
-        '<a id="vertical"></a>',
-        "",
         "## LiDAR vertical drift (issue 12)",
         "",
         f"- Command: `{results['command']}`",
