@@ -274,9 +274,10 @@ def jacobian_pair_mask(
     """Which point-voxel pairs enter the Jacobian mean: at most ``per_voxel`` of each voxel.
 
     A voxel's pairs are put in Z-order of their position ``r`` in the voxel and every
-    ``ceil(c / per_voxel)``-th of its ``c`` pairs is kept, so the sample is spread over the whole
-    voxel: on the fidelity room this halves the error of a random sample of the same size (median
-    6.8 % against 10.5 % of the Jacobian at 16 pairs). 0 keeps every pair.
+    ``ceil(c / per_voxel)``-th of its ``c`` pairs is kept (the first one always), so the sample is
+    spread over the whole voxel: on the fidelity room this cuts the error of a random sample of
+    the same size by a third (median 6.8 % against 10.5 % of the Jacobian at 16 pairs). 0 keeps
+    every pair.
     """
     if per_voxel <= 0 or int(pair_counts.max()) <= per_voxel:
         return torch.ones_like(inverse, dtype=torch.bool)
