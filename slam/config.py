@@ -421,7 +421,8 @@ class RgbdLoopConfig(_Strict):
         "agreement; a failure rejects the loop). A submap cloud is fused with its frames' "
         "estimated poses, so their errors bend it and the pose that aligns two whole submaps "
         "best is not the anchors' relative pose; measured on 7-Scenes: loop error median "
-        "4.5 -> 2.8 cm against the ground truth, SLAM ATE 4.0 -> 2.6 cm",
+        "4.5 -> 2.8 cm against the ground truth, SLAM ATE 4.0 -> 2.6 cm; on the generated room "
+        "(exact depth) SLAM ATE 0.38 -> 0.37 cm but mesh accuracy 0.51 -> 0.58 cm",
     )
     keyframe_refine_stride_px: int = Field(
         4,
