@@ -101,7 +101,7 @@ def _run(cfg, source, odometry) -> tuple[Any, float]:
     neural_map = build_map(cfg)
     pipeline = SlamPipeline(cfg, source.sensor, odometry, neural_map, NullLogger())
     start = time.perf_counter()
-    for frame in source:
+    for frame in source.read_ahead():
         pipeline.process(frame)
     pipeline.finish()
     return pipeline, time.perf_counter() - start

@@ -137,7 +137,7 @@ def depth_to_points(
     normals[:, 0] = nx.ravel()[flat]
     normals[:, 1] = ny.ravel()[flat]
     normals[:, 2] = nz.ravel()[flat]
-    normals *= (sign.ravel()[flat] / np.linalg.norm(normals, axis=1))[:, None]
+    normals *= (sign.ravel()[flat] / np.sqrt(length_sq.ravel()[flat].astype(np.float64)))[:, None]
 
     # Points in float64 from the original depth values (exact back-projection).
     pix_r = rows[flat // len(cols)]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from frontends.frame import Frame
+from frontends.frame import Frame, point_ranges_m
 from slam.config import SubmapConfig
 from slam.submaps import (
     DENSE_GROUPING_CELLS_PER_POINT,
@@ -155,3 +155,11 @@ def test_a_scan_is_averaged_over_the_voxels_of_the_anchor_frame() -> None:
         (expected,) = voxel_downsample(0.35, transform_points(T, in_range))
         np.testing.assert_allclose(points_A, expected, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(viewpoint_A, np.tile(T[:3, 3], (len(expected), 1)))
+
+
+def test_point_ranges_are_the_euclidean_norms_of_the_rows() -> None:
+    points = np.random.default_rng(3).normal(scale=40.0, size=(5000, 3))
+    points[0] = [3.0, 4.0, 12.0]
+    ranges = point_ranges_m(points)
+    assert ranges.shape == (5000,) and ranges[0] == 13.0
+    np.testing.assert_allclose(ranges, np.linalg.norm(points, axis=1), rtol=1e-15)

@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.errors import DatasetError
-from frontends.frame import Frame
+from frontends.frame import Frame, point_ranges_m
 from frontends.odometry.base import Odometry, register_odometry
 
 logger = logging.getLogger(__name__)
@@ -111,7 +111,7 @@ class KissIcpOdometry(Odometry):
             raise DatasetError(
                 f"frame {frame.index}: points must be (N, 3), got {points.shape}; check the source"
             )
-        ranges = np.linalg.norm(points, axis=1)
+        ranges = point_ranges_m(points)
         usable = np.count_nonzero(
             (ranges > self.config.min_range_m) & (ranges < self.config.max_range_m)
         )
