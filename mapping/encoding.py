@@ -4,23 +4,25 @@ Every point belongs to its 8 nearest voxels (the voxels whose ``2V`` cube around
 contains it). For voxel ``g`` the encoder sees ``r = (p - c_g) / V`` in ``[-1, 1]^3`` and the unit
 normal; the voxel latent is the mean of the per-point latents, its weight the number of points,
 and its Jacobian the mean of the exact per-point ``dF/dr`` (over every pair, or over an evenly
-spread subset of at most ``jacobian_pairs_per_voxel`` pairs: the tangents cost about four times
+spread subset of at most ``jacobian_pairs_per_voxel`` pairs: the tangents cost about three times
 the latent, and the Jacobian only feeds the transform's first-order term).
 
-The Jacobian is computed by forward-mode differentiation written out for the two layer types of the
-vector-neuron encoder (:class:`VNLinear`, :class:`VNLeakyReLU`), carrying the value and its three
-tangents ``d/dr_j`` together in a channel-last layout ``(..., 3, C)`` so that every layer is one
-matrix product. Three things keep it cheap: the first layer's tangent is the same for every point
-(so the first activation's tangent is one outer product per point), the element-wise tangent work
-of an activation is a few in-place passes, and the encoder's final VNLinear runs after the
-per-voxel mean (it is linear, so it commutes with pooling) on values and tangents alike.
-:func:`point_latents_reference` computes the same with ``torch.func`` and is used by the tests to
-check the fast path.
+The encoder is evaluated in the span of its input vectors. A vector-neuron layer only mixes
+channels (VNLinear) or subtracts from a channel a multiple of a channel mix (VN-LeakyReLU), so
+every hidden channel is a combination of the input vectors (``r`` and ``n`` for the joint encoder)
+whose coefficients depend on the point only through their Gram matrix ``[|r|^2, r.n, |n|^2]``.
+The layers therefore run on two coefficients per channel instead of three components, the first
+activation reduces to fixed quadratic forms in the Gram entries, and the 3-vectors are formed
+once, after the last layer. The result is the module's (to float rounding), not an approximation.
+The Jacobian is forward-mode differentiation along the invariants that depend on ``r``
+(``|r|^2`` and ``r.n``), two scalar tangents instead of three vector ones, with
+``dF/dr_j`` assembled from them at the end. :func:`point_latents_reference` computes the same
+with ``torch.func`` and is used by the tests to check the fast path.
 
 ``encode_points(..., compiled=True)`` runs the same per-chunk computation through
-``torch.compile`` (inductor), which fuses the element-wise tangent work between the matrix
-products. Every chunk is padded to the full chunk size so one static-shape graph serves all
-chunks. It is opt-in because compiling costs tens of seconds in the first call of a process (less
+``torch.compile`` (inductor), which fuses the element-wise work between the matrix products.
+Every chunk is padded to the full chunk size so one static-shape graph serves all chunks. It is
+opt-in because compiling costs tens of seconds in the first call of a process (less
 with inductor's on-disk cache); the result equals the eager path to float rounding.
 """
 
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import torch
 from torch import nn
@@ -45,175 +48,225 @@ CORNER_OFFSETS = torch.tensor(
 )
 
 
-def _vn_linear(weight: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Channel-last VNLinear: ``(..., 3, I) -> (..., 3, O)``."""
-    return x @ weight.T
+@dataclass
+class _Span:
+    """A branch's input channels written on an orthogonal basis of their span, per point.
 
-
-def _relu_terms(
-    layer: VNLeakyReLU, x: torch.Tensor, k: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Value of VN-LeakyReLU from ``x`` and ``k = U x`` (channel-last ``(P, 3, C)``).
-
-    With ``coef = <x, k> / (|k|^2 + eps)`` and ``a`` the slope, the module computes
-    ``out = x - beta k`` with ``beta = (1 - a) [<x, k> < 0] coef``. Returns
-    ``(out, beta, gate, coef, k_sq)`` with ``gate = (1 - a) [<x, k> < 0]``; the tangents below
-    need the last four.
+    Attributes:
+        basis: ``(P, 3)`` orthogonal basis vectors ``b_m``.
+        gram: ``(P, 1)`` squared lengths ``|b_m|^2`` (the Gram matrix is diagonal).
+        inputs: ``(P | 1, I)`` coefficients ``X0[m]``: input channel c is ``sum_m X0[m][c] b_m``.
+        d_inputs: per tangent invariant, the derivative of each ``X0[m]`` (None: zero).
+        d_gram: per tangent invariant, the derivative of each ``|b_m|^2`` (None: zero).
+        grads: per tangent invariant, its gradient with respect to ``r`` ``(P, 3)``.
     """
-    dot = (x * k).sum(-2, keepdim=True)
-    k_sq = (k * k).sum(-2, keepdim=True) + networks._EPS
-    coef = dot / k_sq
-    gate = (dot < 0).to(x.dtype) * (1.0 - layer.negative_slope)
-    beta = gate * coef
-    out = torch.addcmul(x, beta, k, value=-1.0)
-    return out, beta, gate, coef, k_sq
+
+    basis: list[torch.Tensor]
+    gram: list[torch.Tensor]
+    inputs: list[torch.Tensor]
+    d_inputs: list[list[torch.Tensor | None]] = field(default_factory=list)
+    d_gram: list[list[float | None]] = field(default_factory=list)
+    grads: list[torch.Tensor] = field(default_factory=list)
 
 
-def _relu_tangent(
-    x: torch.Tensor,
-    k: torch.Tensor,
-    dx: torch.Tensor,
-    dk: torch.Tensor,
-    terms: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
-) -> torch.Tensor:
-    """Forward-mode tangent of VN-LeakyReLU, ``dx``/``dk`` ``(P, T, 3, C)`` (``dx`` is reused).
+def _joint_span(r: torch.Tensor, n: torch.Tensor, with_jacobian: bool) -> _Span:
+    """``[r, n]`` on the basis ``(n, r_perp)``, ``r_perp = r - t n``, ``t = r.n / |n|^2``.
 
-    ``d_out = dx - gamma k - beta dk`` with ``gamma = gate d(coef)`` and
-    ``d(coef) = (<dx, k> + <x - 2 coef k, dk>) / (|k|^2 + eps)``.
+    An orthogonal basis keeps every inner product a sum of products of coefficients that are
+    themselves accurate (on the basis ``(r, n)`` the quadratic forms cancel badly where r is
+    nearly parallel to n). Tangents are taken along ``t`` (gradient ``n / |n|^2``) and
+    ``|r_perp|^2`` (gradient ``2 r_perp``).
     """
-    beta, gate, coef, k_sq = terms
-    k1 = k.unsqueeze(1)
-    y1 = torch.addcmul(x, coef, k, value=-2.0).unsqueeze(1)
-    inner = dx * k1
-    inner.addcmul_(y1, dk)
-    gamma = inner.sum(-2, keepdim=True).mul_(gate.unsqueeze(1) / k_sq.unsqueeze(1))
-    dx.addcmul_(gamma, k1, value=-1.0)
-    dx.addcmul_(beta.unsqueeze(1), dk, value=-1.0)
-    return dx
+    u = (n * n).sum(1, keepdim=True)
+    t = (r * n).sum(1, keepdim=True) / u
+    r_perp = torch.addcmul(r, t, n, value=-1.0)
+    q = (r_perp * r_perp).sum(1, keepdim=True)
+    span = _Span(
+        basis=[n, r_perp],
+        gram=[u, q],
+        inputs=[torch.cat([t, torch.ones_like(t)], 1), r.new_tensor([[1.0, 0.0]])],
+    )
+    if with_jacobian:
+        span.d_inputs = [[r.new_tensor([[1.0, 0.0]]), None], [None, None]]
+        span.d_gram = [[None, None], [None, 1.0]]
+        span.grads = [n / u, 2.0 * r_perp]
+    return span
 
 
-def _first_block(
-    linear: VNLinear, relu: VNLeakyReLU, x_in: torch.Tensor, with_jacobian: bool
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """VNLinear then VN-LeakyReLU on the input ``(P, 3, I)``, tangents along input channel 0.
+def _single_span(v: torch.Tensor, is_r: bool, with_jacobian: bool) -> _Span:
+    """One input channel ``v``; for ``v = r`` the tangent is along ``|r|^2`` (gradient ``2 r``)."""
+    span = _Span(basis=[v], gram=[(v * v).sum(1, keepdim=True)], inputs=[v.new_ones(1, 1)])
+    if with_jacobian and is_r:
+        span.d_inputs = [[None]]
+        span.d_gram = [[1.0]]
+        span.grads = [2.0 * v]
+    return span
 
-    The input's tangent ``d x_in / d r_j`` is ``e_j`` on channel 0, so after the linear layer it
-    is the same for every point (``delta_ij w`` with ``w = W[:, 0]``) and so is ``dk``
-    (``delta_ij u``, ``u = U w``). The tangent of the activation then reduces to
-    ``d_out[j, i] = delta_ij (w - beta u) - gamma[j] k[i]`` with
-    ``gamma[j] = gate (w k[j] + u y[j]) / (|k|^2 + eps)``, ``y = x - 2 coef k``: one outer
-    product per point instead of a matrix product and seven passes over ``(P, 3, 3, C)``.
+
+def _linear(X: list[torch.Tensor], weight: torch.Tensor) -> list[torch.Tensor]:
+    """VNLinear on span coefficients: every coefficient row maps like a channel vector."""
+    return [x @ weight.T for x in X]
+
+
+def _linear_tangents(
+    dX: list[list[torch.Tensor | None]], weight: torch.Tensor
+) -> list[list[torch.Tensor | None]]:
+    return [[None if d is None else d @ weight.T for d in row] for row in dX]
+
+
+def _relu_span(
+    layer: VNLeakyReLU,
+    span: _Span,
+    X: list[torch.Tensor],
+    dX: list[list[torch.Tensor | None]],
+    K: list[torch.Tensor] | None = None,
+    dK: list[list[torch.Tensor | None]] | None = None,
+) -> tuple[list[torch.Tensor], list[list[torch.Tensor | None]]]:
+    """VN-LeakyReLU on span coefficients, with tangents (``dX``; empty: none wanted).
+
+    With ``k = U x``, ``coef = <x, k> / (|k|^2 + eps)`` and slope ``a``, the layer is
+    ``x - beta k`` with ``beta = (1 - a) min(coef, 0)`` (``coef < 0`` exactly where
+    ``<x, k> < 0``). Tangent: ``d_out = dx - d_beta k - beta dk`` with
+    ``d_beta = (1 - a) [coef < 0] (d<x, k> - coef d|k|^2) / (|k|^2 + eps)``, where the inner
+    products ``sum_m |b_m|^2 x_m k_m`` also change with the basis lengths. ``K``/``dK`` may be
+    given when the caller has them more cheaply (the first layer).
     """
-    x = _vn_linear(linear.weight, x_in)
-    U = relu.direction.weight
-    k = _vn_linear(U, x)
-    out, beta, gate, coef, k_sq = _relu_terms(relu, x, k)
-    if not with_jacobian:
-        return out, None
-    w = linear.weight[:, 0]
-    u = U @ w
-    y = torch.addcmul(x, coef, k, value=-2.0)
-    neg_gamma = torch.addcmul(w * k, u, y).mul_(gate / k_sq).neg_()  # (P, 3, C), index j
-    d_out = torch.mul(neg_gamma.unsqueeze(2), k.unsqueeze(1))  # (P, 3 j, 3 i, C)
-    diag = torch.addcmul(w, beta, u, value=-1.0)  # (P, 1, C)
-    torch.diagonal(d_out, dim1=1, dim2=2).add_(diag.transpose(1, 2))
+    slope = 1.0 - layer.negative_slope
+    U = layer.direction.weight
+    K = _linear(X, U) if K is None else K
+    GK = [g * k for g, k in zip(span.gram, K, strict=True)]
+    k_sq = K[0] * GK[0]  # GK[m] is per point: (P, C)
+    coef = X[0] * GK[0]
+    for m in range(1, len(X)):
+        k_sq.addcmul_(K[m], GK[m])
+        coef.addcmul_(X[m], GK[m])
+    coef.div_(k_sq.add_(networks._EPS))
+    beta = coef.clamp(max=0.0).mul_(slope)
+    out = [torch.addcmul(x, beta, k, value=-1.0) for x, k in zip(X, K, strict=True)]
+    if not dX:
+        return out, []
+    gate = coef.neg().sign_().clamp_(min=0.0).mul_(slope)  # (1 - a) [coef < 0], no bool pass
+    dK = _linear_tangents(dX, U) if dK is None else dK
+    d_out = []
+    for dx_row, dk_row, dg_row in zip(dX, dK, span.d_gram, strict=True):
+        d_dot = torch.zeros_like(coef)
+        d_ksq = torch.zeros_like(coef)
+        terms = zip(X, K, GK, span.gram, dx_row, dk_row, dg_row, strict=True)
+        for x, k, gk, g, dx, dk, dg in terms:
+            if dx is not None:
+                d_dot.addcmul_(dx, gk)
+            if dk is not None:
+                d_dot.addcmul_(x * g, dk)
+                d_ksq.addcmul_(gk, dk, value=2.0)
+            if dg is not None:
+                d_dot.addcmul_(x, k, value=dg)
+                d_ksq.addcmul_(k, k, value=dg)
+        d_beta = d_dot.addcmul_(coef, d_ksq, value=-1.0).div_(k_sq).mul_(gate)
+        row = []
+        for k, dx, dk in zip(K, dx_row, dk_row, strict=True):
+            d = torch.mul(d_beta, k).neg_()
+            if dx is not None:
+                d.add_(dx)
+            if dk is not None:
+                d.addcmul_(beta, dk, value=-1.0)
+            row.append(d)
+        d_out.append(row)
     return out, d_out
 
 
-def _run_layers(
-    layers: list[nn.Module], x: torch.Tensor, dx: torch.Tensor | None
+def _combine(vectors: list[torch.Tensor], coefficients: list[torch.Tensor]) -> torch.Tensor:
+    """``out[p, i] = sum_m vectors[m][p, i] coefficients[m][p]``: ``(P, 3, D)`` from ``(P, 3)``
+    vectors and ``(P, D)`` coefficients, one component at a time (a broadcast outer product over
+    two dimensions is about 2.5x slower on CPU)."""
+    out = coefficients[0].new_empty(coefficients[0].shape[0], 3, coefficients[0].shape[1])
+    for i in range(3):
+        component = out[:, i]
+        torch.mul(coefficients[0], vectors[0][:, i : i + 1], out=component)
+        for vector, coefficient in zip(vectors[1:], coefficients[1:], strict=True):
+            component.addcmul_(vector[:, i : i + 1], coefficient)
+    return out
+
+
+def _branch_latents(
+    branch: nn.Sequential, span: _Span, with_jacobian: bool
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Generic channel-last forward pass with tangents ``dx (P, 3, 3, C)``."""
-    for layer in layers:
-        if isinstance(layer, VNLinear):
-            x = _vn_linear(layer.weight, x)
-            dx = None if dx is None else _vn_linear(layer.weight, dx)
-        elif isinstance(layer, VNLeakyReLU):
-            weight = layer.direction.weight
-            k = _vn_linear(weight, x)
-            out, *terms = _relu_terms(layer, x, k)
-            if dx is not None:  # dx is a fresh tensor here (made by the layer before)
-                dx = _relu_tangent(x, k, dx, _vn_linear(weight, dx), terms)
-            x = out
-        else:
-            raise TypeError(f"encoder layer {type(layer).__name__} has no fast path")
-    return x, dx
+    """One vector-neuron branch on the span of its input channels.
 
+    VNLinear mixes channels and VN-LeakyReLU subtracts a multiple of a channel mix, so every
+    channel of every layer stays in the span of the input channels: the branch runs on the
+    coefficients ``X[m]`` (``(P, C)``, or ``(1, C)`` while the same for every point) on the basis
+    ``span.basis``, and the 3-vectors are formed once, at the end. The first activation takes
+    ``k = U W x0`` straight from the few input coefficients.
 
-def _split_branch(branch: nn.Sequential) -> tuple[list[nn.Module], torch.Tensor | None]:
-    """The layers before the final VNLinear, and that layer's weight (None if it is not one)."""
+    Returns ``F (P, 3, C)`` and, with ``with_jacobian``, ``dF (P, 3 i, 3 j, C) = dF_ic / dr_j``
+    (zeros when the branch does not see r).
+    """
+    P = span.basis[0].shape[0]
+    X, dX = span.inputs, span.d_inputs
     layers = list(branch)
-    if layers and isinstance(layers[-1], VNLinear):
-        return layers[:-1], layers[-1].weight
-    return layers, None
+    K = dK = None
+    for index, layer in enumerate(layers):
+        if isinstance(layer, VNLinear):
+            nxt = layers[index + 1] if index + 1 < len(layers) else None
+            if index == 0 and isinstance(nxt, VNLeakyReLU):
+                UW = nxt.direction.weight @ layer.weight
+                K, dK = _linear(X, UW), _linear_tangents(dX, UW)
+            X, dX = _linear(X, layer.weight), _linear_tangents(dX, layer.weight)
+        elif isinstance(layer, VNLeakyReLU):
+            X, dX = _relu_span(layer, span, X, dX, K, dK)
+            K = dK = None
+        else:
+            raise TypeError(f"encoder layer {type(layer).__name__} has no span form")
+    X = [x.expand(P, -1) for x in X]
+    channels = X[0].shape[1]
+    F = _combine(span.basis, X)
+    if not with_jacobian:
+        return F, None
+    if not span.grads:
+        return F, F.new_zeros(P, 3, 3, channels)
+    # dF[i, j] = sum_m b_m[i] Z_m[j] + (d b_m[i] / d r_j) X[m], with
+    # Z_m[j] = sum_tau d(tau)/dr_j dX[tau][m]; the basis vector holding r has d b / dr = identity
+    # (for r_perp minus n n^T / |n|^2, which goes into Z of the basis vector n)
+    Z = []
+    for m in range(len(X)):
+        grads, values = [], []
+        for grad, row in zip(span.grads, dX, strict=True):
+            if row[m] is not None:
+                grads.append(grad)
+                values.append(row[m].expand(P, -1))
+        if m == 0 and len(X) == 2:  # basis (n, r_perp)
+            grads.append(span.grads[0])  # n / |n|^2
+            values.append(-X[1])
+        Z.append(_combine(grads, values).view(P, 3 * channels))
+    dF = _combine(span.basis, Z).view(P, 3, 3, channels)
+    torch.diagonal(dF, dim1=1, dim2=2).add_(X[-1].unsqueeze(-1))
+    return F, dF
 
 
-def _run_branch_features(
-    branch: nn.Sequential, x: torch.Tensor, with_jacobian: bool
-) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """A branch up to (excluding) its final VNLinear, with tangents along input channel 0.
-
-    Returns ``(h, dh, final_weight)``; the final layer is linear, so it commutes with the
-    per-voxel mean and can run after pooling.
-    """
-    layers, final = _split_branch(branch)
-    if len(layers) >= 2 and isinstance(layers[0], VNLinear) and isinstance(layers[1], VNLeakyReLU):
-        h, dh = _first_block(layers[0], layers[1], x, with_jacobian)
-        h, dh = _run_layers(layers[2:], h, dh)
-    else:
-        dx = None
-        if with_jacobian:
-            p, _, channels = x.shape
-            dx = torch.zeros(p, 3, 3, channels, dtype=x.dtype, device=x.device)
-            dx[:, :, :, 0] = torch.eye(3, dtype=x.dtype, device=x.device)
-        h, dh = _run_layers(layers, x, dx)
-    return h, dh, final
-
-
-def point_features(
-    encoder: PointEncoder, r: torch.Tensor, n: torch.Tensor, with_jacobian: bool
-) -> tuple[torch.Tensor, torch.Tensor | None, list[tuple[torch.Tensor | None, int, int]]]:
-    """Per-point features before the encoder's final linear layer(s), channel-last.
-
-    Returns ``(h (P, 3, H), dh (P, 3, 3, H) or None, heads)``. :func:`apply_heads` maps ``h``
-    (or any mean of ``h`` over points) to the latent; because the heads are linear, pooling
-    first and applying them to the voxel means is exact and much cheaper.
-    """
-    if encoder.kind == "joint":
-        h, dh, final = _run_branch_features(
-            encoder.branch, torch.stack([r, n], dim=-1), with_jacobian
-        )
-        return h, dh, [(final, 0, h.shape[-1])]
-    pos, d_pos, f_pos = _run_branch_features(encoder.position, r.unsqueeze(-1), with_jacobian)
-    nrm, _, f_nrm = _run_branch_features(encoder.normal, n.unsqueeze(-1), False)
-    hp = pos.shape[-1]
-    h = torch.cat([pos, nrm], dim=-1)
-    dh = None
-    if d_pos is not None:
-        dh = torch.cat([d_pos, d_pos.new_zeros(*d_pos.shape[:-1], nrm.shape[-1])], dim=-1)
-    return h, dh, [(f_pos, 0, hp), (f_nrm, hp, h.shape[-1])]
-
-
-def apply_heads(heads: list[tuple[torch.Tensor | None, int, int]], h: torch.Tensor) -> torch.Tensor:
-    """Apply the final linear layers of :func:`point_features` to ``h (..., H)`` (channel-last)."""
-    parts = [h[..., a:b] if w is None else h[..., a:b] @ w.T for w, a, b in heads]
-    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
-
-
+@torch.no_grad()
 def point_latents(
     encoder: PointEncoder, r: torch.Tensor, n: torch.Tensor, with_jacobian: bool
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Per-point latents in channel-last layout.
+    """Per-point latents in channel-last layout, and their Jacobians if asked (no autograd:
+    the Jacobians are computed explicitly).
 
     Args:
         r: ``(P, 3)`` positions relative to the voxel centre (vu); n: ``(P, 3)`` unit normals.
 
     Returns:
         ``F (P, 3, C)`` with ``F[p, i, c]`` = component i of channel c, and, if asked,
-        ``dF (P, 3, 3, C)`` with ``dF[p, j, i, c] = dF[p, i, c] / dr[p, j]``.
+        ``dF (P, 3, 3, C)`` with ``dF[p, i, j, c] = dF[p, i, c] / dr[p, j]``.
     """
-    h, dh, heads = point_features(encoder, r, n, with_jacobian)
-    return apply_heads(heads, h), None if dh is None else apply_heads(heads, dh)
+    if encoder.kind == "joint":
+        return _branch_latents(encoder.branch, _joint_span(r, n, with_jacobian), with_jacobian)
+    pos, d_pos = _branch_latents(
+        encoder.position, _single_span(r, True, with_jacobian), with_jacobian
+    )
+    nrm, _ = _branch_latents(encoder.normal, _single_span(n, False, False), False)
+    latents = torch.cat([pos, nrm], dim=-1)
+    if d_pos is None:
+        return latents, None
+    return latents, torch.cat([d_pos, d_pos.new_zeros(*d_pos.shape[:-1], nrm.shape[-1])], dim=-1)
 
 
 def point_latents_reference(
@@ -290,26 +343,25 @@ def jacobian_pair_mask(
     return rank % stride[inverse] == 0
 
 
-def _compiled_point_features(
+def _compiled_point_latents(
     encoder: PointEncoder, with_jacobian: bool
 ) -> Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]]:
-    """``(r, n) -> (h, dh)`` of :func:`point_features`, compiled once per encoder and mode.
+    """``(r, n) -> (F, dF)`` of :func:`point_latents`, compiled once per encoder and mode.
 
     The compiled functions live on the encoder object, so they go away with it.
     """
-    per_encoder = encoder.__dict__.setdefault("_compiled_features", {})
+    per_encoder = encoder.__dict__.setdefault("_compiled_latents", {})
     key = (with_jacobian, _COMPILE_BACKEND)
     if key not in per_encoder:
 
-        def features(r: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-            h, dh, _ = point_features(encoder, r, n, with_jacobian)
-            return h, dh
+        def latents(r: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+            return point_latents(encoder, r, n, with_jacobian)
 
-        per_encoder[key] = torch.compile(features, backend=_COMPILE_BACKEND, dynamic=False)
+        per_encoder[key] = torch.compile(latents, backend=_COMPILE_BACKEND, dynamic=False)
     return per_encoder[key]
 
 
-def _chunk_features(
+def _chunk_latents(
     encoder: PointEncoder,
     r: torch.Tensor,
     n: torch.Tensor,
@@ -317,10 +369,9 @@ def _chunk_features(
     chunk: int,
     compiled: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """:func:`point_features` of one chunk; the compiled path pads it to ``chunk`` rows."""
+    """:func:`point_latents` of one chunk; the compiled path pads it to ``chunk`` rows."""
     if not compiled or encoder.__dict__.get("_compile_failed", False):
-        h, dh, _ = point_features(encoder, r, n, with_jacobian)
-        return h, dh
+        return point_latents(encoder, r, n, with_jacobian)
     rows = r.shape[0]
     if rows < chunk:  # pad with valid inputs (r = 0, n = e_x); their outputs are dropped
         r = torch.cat([r, r.new_zeros(chunk - rows, 3)])
@@ -328,7 +379,7 @@ def _chunk_features(
         pad_n[:, 0] = 1.0
         n = torch.cat([n, pad_n])
     try:
-        h, dh = _compiled_point_features(encoder, with_jacobian)(r, n)
+        F, dF = _compiled_point_latents(encoder, with_jacobian)(r, n)
     except Exception as exc:  # a missing C++ compiler etc. surfaces here, on the first call
         log.warning(
             "torch.compile of the point encoder failed (%s: %s); encoding eagerly from now on "
@@ -337,8 +388,8 @@ def _chunk_features(
             str(exc).splitlines()[0] if str(exc) else "",
         )
         encoder.__dict__["_compile_failed"] = True
-        return _chunk_features(encoder, r[:rows], n[:rows], with_jacobian, chunk, False)
-    return h[:rows], None if dh is None else dh[:rows]
+        return _chunk_latents(encoder, r[:rows], n[:rows], with_jacobian, chunk, False)
+    return F[:rows], None if dF is None else dF[:rows]
 
 
 @torch.no_grad()
@@ -382,29 +433,24 @@ def encode_points(
         tangent_pairs = jacobian_pair_mask(inverse, pair_counts, r, jacobian_pairs_per_voxel)
     else:
         tangent_pairs = torch.zeros_like(inverse, dtype=torch.bool)
-    # the final linear layers (applied to the voxel means below) depend only on the encoder
-    _, _, heads = point_features(encoder, r[:1], n[:1], False)
-    width = heads[-1][2]
-    sums = torch.zeros(m, 3, width, dtype=dtype, device=device)
-    jac_sums = torch.zeros(m, 3, 3, width, dtype=dtype, device=device) if with_jacobian else None
+    sums = torch.zeros(m, 3, channels, dtype=dtype, device=device)
+    jac_sums = torch.zeros(m, 3, 3, channels, dtype=dtype, device=device) if with_jacobian else None
     for pairs, tangents in ((tangent_pairs, True), (~tangent_pairs, False)):
         r_part, n_part, inverse_part = r[pairs], n[pairs], inverse[pairs]
         for start in range(0, r_part.shape[0], chunk):
             sl = slice(start, start + chunk)
-            h, dh = _chunk_features(encoder, r_part[sl], n_part[sl], tangents, chunk, compiled)
-            sums.index_add_(0, inverse_part[sl], h)
-            if dh is not None:
-                jac_sums.index_add_(0, inverse_part[sl], dh)
+            F, dF = _chunk_latents(encoder, r_part[sl], n_part[sl], tangents, chunk, compiled)
+            sums.index_add_(0, inverse_part[sl], F)
+            if dF is not None:
+                jac_sums.index_add_(0, inverse_part[sl], dF)
     counts = pair_counts.to(dtype)
-    # the encoder's final layers are linear: applied once per voxel, to the means
-    latents = apply_heads(heads, sums / counts.view(m, 1, 1)).transpose(1, 2)
+    latents = (sums / counts.view(m, 1, 1)).transpose(1, 2)
     if jac_sums is None:
         jacobians = torch.zeros(m, channels, 3, 3, dtype=dtype, device=device)
     else:
         tangent_counts = torch.bincount(inverse[tangent_pairs], minlength=m).to(dtype)
-        # jac_sums[m, j, i, c] -> J[m, c, i, j]
-        jacobians = apply_heads(heads, jac_sums / tangent_counts.view(m, 1, 1, 1))
-        jacobians = jacobians.permute(0, 3, 2, 1)
+        # jac_sums[m, i, j, c] -> J[m, c, i, j]
+        jacobians = (jac_sums / tangent_counts.view(m, 1, 1, 1)).permute(0, 3, 1, 2)
     return VoxelBlock(
         keys=unpack_keys(keys),
         latents=latents.to(torch.float32).contiguous(),

@@ -61,8 +61,8 @@ def test_fast_encoder_matches_module_and_autodiff(kind: str) -> None:
     fast, d_fast = point_latents(model.encoder, r, n, with_jacobian=True)
     ref, jac_ref = point_latents_reference(model.encoder, r, n)
     assert torch.allclose(fast.transpose(1, 2), ref, atol=1e-12, rtol=0)
-    # dF[p, j, i, c] -> J[p, c, i, j]
-    assert torch.allclose(d_fast.permute(0, 3, 2, 1), jac_ref, atol=1e-10, rtol=0)
+    # dF[p, i, j, c] -> J[p, c, i, j]
+    assert torch.allclose(d_fast.permute(0, 3, 1, 2), jac_ref, atol=1e-10, rtol=0)
     assert jac_ref.abs().max() > 1e-3
     only, none = point_latents(model.encoder, r, n, with_jacobian=False)
     assert none is None and torch.equal(only, fast)

@@ -144,7 +144,7 @@ def test_capped_jacobian_is_the_mean_over_an_even_subset_of_pairs() -> None:
     _, dF = point_latents(model.encoder, r.reshape(-1, 3), nrm.repeat_interleave(8, dim=0), True)
     jac = torch.zeros(len(counts), *dF.shape[1:], dtype=dF.dtype)
     jac.index_add_(0, inverse[mask], dF[mask])
-    expected = (jac / kept.view(-1, 1, 1, 1)).permute(0, 3, 2, 1)
+    expected = (jac / kept.view(-1, 1, 1, 1)).permute(0, 3, 1, 2)
     assert torch.allclose(capped.jacobians.double(), expected, rtol=0, atol=1e-6)
     small = counts <= cap
     assert torch.allclose(capped.jacobians[small], full.jacobians[small], rtol=0, atol=1e-6)
@@ -165,7 +165,7 @@ def test_compiled_encoding_pads_chunks_and_matches_eager(monkeypatch) -> None:
     assert torch.equal(compiled.keys, eager.keys)
     assert torch.equal(compiled.weights, eager.weights)
     assert torch.allclose(compiled.latents, eager.latents, rtol=0, atol=1e-6)
-    assert torch.allclose(compiled.jacobians, eager.jacobians, rtol=0, atol=1e-6)
+    assert torch.allclose(compiled.jacobians, eager.jacobians, rtol=0, atol=1e-5)
     assert eager.jacobians.abs().max() > 1e-3
 
 
