@@ -283,13 +283,17 @@ class ChunkMesher:
         n_side = self.chunk_voxels * level + 1 + 2 * halo
         n_nodes = n_side**3
         base = voxel_grid[pair_inv] * level - pair_origin * (self.chunk_voxels * level) + halo
-        local = base.unsqueeze(1) + node_idx  # (P, Q, 3)
-        inside = ((local >= 0) & (local < n_side)).all(-1)
-        flat = pair_slot.unsqueeze(1) * n_nodes + (
-            (local[..., 0] * n_side + local[..., 1]) * n_side + local[..., 2]
-        )
+        # a node's index in its chunk's array is linear in its lattice position: per pair and
+        # per node offset, added; a node is inside when every axis is (one axis at a time)
+        strides = torch.tensor([n_side * n_side, n_side, 1], device=base.device)
+        flat = (pair_slot * n_nodes + base @ strides).unsqueeze(1) + node_idx @ strides  # (P, Q)
+        inside = None
+        for axis in range(3):
+            position = base[:, axis : axis + 1] + node_idx[:, axis]
+            ok = (position >= 0) & (position < n_side)
+            inside = ok if inside is None else inside.logical_and_(ok)
         if needed is not None:
-            inside &= needed[flat.clamp(0, needed.numel() - 1)]
+            inside.logical_and_(needed[flat.clamp(0, needed.numel() - 1)])
         entry_pair, entry_k = inside.nonzero(as_tuple=True)
         flat = flat[entry_pair, entry_k]
         voxel = pair_inv[entry_pair]
