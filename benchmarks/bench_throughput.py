@@ -175,6 +175,7 @@ def scenario_ours(num_frames: int, override: dict[str, Any] | None = None) -> di
         "cpu_threads_s": {"main": main_cpu_s, "map_worker": pipeline.worker.cpu_s},
         "fps": count / wall,
         "stage_s": stage,
+        "stage_cpu_s": dict(pipeline.stage_cpu_s),
         "rss_mb": rss,
         "peak_rss_mb": peak_rss_mb,
         "peak_rss_with_scoring_mb": _rss_mb()[1],
@@ -336,6 +337,11 @@ def scenario_micro(_: int) -> dict:
     out["encode_capped_wall_s_1t"], out["encode_capped_cpu_s_1t"] = timed(
         lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
     )
+    torch.set_num_threads(2)
+    out["encode_capped_wall_s_2t"], out["encode_capped_cpu_s_2t"] = timed(
+        lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
+    )
+    torch.set_num_threads(1)
     out["encode_capped_compiled_wall_s_1t"] = timed(
         lambda: encode_points(model, p, n, V, compiled=True, jacobian_pairs_per_voxel=cap)
     )[0]
@@ -354,6 +360,14 @@ def scenario_micro(_: int) -> dict:
     t = time.perf_counter()
     neural_map.extract_mesh()
     out["mesh_again_wall_s"] = time.perf_counter() - t
+    # from cold on the whole 2-thread budget, as the final mesh of a run (torch 1 thread each)
+    submap.fused = False
+    neural_map = NeuralMap(cfg, model)
+    neural_map.fuse(submap)
+    t, c = time.perf_counter(), time.process_time()
+    neural_map.extract_mesh(threads=2)
+    out["mesh_cold_wall_s_2t"] = time.perf_counter() - t
+    out["mesh_cold_cpu_s_2t"] = time.process_time() - c
     out["load"] = os.getloadavg()[0]
     return out
 
@@ -466,6 +480,31 @@ def write_report(results: dict) -> None:
             f"{r['map_npz_mb']:.1f} | {r['map_voxels']:,} | {100 * r['mesh_accuracy_m']:.2f} | "
             f"{r['threads']} |"
         )
+    shares = [k for k in sorted(results) if (results[k].get("ours") or {}).get("stage_cpu_s")]
+    if shares:
+        lines += [
+            "",
+            "Ours, the stages' shares of the run: CPU seconds of the thread that ran each stage "
+            "(the map worker's for mapping and remap; KISS-ICP's own thread pool is not in "
+            "odometry's), as a share of the run's wall time and of its CPU time. A stage on the "
+            "map worker overlaps the main thread, so its wall time there is mostly waiting for "
+            "a core; `map_worker_wait` is what the main thread lost waiting for the worker.",
+            "",
+            "| run | stage | wall [s] | CPU [s] | CPU / run wall | CPU / run CPU |",
+            "|---|---|---|---|---|---|",
+        ]
+        for key in shares:
+            r = results[key]["ours"]
+            stage_s = dict(r["stage_s"])
+            cpu = r["stage_cpu_s"]
+            for stage in (*STAGES, "map_worker_wait"):
+                if stage not in cpu:
+                    continue
+                lines.append(
+                    f"| {key} | {stage} | {_f(stage_s.get(stage))} | {cpu[stage]:.1f} | "
+                    f"{100 * cpu[stage] / r['wall_s']:.0f} % | "
+                    f"{100 * cpu[stage] / r['cpu_s']:.0f} % |"
+                )
     lines += [
         "",
         "Micro-benchmarks (`--only micro`): one 640x480 depth frame of the benchmark room "
@@ -473,8 +512,9 @@ def write_report(results: dict) -> None:
         "map meshed from cold (first `extract_mesh`, torch on 1 thread) and again unchanged.",
         "",
         "| run | encode, 1 thread [s] (CPU s) | frames/s | encode, 2 threads [s] | "
-        "mesh voxels | mesh cold [s] (CPU s) | mesh again [s] | load |",
-        "|---|---|---|---|---|---|---|---|",
+        "mesh voxels | mesh cold [s] (CPU s) | mesh cold, 2 threads [s] | mesh again [s] | "
+        "load |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for key in sorted(results):
         m = results[key].get("micro")
@@ -484,7 +524,8 @@ def write_report(results: dict) -> None:
             f"| {key} | {m['encode_wall_s_1t']:.3f} ({m['encode_cpu_s_1t']:.3f}) | "
             f"{1 / m['encode_wall_s_1t']:.2f} | {m['encode_wall_s_2t']:.3f} | "
             f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
-            f"{m['mesh_again_wall_s']:.3f} | {m['load']:.1f} |"
+            f"{_f(m.get('mesh_cold_wall_s_2t'), 2)} | {m['mesh_again_wall_s']:.3f} | "
+            f"{m['load']:.1f} |"
         )
     compiled = [
         k for k in sorted(results) if "encode_compiled_wall_s_1t" in results[k].get("micro", {})
@@ -523,15 +564,17 @@ def write_report(results: dict) -> None:
             "17; the latents still use every pair): rel. diff = median per-voxel relative "
             "difference of the Jacobians to those of every pair.",
             "",
-            "| run | pairs | eager, 1 thread [s] (CPU s) | frames/s | compiled, 1 thread [s] | "
-            "frames/s | Jacobian rel. diff (median) | load |",
-            "|---|---|---|---|---|---|---|---|",
+            "| run | pairs | eager, 1 thread [s] (CPU s) | frames/s | eager, 2 threads [s] | "
+            "frames/s | compiled, 1 thread [s] | frames/s | Jacobian rel. diff (median) | load |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for key in capped:
             m = results[key]["micro"]
+            two = m.get("encode_capped_wall_s_2t")
             lines.append(
                 f"| {key} | {m['encode_capped_pairs']} | {m['encode_capped_wall_s_1t']:.3f} "
                 f"({m['encode_capped_cpu_s_1t']:.3f}) | {1 / m['encode_capped_wall_s_1t']:.2f} | "
+                f"{_f(two, 3)} | {_f(None if two is None else 1 / two, 2)} | "
                 f"{m['encode_capped_compiled_wall_s_1t']:.3f} | "
                 f"{1 / m['encode_capped_compiled_wall_s_1t']:.2f} | "
                 f"{m['encode_capped_jacobian_rel_diff_median']:.3f} | {m['load']:.1f} |"

@@ -42,6 +42,11 @@ logger = logging.getLogger(__name__)
 SCAN_LOG_MAX_POINTS = 30_000
 
 
+def _clock() -> tuple[float, float]:
+    """(wall, CPU time of the calling thread) in seconds."""
+    return time.perf_counter(), time.thread_time()
+
+
 class _Track:
     """A growing (N, 3) array with amortised O(1) append; :meth:`view` shares memory."""
 
@@ -129,6 +134,9 @@ class SlamPipeline:
         self.records: dict[int, SubmapRecord] = {}
         self.loop_candidates: list[LoopCandidate] = []
         self.timings_s: dict[str, list[float]] = defaultdict(list)
+        # CPU seconds of the thread that ran each stage (the map worker's for mapping and
+        # remap); odometry's own thread pool (KISS-ICP) is not counted
+        self.stage_cpu_s: dict[str, float] = defaultdict(float)
         for stage in ("mapping", "remap", "map_logging", "map_worker_wait"):  # worker writes too
             self.timings_s[stage] = []
         self.worker = MapWorker(threaded=cfg.map_worker)
@@ -147,9 +155,12 @@ class SlamPipeline:
 
     # --- per frame ----------------------------------------------------------------------------
 
-    def _timed(self, name: str, start: float) -> float:
-        now = time.perf_counter()
-        self.timings_s[name].append(now - start)
+    def _timed(self, name: str, start: tuple[float, float]) -> tuple[float, float]:
+        """Book the wall and thread-CPU time since ``start`` (a :func:`_clock` reading) to a
+        stage; returns the new reading."""
+        now = _clock()
+        self.timings_s[name].append(now[0] - start[0])
+        self.stage_cpu_s[name] += now[1] - start[1]
         return now
 
     def _map_frame(self, frame: Frame) -> Frame:
@@ -171,7 +182,7 @@ class SlamPipeline:
         """Consume the next frame."""
         if self._finished:
             raise RuntimeError("process() after finish()")
-        start = time.perf_counter()
+        start = _clock()
         T_W_S_odometry = np.asarray(self.odometry.register(frame), dtype=np.float64)
         t = self._timed("odometry", start)
 
@@ -199,7 +210,7 @@ class SlamPipeline:
             result.loops, result.remap = self._on_submap_closed(closed, frame.index)
             result.T_W_S = self.graph.pose(current.submap_id) @ T_A_S
         self._track_frame(result, graph_moved=any(c.accepted for c in result.loops))
-        self.timings_s["frame"].append(time.perf_counter() - start)
+        self.timings_s["frame"].append(time.perf_counter() - start[0])
         self._log_frame(frame, result)
         return result
 
@@ -215,7 +226,7 @@ class SlamPipeline:
         self, record: SubmapRecord, frame_index: int
     ) -> tuple[list[LoopCandidate], RemapEvent | None]:
         self._closed_count += 1
-        start = time.perf_counter()
+        start = _clock()
         candidates: list[LoopCandidate] = []
         if self.loop_detector is not None:
             candidates = self.loop_detector.process(record, self.graph.poses())
@@ -240,7 +251,7 @@ class SlamPipeline:
         self.records[record.submap_id] = record
         T_W_A = self.graph.pose(record.submap_id).copy()
         remap_poses = self.graph.poses() if added else None
-        t = time.perf_counter()
+        t = _clock()
         self.worker.submit(self._map_job, record, T_W_A, remap_poses, frame_index)
         self._timed("map_worker_wait", t)  # only when the worker is two submaps behind
         remap = None
@@ -262,15 +273,14 @@ class SlamPipeline:
         frame_index: int,
     ) -> None:
         """Encode and fuse a closed submap, then remap if the graph moved (worker thread)."""
-        start = time.perf_counter()
+        start = _clock()
         self._encode(record, T_W_A)
-        self.timings_s["mapping"].append(time.perf_counter() - start)
+        start = self._timed("mapping", start)
         self._last_remap_moved = False
         if remap_poses is not None:
-            start = time.perf_counter()
             event = self.remapper.apply(self.submaps, remap_poses, frame_index)
             self._last_remap_moved = event.num_moved > 0
-            self.timings_s["remap"].append(time.perf_counter() - start)
+            self._timed("remap", start)
         release_freed_memory()
 
     def _encode(self, record: SubmapRecord, T_W_A: np.ndarray) -> None:
@@ -311,7 +321,7 @@ class SlamPipeline:
         closed = self.keyframer.finish()
         if closed is not None:
             self._on_submap_closed(closed, last_index)
-        start = time.perf_counter()
+        start = _clock()
         self.graph.optimize_batch()
         t = self._timed("pose_graph", start)
         self.worker.close()
@@ -433,11 +443,11 @@ class SlamPipeline:
         """What a recording shows of the map now (waits for the map worker); see
         :meth:`slam.viz.Logger.log_map_from`."""
         self.worker.drain()
-        start = time.perf_counter()
+        start = _clock()
         centers, weights = self.map.voxel_centers()
         remapped = loop_added and self._last_remap_moved and self.cfg.viz.mesh_after_remap
         mesh = self.map.extract_mesh() if periodic or remapped else None
-        self.timings_s["map_logging"].append(time.perf_counter() - start)
+        self._timed("map_logging", start)
         return np.asarray(centers), np.asarray(weights, dtype=np.float64), mesh
 
     def _errors_so_far(self) -> dict[str, float]:

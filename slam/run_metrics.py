@@ -73,7 +73,8 @@ def timing_summary(
     pipeline_s: float | None = None,
     setup_s: float | None = None,
 ) -> dict[str, Any]:
-    """Wall time, the pipeline's frame rate and per-stage time.
+    """Wall time, the pipeline's frame rate and per-stage time (wall, and CPU seconds of the
+    thread that ran the stage: the map worker's for mapping and remap).
 
     ``pipeline_s`` is the time from the first frame read to the end of the final optimisation
     (reading frames included); ``frames_per_s`` is frames / ``pipeline_s``. ``wall_s`` also holds
@@ -87,6 +88,7 @@ def timing_summary(
             "calls": len(values),
             "mean_ms": 1e3 * float(np.mean(values)),
             "total_s": sum(values),
+            "cpu_s": pipeline.stage_cpu_s.get(name),
         }
         for name, values in pipeline.timings_s.items()
         if values
