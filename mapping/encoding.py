@@ -54,42 +54,48 @@ class _Span:
 
     Attributes:
         basis: ``(P, 3)`` orthogonal basis vectors ``b_m``.
-        gram: ``(P, 1)`` squared lengths ``|b_m|^2`` (the Gram matrix is diagonal).
+        gram: ``(P, 1)`` squared lengths ``|b_m|^2`` (the Gram matrix is diagonal; None: 1).
         inputs: ``(P | 1, I)`` coefficients ``X0[m]``: input channel c is ``sum_m X0[m][c] b_m``.
         d_inputs: per tangent invariant, the derivative of each ``X0[m]`` (None: zero).
         d_gram: per tangent invariant, the derivative of each ``|b_m|^2`` (None: zero).
         grads: per tangent invariant, its gradient with respect to ``r`` ``(P, 3)``.
+        projected_out: with tangents, the last basis vector holds ``r``: its derivative is
+            ``d b_last / dr = I - b_0 projected_out^T`` (None: the identity).
     """
 
     basis: list[torch.Tensor]
-    gram: list[torch.Tensor]
+    gram: list[torch.Tensor | None]
     inputs: list[torch.Tensor]
     d_inputs: list[list[torch.Tensor | None]] = field(default_factory=list)
     d_gram: list[list[float | None]] = field(default_factory=list)
     grads: list[torch.Tensor] = field(default_factory=list)
+    projected_out: torch.Tensor | None = None
 
 
 def _joint_span(r: torch.Tensor, n: torch.Tensor, with_jacobian: bool) -> _Span:
-    """``[r, n]`` on the basis ``(n, r_perp)``, ``r_perp = r - t n``, ``t = r.n / |n|^2``.
+    """``[r, n]`` on the orthogonal basis ``(n_hat, r_perp)``: ``r = t n_hat + r_perp`` with
+    ``t = r . n_hat``, and ``n = |n| n_hat``.
 
     An orthogonal basis keeps every inner product a sum of products of coefficients that are
     themselves accurate (on the basis ``(r, n)`` the quadratic forms cancel badly where r is
-    nearly parallel to n). Tangents are taken along ``t`` (gradient ``n / |n|^2``) and
+    nearly parallel to n). Tangents are taken along ``t`` (gradient ``n_hat``) and
     ``|r_perp|^2`` (gradient ``2 r_perp``).
     """
-    u = (n * n).sum(1, keepdim=True)
-    t = (r * n).sum(1, keepdim=True) / u
-    r_perp = torch.addcmul(r, t, n, value=-1.0)
+    length = n.norm(dim=1, keepdim=True)
+    n_hat = n / length
+    t = (r * n_hat).sum(1, keepdim=True)
+    r_perp = torch.addcmul(r, t, n_hat, value=-1.0)
     q = (r_perp * r_perp).sum(1, keepdim=True)
     span = _Span(
-        basis=[n, r_perp],
-        gram=[u, q],
-        inputs=[torch.cat([t, torch.ones_like(t)], 1), r.new_tensor([[1.0, 0.0]])],
+        basis=[n_hat, r_perp],
+        gram=[None, q],
+        inputs=[torch.cat([t, length], 1), r.new_tensor([[1.0, 0.0]])],
     )
     if with_jacobian:
         span.d_inputs = [[r.new_tensor([[1.0, 0.0]]), None], [None, None]]
         span.d_gram = [[None, None], [None, 1.0]]
-        span.grads = [n / u, 2.0 * r_perp]
+        span.grads = [n_hat, 2.0 * r_perp]
+        span.projected_out = n_hat  # d r_perp / dr = I - n_hat n_hat^T
     return span
 
 
@@ -134,15 +140,15 @@ def _relu_span(
     slope = 1.0 - layer.negative_slope
     U = layer.direction.weight
     K = _linear(X, U) if K is None else K
-    GK = [g * k for g, k in zip(span.gram, K, strict=True)]
-    k_sq = K[0] * GK[0]  # GK[m] is per point: (P, C)
+    GK = [k if g is None else g * k for g, k in zip(span.gram, K, strict=True)]
+    k_sq = torch.addcmul(K[0].new_tensor(networks._EPS), K[0], GK[0])  # per point: (P, C)
     coef = X[0] * GK[0]
     for m in range(1, len(X)):
         k_sq.addcmul_(K[m], GK[m])
         coef.addcmul_(X[m], GK[m])
-    coef.div_(k_sq.add_(networks._EPS))
-    beta = coef.clamp(max=0.0).mul_(slope)
-    out = [torch.addcmul(x, beta, k, value=-1.0) for x, k in zip(X, K, strict=True)]
+    coef.div_(k_sq)
+    beta = coef.clamp(max=0.0)  # times slope, which the products below apply
+    out = [torch.addcmul(x, beta, k, value=-slope) for x, k in zip(X, K, strict=True)]
     if not dX:
         return out, []
     gate = coef.neg().sign_().clamp_(min=0.0).mul_(slope)  # (1 - a) [coef < 0], no bool pass
@@ -156,7 +162,7 @@ def _relu_span(
             if dx is not None:
                 d_dot.addcmul_(dx, gk)
             if dk is not None:
-                d_dot.addcmul_(x * g, dk)
+                d_dot.addcmul_(x if g is None else x * g, dk)
                 d_ksq.addcmul_(gk, dk, value=2.0)
             if dg is not None:
                 d_dot.addcmul_(x, k, value=dg)
@@ -168,7 +174,7 @@ def _relu_span(
             if dx is not None:
                 d.add_(dx)
             if dk is not None:
-                d.addcmul_(beta, dk, value=-1.0)
+                d.addcmul_(beta, dk, value=-slope)
             row.append(d)
         d_out.append(row)
     return out, d_out
@@ -224,9 +230,9 @@ def _branch_latents(
         return F, None
     if not span.grads:
         return F, F.new_zeros(P, 3, 3, channels)
-    # dF[i, j] = sum_m b_m[i] Z_m[j] + (d b_m[i] / d r_j) X[m], with
-    # Z_m[j] = sum_tau d(tau)/dr_j dX[tau][m]; the basis vector holding r has d b / dr = identity
-    # (for r_perp minus n n^T / |n|^2, which goes into Z of the basis vector n)
+    # dF[i, j] = sum_m b_m[i] Z_m[j] + (d b_last[i] / d r_j) X[last], with
+    # Z_m[j] = sum_tau d(tau)/dr_j dX[tau][m]; d b_last / dr = I - b_0 projected_out^T, whose
+    # second part goes into Z_0
     Z = []
     for m in range(len(X)):
         grads, values = [], []
@@ -234,9 +240,9 @@ def _branch_latents(
             if row[m] is not None:
                 grads.append(grad)
                 values.append(row[m].expand(P, -1))
-        if m == 0 and len(X) == 2:  # basis (n, r_perp)
-            grads.append(span.grads[0])  # n / |n|^2
-            values.append(-X[1])
+        if m == 0 and span.projected_out is not None:
+            grads.append(span.projected_out)
+            values.append(-X[-1])
         Z.append(_combine(grads, values).view(P, 3 * channels))
     dF = _combine(span.basis, Z).view(P, 3, 3, channels)
     torch.diagonal(dF, dim1=1, dim2=2).add_(X[-1].unsqueeze(-1))
