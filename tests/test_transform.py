@@ -33,8 +33,11 @@ def _encode(model, points, normals):
 
 @pytest.fixture(scope="module")
 def model() -> PriorModel:
+    """A random prior that encodes in float64: blocks encoded from rotated inputs then agree to
+    the float32 rounding of the stored block (in float32 the encoder's rounding depends on the
+    order in which the rotated components are summed, which the Jacobians amplify to ~3e-5)."""
     torch.manual_seed(0)
-    return PriorModel().eval()
+    return PriorModel().double().eval()
 
 
 @pytest.fixture(scope="module")
