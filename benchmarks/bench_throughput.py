@@ -289,7 +289,7 @@ def scenario_micro(_: int) -> dict:
     from mapping.networks import load_default_prior
     from mapping.neural_map import NeuralMap
 
-    def timed(fn, repeats: int = 5) -> tuple[float, float]:
+    def timed(fn, repeats: int = 15) -> tuple[float, float]:
         walls, cpus = [], []
         for _ in range(repeats):
             t, c = time.perf_counter(), time.process_time()
@@ -508,7 +508,7 @@ def write_report(results: dict) -> None:
     lines += [
         "",
         "Micro-benchmarks (`--only micro`): one 640x480 depth frame of the benchmark room "
-        "subsampled to 30,000 points, encoded with Jacobians (V = 0.1 m, median of 5); a room "
+        "subsampled to 30,000 points, encoded with Jacobians (V = 0.1 m, median of 5 before stop 19, of 15 since); a room "
         "map meshed from cold (first `extract_mesh`, torch on 1 thread) and again unchanged.",
         "",
         "| run | encode, 1 thread [s] (CPU s) | frames/s | encode, 2 threads [s] | "

@@ -317,13 +317,17 @@ def prune_sparse_points(
 
 
 def _morton_code(r: torch.Tensor, bits: int = 4) -> torch.Tensor:
-    """Z-order code of ``r`` in ``[-1, 1]^3`` on a ``2^bits`` cells-per-axis lattice."""
+    """Z-order code of ``r`` in ``[-1, 1]^3`` on a ``2^bits`` cells-per-axis lattice: bit ``b``
+    of axis ``a`` goes to bit ``3 b + a`` (spread by a table of the ``2^bits`` cell indices)."""
     cells = 1 << bits
     q = ((r + 1.0) * (cells / 2)).floor().clamp_(0, cells - 1).to(torch.int64)
-    code = torch.zeros(r.shape[0], dtype=torch.int64, device=r.device)
+    index = torch.arange(cells, device=r.device)
+    spread = torch.zeros(cells, dtype=torch.int64, device=r.device)
     for bit in range(bits):
-        for axis in range(3):
-            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+        spread |= ((index >> bit) & 1) << (3 * bit)
+    code = spread[q[:, 0]]
+    code |= spread[q[:, 1]] << 1
+    code |= spread[q[:, 2]] << 2
     return code
 
 
@@ -432,7 +436,7 @@ def encode_points(
     grid, r = point_voxel_pairs(points_W, voxel_size_m)
     keys, inverse = torch.unique(pack_keys(grid.reshape(-1, 3)), return_inverse=True)
     r = r.reshape(-1, 3).to(dtype)
-    n = normals_W.to(dtype).repeat_interleave(8, dim=0)
+    normals = normals_W.to(dtype)  # pair k belongs to point k // 8
     m = keys.shape[0]
     pair_counts = torch.bincount(inverse, minlength=m)
     if with_jacobian:
@@ -442,7 +446,9 @@ def encode_points(
     sums = torch.zeros(m, 3, channels, dtype=dtype, device=device)
     jac_sums = torch.zeros(m, 3, 3, channels, dtype=dtype, device=device) if with_jacobian else None
     for pairs, tangents in ((tangent_pairs, True), (~tangent_pairs, False)):
-        r_part, n_part, inverse_part = r[pairs], n[pairs], inverse[pairs]
+        index = pairs.nonzero().squeeze(1)
+        r_part, inverse_part = r.index_select(0, index), inverse.index_select(0, index)
+        n_part = normals.index_select(0, index // 8)
         for start in range(0, r_part.shape[0], chunk):
             sl = slice(start, start + chunk)
             F, dF = _chunk_latents(encoder, r_part[sl], n_part[sl], tangents, chunk, compiled)
