@@ -508,8 +508,9 @@ def write_report(results: dict) -> None:
     lines += [
         "",
         "Micro-benchmarks (`--only micro`): one 640x480 depth frame of the benchmark room "
-        "subsampled to 30,000 points, encoded with Jacobians (V = 0.1 m, median of 5 before stop 19, of 15 since); a room "
-        "map meshed from cold (first `extract_mesh`, torch on 1 thread) and again unchanged.",
+        "subsampled to 30,000 points, encoded with Jacobians (V = 0.1 m; median of 5 runs before "
+        "stop 19, of 15 since); a room map meshed from cold (first `extract_mesh`, torch on 1 "
+        "thread; and on two Python threads of one torch thread each) and again unchanged.",
         "",
         "| run | encode, 1 thread [s] (CPU s) | frames/s | encode, 2 threads [s] | "
         "mesh voxels | mesh cold [s] (CPU s) | mesh cold, 2 threads [s] | mesh again [s] | "
