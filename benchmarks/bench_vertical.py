@@ -8,7 +8,8 @@ road always follows KITTI 00's elevations; ``--relief`` lists the heights of the
 road (``generated.terrain_relief_m``) to run. configs/kitti.yaml, KISS-ICP odometry; each run in
 its own process (two at a time), once as configured and once with
 ``odometry.ground_refinement.enabled`` (slam/ground_refinement.py: each scan's height, roll and
-pitch fitted to the ground seen so far). Per-axis ATE: RMSE along the world x, y, z (up) axes
+pitch fitted to the ground seen over the last 50 m of travel); ``--modes`` adds the unbounded
+ground map of stop 16. Per-axis ATE: RMSE along the world x, y, z (up) axes
 after the SE(3) alignment.
 Writes benchmarks/results/vertical.md (and .json) unless ``--out`` says otherwise.
 """
@@ -40,14 +41,23 @@ def _row(name: str, r: dict) -> str:
     )
 
 
-def _name(relief_m: float, refined: bool) -> str:
-    return f"{relief_m:g} m hills, " + ("KISS-ICP + ground refinement" if refined else "KISS-ICP")
+MODES: dict[str, dict | None] = {
+    "KISS-ICP": None,
+    "KISS-ICP + ground refinement": {"ground_refinement": {"enabled": True}},
+    # the ground map of stop 16, which kept every cell: a revisit snapped onto the first visit
+    "KISS-ICP + ground refinement, unbounded ground map": {
+        "ground_refinement": {"enabled": True, "memory_m": None}
+    },
+}
 
 
-def _timed_run(quick: bool, relief_m: float, refined: bool) -> dict:
+def _name(relief_m: float, mode: str) -> str:
+    return f"{relief_m:g} m hills, {mode}"
+
+
+def _timed_run(quick: bool, relief_m: float, mode: str) -> dict:
     load = os.getloadavg()[0]
-    odometry = {"ground_refinement": {"enabled": True}} if refined else None
-    run = scenario_lidar(quick, "kiss-icp", relief_m, odometry)
+    run = scenario_lidar(quick, "kiss-icp", relief_m, MODES[mode])
     run["load"] = 0.5 * (load + os.getloadavg()[0])
     return run
 
@@ -67,7 +77,8 @@ def write_report(path: Path, results: dict) -> None:
         "ground under the car is the trajectory's height minus 1.73 m), and hills of the given "
         "height rise beside it. configs/kitti.yaml, without and with "
         "`odometry.ground_refinement` (each scan's height, roll and pitch fitted to a map of the "
-        "ground seen so far). ATE after SE(3) alignment; x / y / z: RMSE along each world axis "
+        "ground seen over the last `memory_m` = 50 m of travel; 'unbounded': every cell kept, "
+        "as before stop 19). ATE after SE(3) alignment; x / y / z: RMSE along each world axis "
         "(z up). The odometry columns of the KISS-ICP rows are KISS-ICP alone. Two runs at a "
         "time on a shared machine: frames/s is indicative only.",
         "",
@@ -89,6 +100,13 @@ def main(argv: list[str] | None = None) -> int:
         nargs="+",
         help="hill heights to run (default 0 and 4 m; with --quick 4 m only: run_all budget)",
     )
+    parser.add_argument(
+        "--modes",
+        nargs="+",
+        choices=list(MODES),
+        default=list(MODES)[:2],
+        help="odometry variants to run (default: KISS-ICP with and without ground refinement)",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "vertical.md")
     args = parser.parse_args(argv)
     if args.relief is None:
@@ -96,6 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     command = "python -m benchmarks.bench_vertical" + (" --quick" if args.quick else "")
     command += " --relief " + " ".join(f"{r:g}" for r in args.relief)
+    if args.modes != list(MODES)[:2]:
+        command += " --modes " + " ".join(f"'{m}'" for m in args.modes)
     results: dict = {
         "machine": machine_line(),
         "date": dt.datetime.now().isoformat(timespec="seconds"),
@@ -103,12 +123,12 @@ def main(argv: list[str] | None = None) -> int:
         "command": command,
         "runs": {},
     }
-    jobs = [(relief, refined) for relief in args.relief for refined in (False, True)]
+    jobs = [(relief, mode) for relief in args.relief for mode in args.modes]
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(max_workers=2, mp_context=context) as pool:
-        futures = [pool.submit(_timed_run, args.quick, relief, refined) for relief, refined in jobs]
-        for (relief, refined), future in zip(jobs, futures, strict=True):
-            name = _name(relief, refined)
+        futures = [pool.submit(_timed_run, args.quick, relief, mode) for relief, mode in jobs]
+        for (relief, mode), future in zip(jobs, futures, strict=True):
+            name = _name(relief, mode)
             results["runs"][name] = future.result()
             log.info("%s", _row(name, results["runs"][name]))
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,13 @@ the rest for ``[tx, ty, yaw]``; Shan and Englot, IROS 2018):
 3. update: cells where the scan is flat (height spread below ``flatness_m``: road, sidewalks,
    lawns, hillsides, car roofs; not walls, poles or trees) add the scan's mean height.
 
+The map is local: cells that no scan has updated over the last ``memory_m`` metres of travel are
+forgotten. On a revisit the refinement therefore does not snap the odometry onto the heights
+mapped on the first visit. Such a snap would hide the vertical drift of the loop inside one
+odometry step, where the pose graph cannot spread it (measured on the generated street: SLAM
+vertical error 0.17 m without the refinement, 0.57 m with an unbounded map); the loop closure
+corrects it instead.
+
 The map holds surfaces, not gravity: on a slope the refinement follows the slope as mapped by
 earlier scans, so it never assumes that the ground is level.
 """
@@ -59,6 +66,12 @@ class GroundRefinementConfig(BaseModel):
     max_residual_m: float = Field(
         0.3, gt=0, description="Points farther than this from the mapped height are ignored."
     )
+    memory_m: float | None = Field(
+        50.0,
+        gt=0,
+        description="Cells not updated over this much travel (metres) are forgotten, so a "
+        "revisit is left to loop closure; None keeps every cell.",
+    )
     min_points: int = Field(
         200, ge=3, description="Fewer matched points: the prediction is kept as it is."
     )
@@ -69,13 +82,19 @@ class GroundRefinementConfig(BaseModel):
 
 
 class GroundHeightMap:
-    """Mean surface height per square cell of ``cell_m``, in the world frame (z up)."""
+    """Mean surface height per square cell of ``cell_m``, in the world frame (z up).
 
-    def __init__(self, cell_m: float) -> None:
+    With ``memory_m``, :meth:`add_flat_cells` first drops the cells last updated more than that
+    much travel ago.
+    """
+
+    def __init__(self, cell_m: float, memory_m: float | None = None) -> None:
         self.cell_m = cell_m
+        self.memory_m = memory_m
         self._keys = np.zeros(0, np.int64)
         self._sum = np.zeros(0)
         self._count = np.zeros(0, np.int64)
+        self._updated_m = np.zeros(0)  # travelled distance at each cell's last update
 
     def __len__(self) -> int:
         return len(self._keys)
@@ -95,8 +114,20 @@ class GroundHeightMap:
         out[hit] = self._sum[pos[hit]] / self._count[pos[hit]]
         return out
 
-    def add_flat_cells(self, points_W: np.ndarray, flatness_m: float) -> None:
-        """Add the mean height of every cell where ``points_W`` (N, 3) are flat."""
+    def _forget(self, travelled_m: float) -> None:
+        if self.memory_m is None or len(self._keys) == 0:
+            return
+        recent = self._updated_m >= travelled_m - self.memory_m
+        if not recent.all():
+            self._keys, self._sum = self._keys[recent], self._sum[recent]
+            self._count, self._updated_m = self._count[recent], self._updated_m[recent]
+
+    def add_flat_cells(
+        self, points_W: np.ndarray, flatness_m: float, travelled_m: float = 0.0
+    ) -> None:
+        """Add the mean height of every cell where ``points_W`` (N, 3) are flat, seen after
+        ``travelled_m`` metres of travel."""
+        self._forget(travelled_m)
         if len(points_W) == 0:
             return
         key = self._key(points_W[:, :2])
@@ -112,10 +143,12 @@ class GroundHeightMap:
         known[known] = self._keys[pos[known]] == cells[known]
         self._sum[pos[known]] += mean[known]  # cells are unique: no repeated index
         self._count[pos[known]] += 1
+        self._updated_m[pos[known]] = travelled_m
         new = ~known
         self._keys = np.insert(self._keys, pos[new], cells[new])
         self._sum = np.insert(self._sum, pos[new], mean[new])
         self._count = np.insert(self._count, pos[new], 1)
+        self._updated_m = np.insert(self._updated_m, pos[new], travelled_m)
 
 
 def refine_vertical(
@@ -161,9 +194,10 @@ class GroundRefinedOdometry(Odometry):
     def __init__(self, inner: Odometry, cfg: GroundRefinementConfig) -> None:
         self.inner = inner
         self.cfg = cfg
-        self.ground = GroundHeightMap(cfg.cell_m)
+        self.ground = GroundHeightMap(cfg.cell_m, cfg.memory_m)
         self._previous_inner: np.ndarray | None = None
         self._pose: np.ndarray | None = None
+        self._travelled_m = 0.0
         self.last_matched = 0
 
     def map_points(self, frame: Frame) -> np.ndarray:
@@ -186,9 +220,14 @@ class GroundRefinedOdometry(Odometry):
         if self._pose is None:
             pose = T_inner.copy()
         else:
-            predicted = self._pose @ np.linalg.inv(self._previous_inner) @ T_inner
-            pose, self.last_matched = refine_vertical(predicted, points, self.ground, self.cfg)
+            motion = np.linalg.inv(self._previous_inner) @ T_inner
+            self._travelled_m += float(np.linalg.norm(motion[:3, 3]))
+            pose, self.last_matched = refine_vertical(
+                self._pose @ motion, points, self.ground, self.cfg
+            )
         self._previous_inner = T_inner
         self._pose = pose
-        self.ground.add_flat_cells(points @ pose[:3, :3].T + pose[:3, 3], self.cfg.flatness_m)
+        self.ground.add_flat_cells(
+            points @ pose[:3, :3].T + pose[:3, 3], self.cfg.flatness_m, self._travelled_m
+        )
         return pose.copy()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from frontends.frame import Frame
@@ -77,6 +78,23 @@ def test_ground_map_averages_flat_cells_and_skips_walls() -> None:
     np.testing.assert_allclose(h[:2], [1.15, -0.375])
     assert np.isnan(h[2]) and np.isnan(h[3])  # a wall is not ground; an unseen cell is unknown
     assert np.isnan(ground.height(np.array([[0.5, 0.5]]), 3)[0])  # seen only twice
+
+
+def test_ground_map_forgets_cells_not_seen_within_its_memory() -> None:
+    """A cell mapped on a first visit is gone after ``memory_m`` of travel without an update, so
+    a revisit maps it afresh instead of averaging in (and snapping to) the old height."""
+    ground = GroundHeightMap(cell_m=1.0, memory_m=50.0)
+    first = np.array([[0.2, 0.2, 1.0], [0.7, 0.6, 1.1]])
+    road = np.array([[30.2, 0.2, 0.0], [30.7, 0.6, 0.1]])
+    ground.add_flat_cells(first, 0.15, travelled_m=0.0)
+    ground.add_flat_cells(road, 0.15, travelled_m=40.0)
+    assert ground.height(np.array([[0.5, 0.5]]), 1)[0] == pytest.approx(1.05)  # 40 m ago: kept
+    ground.add_flat_cells(road, 0.15, travelled_m=60.0)
+    h = ground.height(np.array([[0.5, 0.5], [30.5, 0.5]]), 1)
+    assert np.isnan(h[0]) and h[1] == pytest.approx(0.05)  # 60 m without an update: gone
+    ground.add_flat_cells(first + np.array([0.0, 0.0, 0.5]), 0.15, travelled_m=200.0)
+    h = ground.height(np.array([[0.5, 0.5], [30.5, 0.5]]), 1)
+    assert h[0] == pytest.approx(1.55) and np.isnan(h[1])  # the revisit's height alone
 
 
 def test_ground_refinement_removes_the_vertical_drift_on_a_hill() -> None:
