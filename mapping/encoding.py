@@ -243,6 +243,8 @@ def _branch_latents(
         if m == 0 and span.projected_out is not None:
             grads.append(span.projected_out)
             values.append(-X[-1])
+        if not grads:  # coefficient m does not depend on r (only in a branch without activations)
+            grads, values = [span.grads[0]], [X[m].new_zeros(P, channels)]
         Z.append(_combine(grads, values).view(P, 3 * channels))
     dF = _combine(span.basis, Z).view(P, 3, 3, channels)
     torch.diagonal(dF, dim1=1, dim2=2).add_(X[-1].unsqueeze(-1))
