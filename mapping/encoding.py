@@ -9,13 +9,14 @@ the latent, and the Jacobian only feeds the transform's first-order term).
 
 The encoder is evaluated in the span of its input vectors. A vector-neuron layer only mixes
 channels (VNLinear) or subtracts from a channel a multiple of a channel mix (VN-LeakyReLU), so
-every hidden channel is a combination of the input vectors (``r`` and ``n`` for the joint encoder)
-whose coefficients depend on the point only through their Gram matrix ``[|r|^2, r.n, |n|^2]``.
-The layers therefore run on two coefficients per channel instead of three components, the first
-activation reduces to fixed quadratic forms in the Gram entries, and the 3-vectors are formed
-once, after the last layer. The result is the module's (to float rounding), not an approximation.
-The Jacobian is forward-mode differentiation along the invariants that depend on ``r``
-(``|r|^2`` and ``r.n``), two scalar tangents instead of three vector ones, with
+every hidden channel is a combination of the input vectors (``r`` and ``n`` for the joint
+encoder). The layers run on the coefficients of that combination over the orthogonal basis
+``(n_hat, r_perp)``, ``r_perp = r - (r . n_hat) n_hat`` (two per channel instead of three
+components; an orthogonal basis keeps the inner products as accurate as on 3-vectors), the first
+activation takes ``k = U W x0`` straight from the input coefficients, and the 3-vectors are
+formed once, after the last layer. The result is the module's (to float rounding), not an
+approximation. The Jacobian is forward-mode differentiation along the invariants that depend on
+``r`` (``r . n_hat`` and ``|r_perp|^2``), two scalar tangents instead of three vector ones, with
 ``dF/dr_j`` assembled from them at the end. :func:`point_latents_reference` computes the same
 with ``torch.func`` and is used by the tests to check the fast path.
 
@@ -153,16 +154,17 @@ def _relu_span(
         return out, []
     gate = coef.neg().sign_().clamp_(min=0.0).mul_(slope)  # (1 - a) [coef < 0], no bool pass
     dK = _linear_tangents(dX, U) if dK is None else dK
+    GX = [x if g is None else g * x for g, x in zip(span.gram, X, strict=True)]
     d_out = []
     for dx_row, dk_row, dg_row in zip(dX, dK, span.d_gram, strict=True):
         d_dot = torch.zeros_like(coef)
         d_ksq = torch.zeros_like(coef)
-        terms = zip(X, K, GK, span.gram, dx_row, dk_row, dg_row, strict=True)
-        for x, k, gk, g, dx, dk, dg in terms:
+        terms = zip(X, K, GK, GX, dx_row, dk_row, dg_row, strict=True)
+        for x, k, gk, gx, dx, dk, dg in terms:
             if dx is not None:
                 d_dot.addcmul_(dx, gk)
             if dk is not None:
-                d_dot.addcmul_(x if g is None else x * g, dk)
+                d_dot.addcmul_(gx, dk)
                 d_ksq.addcmul_(gk, dk, value=2.0)
             if dg is not None:
                 d_dot.addcmul_(x, k, value=dg)
