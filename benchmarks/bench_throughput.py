@@ -278,14 +278,16 @@ def scenario_kiss_slam(num_frames: int) -> dict:
 
 
 def scenario_micro(_: int) -> dict:
-    """Encode one 30k-point depth frame with Jacobians (eager, and compiled: the first call with
-    its compile time, then steady state, and the largest per-voxel relative difference to eager);
-    mesh a ~20k-voxel room map from cold (1 thread)."""
+    """Encode one 30k-point depth frame with Jacobians: by the encoder network over every pair
+    and over the default Jacobian sample, and by the encoder's latent table (the default; its
+    build time and its per-voxel relative difference to the network); mesh a ~20k-voxel room map
+    from cold (1 thread, and 2)."""
     import torch
 
     from benchmarks.bench_mapping import V, depth_frame_points, room_mesh, sample_surface
     from mapping.config import MapConfig
     from mapping.encoding import encode_points
+    from mapping.latent_table import latent_table
     from mapping.networks import load_default_prior
     from mapping.neural_map import NeuralMap
 
@@ -317,16 +319,6 @@ def scenario_micro(_: int) -> dict:
     out["encode_nojac_wall_s_1t"] = timed(
         lambda: encode_points(model, p, n, V, with_jacobian=False)
     )[0]
-    t = time.perf_counter()
-    compiled = encode_points(model, p, n, V, compiled=True)
-    out["encode_compiled_first_call_s"] = time.perf_counter() - t  # includes compiling
-    out["encode_compiled_latent_rel_diff"] = rel_diff(compiled.latents, block.latents)
-    out["encode_compiled_jacobian_rel_diff"] = rel_diff(compiled.jacobians, block.jacobians)
-    for threads in (1, 2):
-        torch.set_num_threads(threads)
-        wall, cpu = timed(lambda: encode_points(model, p, n, V, compiled=True))
-        out[f"encode_compiled_wall_s_{threads}t"] = wall
-        out[f"encode_compiled_cpu_s_{threads}t"] = cpu
     torch.set_num_threads(1)
     cap = MapConfig().jacobian_pairs_per_voxel
     capped = encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
@@ -334,17 +326,32 @@ def scenario_micro(_: int) -> dict:
     jacobian_error = (capped.jacobians - block.jacobians).flatten(1).norm(dim=1) / scale
     out["encode_capped_pairs"] = cap
     out["encode_capped_jacobian_rel_diff_median"] = float(jacobian_error.median())
-    out["encode_capped_wall_s_1t"], out["encode_capped_cpu_s_1t"] = timed(
-        lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
-    )
-    torch.set_num_threads(2)
-    out["encode_capped_wall_s_2t"], out["encode_capped_cpu_s_2t"] = timed(
-        lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
-    )
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        out[f"encode_capped_wall_s_{threads}t"], out[f"encode_capped_cpu_s_{threads}t"] = timed(
+            lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
+        )
+    # the product's default: the encoder's latent table (built once per process, timed here)
+    nodes = MapConfig().encoder_table_nodes
     torch.set_num_threads(1)
-    out["encode_capped_compiled_wall_s_1t"] = timed(
-        lambda: encode_points(model, p, n, V, compiled=True, jacobian_pairs_per_voxel=cap)
-    )[0]
+    t = time.perf_counter()
+    latent_table(model.encoder, nodes)
+    out["encode_table_nodes"] = nodes
+    out["encode_table_build_s"] = time.perf_counter() - t
+    looked_up = encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap, table_nodes=nodes)
+    for name, a, b in (
+        ("latent", looked_up.latents, capped.latents),
+        ("jacobian", looked_up.jacobians, capped.jacobians),
+    ):
+        scale = b.flatten(1).norm(dim=1).clamp_min(1e-12)
+        error = (a - b).flatten(1).norm(dim=1) / scale
+        out[f"encode_table_{name}_rel_diff_median"] = float(error.median())
+        out[f"encode_table_{name}_rel_diff_max"] = float(error.max())
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        out[f"encode_table_wall_s_{threads}t"], out[f"encode_table_cpu_s_{threads}t"] = timed(
+            lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap, table_nodes=nodes)
+        )
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
     surface, surface_normals = sample_surface(room, 1500, seed=1)
     submap = NeuralMap(cfg, model).encode(0, surface, surface_normals, np.eye(4))
@@ -534,8 +541,9 @@ def write_report(results: dict) -> None:
     if compiled:
         lines += [
             "",
-            "The same frame through `encode_points(..., compiled=True)` (torch.compile, inductor): "
-            "the first call includes compiling (shorter when inductor's on-disk cache is warm); "
+            "The same frame through `encode_points(..., compiled=True)` (torch.compile, inductor; "
+            "removed at stop 20, where the latent table made it redundant): the first call "
+            "includes compiling (shorter when inductor's on-disk cache is warm); "
             "rel. diff = largest per-voxel relative difference to the eager result.",
             "",
             "| run | encode no Jacobian, 1 thread [s] | compiled first call [s] | "
@@ -572,13 +580,37 @@ def write_report(results: dict) -> None:
         for key in capped:
             m = results[key]["micro"]
             two = m.get("encode_capped_wall_s_2t")
+            compiled = m.get("encode_capped_compiled_wall_s_1t")
             lines.append(
                 f"| {key} | {m['encode_capped_pairs']} | {m['encode_capped_wall_s_1t']:.3f} "
                 f"({m['encode_capped_cpu_s_1t']:.3f}) | {1 / m['encode_capped_wall_s_1t']:.2f} | "
                 f"{_f(two, 3)} | {_f(None if two is None else 1 / two, 2)} | "
-                f"{m['encode_capped_compiled_wall_s_1t']:.3f} | "
-                f"{1 / m['encode_capped_compiled_wall_s_1t']:.2f} | "
+                f"{_f(compiled, 3)} | {_f(None if compiled is None else 1 / compiled, 2)} | "
                 f"{m['encode_capped_jacobian_rel_diff_median']:.3f} | {m['load']:.1f} |"
+            )
+    tables = [k for k in sorted(results) if "encode_table_wall_s_1t" in results[k].get("micro", {})]
+    if tables:
+        lines += [
+            "",
+            "The same frame, with the same Jacobian sample, by lookup in the encoder's latent "
+            "table (`mapping.encoder_table_nodes`, the default since stop 20) instead of the "
+            "network: build = building the table, once per process; rel. diff = per-voxel "
+            "relative difference to the network's latents and Jacobians (median / max).",
+            "",
+            "| run | nodes | build [s] | 1 thread [s] (CPU s) | frames/s | 2 threads [s] | "
+            "frames/s | latents rel. diff | Jacobians rel. diff | load |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for key in tables:
+            m = results[key]["micro"]
+            one, two = m["encode_table_wall_s_1t"], m["encode_table_wall_s_2t"]
+            lines.append(
+                f"| {key} | {m['encode_table_nodes']} | {m['encode_table_build_s']:.2f} | "
+                f"{one:.3f} ({m['encode_table_cpu_s_1t']:.3f}) | {1 / one:.1f} | {two:.3f} | "
+                f"{1 / two:.1f} | {m['encode_table_latent_rel_diff_median']:.1e} / "
+                f"{m['encode_table_latent_rel_diff_max']:.1e} | "
+                f"{m['encode_table_jacobian_rel_diff_median']:.1e} / "
+                f"{m['encode_table_jacobian_rel_diff_max']:.1e} | {m['load']:.1f} |"
             )
     lines += _rgbd_lines(results)
     lines.append("")

@@ -114,8 +114,8 @@ class NeuralMap:
             torch.from_numpy(normals_W[good] / norm[good]),
             self.voxel_size_m,
             min_points_per_voxel=self.cfg.min_points_per_voxel,
-            compiled=self.cfg.encoder_compiled,
             jacobian_pairs_per_voxel=self.cfg.jacobian_pairs_per_voxel,
+            table_nodes=self.cfg.encoder_table_nodes,
         )
         return Submap(
             submap_id=int(submap_id),

@@ -6,9 +6,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from mapping.encoding import point_latents, point_latents_reference
 from mapping.field import decode_lattice, decode_pairs
 from mapping.networks import ModelConfig, PriorModel
+from mapping.span_encoder import point_latents, point_latents_reference
 
 torch.set_num_threads(1)
 

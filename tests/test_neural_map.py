@@ -111,7 +111,8 @@ def test_capped_jacobian_is_the_mean_over_an_even_subset_of_pairs() -> None:
     """With ``jacobian_pairs_per_voxel`` the latents and weights are those of every pair; each
     voxel's Jacobian is the exact mean of dF/dr over at most that many of its pairs, every
     ``ceil(c / cap)``-th in Z-order, and voxels with fewer pairs keep their exact Jacobian."""
-    from mapping.encoding import jacobian_pair_mask, point_latents
+    from mapping.encoding import jacobian_pair_mask
+    from mapping.span_encoder import point_latents
     from mapping.voxel_block import pack_keys
 
     cap = 5
@@ -149,44 +150,6 @@ def test_capped_jacobian_is_the_mean_over_an_even_subset_of_pairs() -> None:
     small = counts <= cap
     assert torch.allclose(capped.jacobians[small], full.jacobians[small], rtol=0, atol=1e-6)
     assert not torch.allclose(capped.jacobians[~small], full.jacobians[~small], atol=1e-3)
-
-
-def test_compiled_encoding_pads_chunks_and_matches_eager(monkeypatch) -> None:
-    """The compiled path (here traced by dynamo, run without inductor) pads every chunk to the
-    full size and drops the padding: the voxel block equals the eager one."""
-    from mapping import encoding
-
-    monkeypatch.setattr(encoding, "_COMPILE_BACKEND", "eager")
-    model = _random_model(2)
-    points, normals = _sphere(700)  # 5600 pairs: one full chunk and one padded chunk
-    pts, nrm = torch.from_numpy(points), torch.from_numpy(normals)
-    eager = encode_points(model, pts, nrm, V, chunk=4096)
-    compiled = encode_points(model, pts, nrm, V, chunk=4096, compiled=True)
-    assert torch.equal(compiled.keys, eager.keys)
-    assert torch.equal(compiled.weights, eager.weights)
-    assert torch.allclose(compiled.latents, eager.latents, rtol=0, atol=1e-6)
-    assert torch.allclose(compiled.jacobians, eager.jacobians, rtol=0, atol=1e-5)
-    assert eager.jacobians.abs().max() > 1e-3
-
-
-def test_compiled_encoding_falls_back_to_eager_when_compiling_fails(monkeypatch, caplog) -> None:
-    """A backend that cannot compile (as without a C++ compiler) costs a warning, not the run:
-    the block equals the eager one and later calls do not try again."""
-    from mapping import encoding
-
-    monkeypatch.setattr(encoding, "_COMPILE_BACKEND", "no-such-backend")
-    model = _random_model(3)
-    points, normals = _sphere(300)
-    pts, nrm = torch.from_numpy(points), torch.from_numpy(normals)
-    eager = encode_points(model, pts, nrm, V)
-    with caplog.at_level("WARNING", logger="mapping.encoding"):
-        first = encode_points(model, pts, nrm, V, compiled=True)
-        second = encode_points(model, pts, nrm, V, compiled=True)
-    assert sum("encoding eagerly" in r.getMessage() for r in caplog.records) == 1
-    for block in (first, second):
-        assert torch.equal(block.keys, eager.keys)
-        assert torch.equal(block.latents, eager.latents)
-        assert torch.equal(block.jacobians, eager.jacobians)
 
 
 @pytest.mark.parametrize("moves", [0, 2])
