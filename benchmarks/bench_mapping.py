@@ -48,6 +48,7 @@ log = logging.getLogger("benchmarks.bench_mapping")
 RESULTS = Path(__file__).resolve().parent / "results" / "mapping.md"
 V = 0.1
 JACOBIAN_PAIRS = MapConfig().jacobian_pairs_per_voxel
+TABLE_NODES = MapConfig().encoder_table_nodes
 
 
 # ---------------------------------------------------------------------------- scene
@@ -193,6 +194,7 @@ class Variant:
     target_rule: str | None = None
     storage: tuple[str, int, int, str] | None = None  # see STORAGE_VARIANTS
     jacobian_pairs: int = 0  # mapping.jacobian_pairs_per_voxel of the encoding (0: every pair)
+    table_nodes: int = 0  # mapping.encoder_table_nodes of the encoding (0: the network)
 
 
 def timed(fn, repeats: int) -> tuple[float, float]:
@@ -217,13 +219,18 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
     t = time.perf_counter()
     base = encode_points(model, torch.from_numpy(points), torch.from_numpy(normals), V)
     encode_s = time.perf_counter() - t
-    capped = encode_points(
-        model,
-        torch.from_numpy(points),
-        torch.from_numpy(normals),
-        V,
-        jacobian_pairs_per_voxel=JACOBIAN_PAIRS,
-    )
+    sources = {
+        (pairs, nodes): encode_points(
+            model,
+            torch.from_numpy(points),
+            torch.from_numpy(normals),
+            V,
+            jacobian_pairs_per_voxel=pairs,
+            table_nodes=nodes,
+        )
+        for pairs, nodes in ((JACOBIAN_PAIRS, 0), (JACOBIAN_PAIRS, TABLE_NODES))
+    }
+    sources[(0, 0)] = base
     samples = 30_000 if quick else 150_000
     lines += [
         "### Transform fidelity (two paths)",
@@ -260,6 +267,15 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
             storage=STORAGE_VARIANTS[0][1],
             jacobian_pairs=JACOBIAN_PAIRS,
         ),
+        Variant(
+            f"ours, as above, latents from the encoder's {TABLE_NODES}-node table (the default "
+            "since stop 20)",
+            "gaussian",
+            True,
+            storage=STORAGE_VARIANTS[0][1],
+            jacobian_pairs=JACOBIAN_PAIRS,
+            table_nodes=TABLE_NODES,
+        ),
         Variant("ours without Jacobian", "gaussian", False),
         Variant(
             "ours, paper's target rule (nearest source < 1 voxel)", "gaussian", True, 0.5, "radius"
@@ -282,7 +298,7 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
         ref_mesh = mesh_of(model, cfg, ref_block)
         ref_gt = mesh_distance(ref_mesh, gt, samples)[0]
         for var in variants:
-            source = base if var.jacobian_pairs == 0 else capped
+            source = sources[(var.jacobian_pairs, var.table_nodes)]
             source = source if var.storage is None else stored(source, *var.storage)
             block = transform_block(
                 source,
@@ -336,7 +352,8 @@ def speed(model, quick: bool, lines: list[str]) -> None:
     )
     rows.append(
         (
-            f"encode one 640x480 depth frame, with Jacobians (<= {JACOBIAN_PAIRS} pairs per voxel)",
+            f"encode one 640x480 depth frame, with Jacobians (<= {JACOBIAN_PAIRS} pairs per "
+            f"voxel), latent table ({TABLE_NODES} nodes)",
             size,
             enc,
             "frames",
@@ -344,10 +361,15 @@ def speed(model, quick: bool, lines: list[str]) -> None:
         )
     )
     pts_t, nrm_t = torch.from_numpy(frame_pts), torch.from_numpy(frame_nrm)
+    enc_net = timed(
+        lambda: encode_points(nm.model, pts_t, nrm_t, V, jacobian_pairs_per_voxel=JACOBIAN_PAIRS),
+        repeats,
+    )
+    rows.append(("encode, the same by the encoder network", "same", enc_net, "frames", "-"))
     enc_all = timed(lambda: encode_points(nm.model, pts_t, nrm_t, V), repeats)
-    rows.append(("encode, Jacobians from every pair", "same", enc_all, "frames", "-"))
+    rows.append(("encode, network, Jacobians from every pair", "same", enc_all, "frames", "-"))
     enc_nj = timed(lambda: encode_points(nm.model, pts_t, nrm_t, V, with_jacobian=False), repeats)
-    rows.append(("encode, latents only (no Jacobians)", "same", enc_nj, "frames", "-"))
+    rows.append(("encode, network, latents only (no Jacobians)", "same", enc_nj, "frames", "-"))
 
     points, normals = sample_surface(room, 800 if quick else 1200, seed=1)
     big = encode_points(nm.model, torch.from_numpy(points), torch.from_numpy(normals), V)

@@ -70,7 +70,8 @@ def _rss_mb() -> tuple[float, float]:
     return current, peak
 
 
-def _source(num_frames: int):
+def _source(num_frames: int, relief_m: float = 0.0):
+    """The generated KITTI 00 scans (with hills of ``relief_m`` beside the road)."""
     from frontends.sources import make_source
 
     return make_source(
@@ -83,6 +84,7 @@ def _source(num_frames: int):
         num_frames=FULL_FRAMES,
         step=1,
         azimuth_steps=2048,
+        terrain_relief_m=relief_m,
         frames=slice(0, num_frames),
     )
 
@@ -113,16 +115,18 @@ def _apply_thread_budget(cfg) -> str:
     return apply_thread_budget(cfg).describe()
 
 
-def scenario_ours(num_frames: int, override: dict[str, Any] | None = None) -> dict:
+def scenario_ours(
+    num_frames: int, override: dict[str, Any] | None = None, relief_m: float = 0.0
+) -> dict:
     logging.basicConfig(level=logging.WARNING)
     from slam.builders import build_map, build_odometry
-    from slam.metrics.trajectory import ate_rmse
+    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
     from slam.pipeline import SlamPipeline
     from slam.viz import NullLogger
 
     cfg = _config(override)
     threads = _apply_thread_budget(cfg)
-    source = _source(num_frames)
+    source = _source(num_frames, relief_m)
     odometry = build_odometry(cfg, "lidar")
     neural_map = build_map(cfg)
     pipeline = SlamPipeline(cfg, "lidar", odometry, neural_map, NullLogger())
@@ -185,21 +189,23 @@ def scenario_ours(num_frames: int, override: dict[str, Any] | None = None) -> di
         "loops_kept": sum(1 for c in pipeline.accepted_loops() if c.graph_inlier),
         "ate_odometry_m": ate_rmse(pipeline.odometry_poses(), gt),
         "ate_slam_m": ate_rmse(pipeline.slam_poses(), gt),
+        "ate_xyz_odometry_m": ate_per_axis_rmse(pipeline.odometry_poses(), gt).tolist(),
+        "ate_xyz_slam_m": ate_per_axis_rmse(pipeline.slam_poses(), gt).tolist(),
         "mesh_accuracy_m": errors["accuracy_m"],
         "mesh_faces": len(mesh.faces),
         "threads": threads,
     }
 
 
-def scenario_kiss_icp(num_frames: int) -> dict:
+def scenario_kiss_icp(num_frames: int, relief_m: float = 0.0) -> dict:
     logging.basicConfig(level=logging.WARNING)
     from kiss_icp.kiss_icp import KissICP
 
-    from slam.metrics.trajectory import ate_rmse
+    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
     cfg = _config()
     threads = _apply_thread_budget(cfg)
-    source = _source(num_frames)
+    source = _source(num_frames, relief_m)
     kiss = KissICP(cfg.odometry.kiss_icp.to_kiss())
     poses = []
     start = time.perf_counter()
@@ -215,18 +221,19 @@ def scenario_kiss_icp(num_frames: int) -> dict:
         "fps": len(poses) / wall,
         "peak_rss_mb": _rss_mb()[1],
         "ate_odometry_m": ate_rmse(np.array(poses), source.gt_poses),
+        "ate_xyz_odometry_m": ate_per_axis_rmse(np.array(poses), source.gt_poses).tolist(),
         "threads": threads,
     }
 
 
-def scenario_kiss_slam(num_frames: int) -> dict:
+def scenario_kiss_slam(num_frames: int, relief_m: float = 0.0) -> dict:
     python = KISS_SLAM_VENV / "bin" / "python"
     if not python.is_file():
         return {"skipped": f"no KISS-SLAM venv at {KISS_SLAM_VENV}"}
-    from slam.metrics.trajectory import ate_rmse
+    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
     from slam.trajectory_io import read_kitti
 
-    source = _source(num_frames)
+    source = _source(num_frames, relief_m)
     root = Path(source.sequence_dir).parents[1]
     with tempfile.TemporaryDirectory() as work:
         start = time.perf_counter()
@@ -274,6 +281,7 @@ def scenario_kiss_slam(num_frames: int) -> dict:
         "fps": len(poses) / wall,
         "peak_rss_mb": peak,
         "ate_slam_m": ate_rmse(poses, source.gt_poses[: len(poses)]),
+        "ate_xyz_slam_m": ate_per_axis_rmse(poses, source.gt_poses[: len(poses)]).tolist(),
     }
 
 
@@ -455,6 +463,7 @@ def write_report(results: dict) -> None:
                 f"{_f(r.get('peak_rss_mb'), 0)} | {_f(r.get('ate_odometry_m'), 3)} | "
                 f"{_f(r.get('ate_slam_m'), 3)} | {_f(run.get('load'), 1)} |"
             )
+    lines += _per_axis_lines(results)
     lines += [
         "",
         "Ours, per stage [s] (`map_logging` is the null logger's share; with the map worker, "
@@ -618,6 +627,32 @@ def write_report(results: dict) -> None:
     REPORT.write_text("\n".join(lines))
 
 
+def _per_axis_lines(results: dict) -> list[str]:
+    """Per-axis ATE (RMSE along world x, y, z after the SE(3) alignment) where recorded."""
+    rows = []
+    for key in sorted(results):
+        for name in ("kiss_icp", "kiss_slam", "ours"):
+            r = results[key].get(name) or {}
+            odometry, slam = r.get("ate_xyz_odometry_m"), r.get("ate_xyz_slam_m")
+            if odometry is None and slam is None:
+                continue
+            cells = [
+                "n/a" if xyz is None else " / ".join(f"{v:.3f}" for v in xyz)
+                for xyz in (odometry, slam)
+            ]
+            rows.append(f"| {key} | {name} | {cells[0]} | {cells[1]} |")
+    if not rows:
+        return []
+    return [
+        "",
+        "Per-axis ATE [m] (x / y / z, z up; issue 12's vertical drift), where recorded:",
+        "",
+        "| run | method | odometry x / y / z | SLAM x / y / z |",
+        "|---|---|---|---|",
+        *rows,
+    ]
+
+
 def _rgbd_lines(results: dict) -> list[str]:
     """The RGB-D table of ``--only rgbd`` runs; nothing when there are none."""
     rows = []
@@ -664,6 +699,13 @@ def main(argv: list[str] | None = None) -> int:
         help="config overrides for ours, as JSON (e.g. "
         '\'{"mapping": {"jacobian_pairs_per_voxel": 0}}\'); recorded with the run',
     )
+    parser.add_argument(
+        "--relief",
+        type=float,
+        default=0.0,
+        help="height of the hills beside the road, metres (generated.terrain_relief_m; "
+        "the scans are generated on first use)",
+    )
     parser.add_argument("--report-only", action="store_true")
     parser.add_argument(
         "--quick",
@@ -677,7 +719,8 @@ def main(argv: list[str] | None = None) -> int:
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
     if not args.report_only:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-        key = f"{args.frames} frames, {args.label}"
+        hills = f"{args.relief:g} m hills, " if args.relief else ""
+        key = f"{args.frames} frames, {hills}{args.label}"
         run = results.get(key, {})
         run.update(
             code=args.label,
@@ -692,7 +735,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in methods:
             log.info("%s, %d frames", name, args.frames)
             if name == "kiss_slam":
-                run[name] = scenario_kiss_slam(args.frames)
+                run[name] = scenario_kiss_slam(args.frames, args.relief)
             else:
                 fn = {
                     "ours": scenario_ours,
@@ -700,7 +743,8 @@ def main(argv: list[str] | None = None) -> int:
                     "micro": scenario_micro,
                     "rgbd": scenario_rgbd,
                 }[name]
-                extra = (args.override,) if name == "ours" else ()
+                extra = {"ours": (args.override, args.relief), "kiss_icp": (args.relief,)}
+                extra = extra.get(name, ())
                 run[name] = _in_child(fn, args.frames, *extra)
             log.info("%s: %s", name, {k: v for k, v in run[name].items() if k != "stage_s"})
             # re-read before writing: several invocations may run side by side

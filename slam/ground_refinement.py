@@ -76,8 +76,12 @@ class GroundRefinementConfig(BaseModel):
         200, ge=3, description="Fewer matched points: the prediction is kept as it is."
     )
     iterations: int = Field(4, ge=1, description="Gauss-Newton steps per scan at most.")
-    point_stride: int = Field(
-        1, ge=1, description="Use every n-th point of a scan (cost against accuracy)."
+    max_points: int = Field(
+        8000,
+        ge=3,
+        description="The fit uses at most this many of a scan's ground points, evenly spread "
+        "(every k-th; the map update uses all of them): three unknowns need few points, and "
+        "the fit's cost is proportional to them.",
     )
 
 
@@ -172,7 +176,10 @@ def refine_vertical(
         d = points_W[use] - T[:3, 3]
         # z of R(w) (p - c) + c + dz e_z, linearised: z + dz + wx dy - wy dx.
         A = np.column_stack([np.ones(matched), d[:, 1], -d[:, 0]])
-        dz, wx, wy = np.linalg.lstsq(A, -residual[use], rcond=None)[0]
+        try:
+            dz, wx, wy = np.linalg.solve(A.T @ A, A.T @ -residual[use])
+        except np.linalg.LinAlgError:  # points on one line: the tilt across it is unknown
+            return np.array(T_W_S, dtype=np.float64), matched
         angle = float(np.hypot(wx, wy))
         R = Rotation.from_rotvec([wx, wy, 0.0]).as_matrix()
         T[:3, :3] = R @ T[:3, :3]  # about the sensor: its position only moves by dz
@@ -208,7 +215,6 @@ class GroundRefinedOdometry(Odometry):
 
     def _ground_points(self, frame: Frame) -> np.ndarray:
         points = np.asarray(self.inner.map_points(frame), dtype=np.float64)
-        points = points[:: self.cfg.point_stride]
         r = np.linalg.norm(points[:, :2], axis=1)
         keep = (r > self.cfg.min_range_m) & (r < self.cfg.max_range_m)
         keep &= points[:, 2] < self.cfg.max_height_m
@@ -222,8 +228,9 @@ class GroundRefinedOdometry(Odometry):
         else:
             motion = np.linalg.inv(self._previous_inner) @ T_inner
             self._travelled_m += float(np.linalg.norm(motion[:3, 3]))
+            stride = -(-len(points) // self.cfg.max_points)
             pose, self.last_matched = refine_vertical(
-                self._pose @ motion, points, self.ground, self.cfg
+                self._pose @ motion, points[::stride], self.ground, self.cfg
             )
         self._previous_inner = T_inner
         self._pose = pose
