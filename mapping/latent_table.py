@@ -21,9 +21,10 @@ The Jacobian is the exact one of this form,
 with ``dA/dr = A_t n + A_s r_hat`` (likewise ``B``), from the interpolated partials.
 
 Equivariance is untouched (the table holds invariants; the basis vectors rotate with the
-scene). Interpolation error, default prior, 256 nodes, 30k-point depth frame: voxel latents
-median 1.7e-5, max 2.1e-4 relative; voxel Jacobians median 0.3 %, against 7 % for the
-default 16-pair Jacobian sample itself (BENCHMARKS.md, Mapping).
+scene). Interpolation error, shipped prior, 256 nodes, 30k-point depth frame: voxel latents
+median 1.7e-5, largest 2.1e-4 relative; voxel Jacobians median 0.3 %, against 6 % between the
+default 16-pair Jacobian sample and every pair (BENCHMARKS.md, LiDAR throughput,
+micro-benchmarks). The unit normal matters: ``A`` and ``B`` are tabulated for ``|n| = 1``.
 """
 
 from __future__ import annotations
