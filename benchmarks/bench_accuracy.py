@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from slam.config import merge_overrides
+from slam.app.config import merge_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -42,7 +42,7 @@ log = logging.getLogger("benchmarks.bench_accuracy")
 
 
 def _per_axis_ate(est: np.ndarray, gt: np.ndarray) -> list[float]:
-    from slam.metrics.trajectory import align_se3
+    from slam.evaluation.metrics.trajectory import align_se3
 
     aligned = align_se3(est, gt) @ est
     diff = aligned[:, :3, 3] - gt[:, :3, 3]
@@ -53,7 +53,7 @@ def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth
     """Fraction of keyframe ``a``'s depth that agrees (3 cm) with keyframe ``b``'s, moved by the
     loop edge and by the ground truth: a check of the ground truth that needs no ground truth."""
     try:
-        from slam.loop_rgbd import RgbdVerifier, depth_agreement
+        from slam.algorithm.loop_rgbd import RgbdVerifier, depth_agreement
     except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
         return None, None
 
@@ -74,7 +74,7 @@ def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[s
     poses, so that a trajectory error against the ground truth can be put into proportion.
     """
     try:
-        from slam.loop_rgbd import RgbdVerifier, depth_agreement
+        from slam.algorithm.loop_rgbd import RgbdVerifier, depth_agreement
     except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
         return None
 
@@ -101,9 +101,9 @@ def _loop_diagnosis(pipeline, source, gt: np.ndarray, a: int, b: int, T_a_b: np.
     within 1 cm of keyframe a moved into keyframe b by the edge and by the ground truth.
     """
     from frontends.odometry.point_to_plane import point_to_plane_icp
-    from slam.loop_rgbd import RefineCloud, RgbdVerifier, depth_agreement
-    from slam.loops import relative_motion
-    from slam.submaps import transform_points
+    from slam.algorithm.loop_rgbd import RefineCloud, RgbdVerifier, depth_agreement
+    from slam.algorithm.loops import relative_motion
+    from slam.algorithm.submaps import transform_points
 
     cfg = pipeline.cfg.loop_closure.rgbd
     verifier = RgbdVerifier(cfg)
@@ -144,8 +144,8 @@ def _loop_diagnosis(pipeline, source, gt: np.ndarray, a: int, b: int, T_a_b: np.
 def _summary(
     pipeline, wall_s: float, gt: np.ndarray, source=None, diagnose: bool = False
 ) -> dict[str, Any]:
-    from slam.loops import relative_motion
-    from slam.metrics.trajectory import ate_rmse
+    from slam.algorithm.loops import relative_motion
+    from slam.evaluation.metrics.trajectory import ate_rmse
 
     loops = []
     for c in pipeline.accepted_loops():
@@ -210,10 +210,10 @@ def _run(
     import torch
 
     from frontends.sources import make_source
-    from slam.builders import build_map, build_odometry, source_kwargs
-    from slam.config import default_config_path, load_run_config
-    from slam.pipeline import SlamPipeline
-    from slam.viz import NullLogger
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.algorithm.viz import NullLogger
+    from slam.app.builders import build_map, build_odometry, source_kwargs
+    from slam.app.config import default_config_path, load_run_config
 
     torch.set_num_threads(1)
     base = {

@@ -4,7 +4,8 @@
 
 Feeds the first N scans of the generated 64-beam KITTI-00 sequence (the same cached scans as
 ``bench_throughput``, ~127k points each) with their ground-truth poses to a
-:class:`slam.submaps.Keyframer` with ``configs/kitti.yaml``'s submap settings, alone in this
+:class:`slam.algorithm.submaps.Keyframer` with ``configs/kitti.yaml``'s submap settings, alone in
+this
 process with one BLAS thread, as the pipeline runs it. Reports the CPU time of the calling thread
 (``time.thread_time``, so other processes on the machine inflate it less than wall time) per
 frame, split into frames that only accumulate and frames that also close a submap (compaction,
@@ -42,7 +43,7 @@ log = logging.getLogger("benchmarks.bench_keyframing")
 def measure(num_frames: int) -> dict:
     from threadpoolctl import threadpool_limits
 
-    from slam.submaps import Keyframer
+    from slam.algorithm.submaps import Keyframer
 
     threadpool_limits(limits=1, user_api="blas")
     cfg = _config()

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from slam.atomic_io import write_text_atomic
+from slam.app.atomic_io import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -103,7 +103,8 @@ log = logging.getLogger("benchmarks.bench_map_size")
 
 
 def run_slam(checkout: Path, args: list[str], out: Path) -> dict[str, Any]:
-    """``slam.run`` from ``checkout`` in a child process: its metrics, wall time and peak RSS."""
+    """``slam.app.runner`` from ``checkout`` in a child process: its metrics, wall time and peak
+    RSS."""
     env = dict(os.environ, PYTHONPATH=str(checkout), PYTHONUNBUFFERED="1")
     command = [sys.executable, "-m", "slam.run", *args, "--no-viz", "--out", str(out)]
     log.info("%s: %s", checkout, shlex.join(command))
@@ -122,7 +123,7 @@ def run_slam(checkout: Path, args: list[str], out: Path) -> dict[str, Any]:
             time.sleep(1.0)
     wall = time.perf_counter() - start
     if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"slam.run failed in {checkout}; see {out.parent / out.name}.log")
+        raise RuntimeError(f"slam.app.runner failed in {checkout}; see {out.parent / out.name}.log")
     metrics = json.loads((out / "metrics.json").read_text())
     peak = usage.ru_maxrss / 1024
     # the run's own peak before it scores its mesh against ground truth (newer runs report it)
@@ -166,10 +167,10 @@ def map_file_stats(path: Path) -> dict[str, Any]:
 
 def raw_baseline(run_dir: Path) -> dict[str, Any]:
     """Points of the run's submaps at V/4, replayed through the keyframer with its odometry."""
-    from slam.builders import build_source
-    from slam.config import load_run_config
-    from slam.submaps import Keyframer, voxel_subsample
-    from slam.trajectory_io import read_kitti
+    from slam.algorithm.submaps import Keyframer, voxel_subsample
+    from slam.app.builders import build_source
+    from slam.app.config import load_run_config
+    from slam.app.trajectory_io import read_kitti
 
     cfg = load_run_config(run_dir / "config.yaml")
     poses = read_kitti(run_dir / "poses_odometry.kitti.txt")

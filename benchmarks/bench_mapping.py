@@ -165,7 +165,7 @@ def mesh_distance(a: trimesh.Trimesh, b: trimesh.Trimesh, samples: int) -> tuple
     if len(a.faces) == 0 or len(b.faces) == 0:
         return float("inf"), float("inf")
     try:
-        from slam.metrics.mesh import mesh_metrics
+        from slam.evaluation.metrics.mesh import mesh_metrics
 
         m = mesh_metrics(a, b, num_samples=samples)
         return m.accuracy_m, m.completion_m

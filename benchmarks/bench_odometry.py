@@ -35,7 +35,7 @@ import numpy as np
 
 from frontends.odometry import make_odometry
 from frontends.sources import make_source
-from slam.metrics import (
+from slam.evaluation.metrics import (
     KITTI_LENGTHS_M,
     ate_rmse,
     kitti_relative_error,

@@ -4,7 +4,8 @@
 
 Writes ``benchmarks/results/prior.md``.
 
-1. Held-out patches (the fixed-seed set of ``mapping.train.heldout_batches``, never trained on):
+1. Held-out patches (the fixed-seed set of ``mapping.training.train.heldout_batches``, never
+trained on):
    mean |SDF error| near the surface (|SDF| < 0.1 vu) and within the training clamp, sign accuracy
    and mean predicted sigma, for the shipped prior, the analytic tangent-plane prior and a random
    initialisation; per patch kind for the shipped prior.
@@ -38,8 +39,8 @@ import numpy as np
 import torch
 
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
-from mapping.patches import PATCH_KINDS, PatchConfig, generate_patches_with_scenes
-from mapping.train import EVAL_SEED_BASE, encode_patches, evaluate
+from mapping.training.patches import PATCH_KINDS, PatchConfig, generate_patches_with_scenes
+from mapping.training.train import EVAL_SEED_BASE, encode_patches, evaluate
 
 log = logging.getLogger("benchmarks.bench_prior")
 
@@ -69,7 +70,8 @@ def load_models(weights: Path) -> list[tuple[str, PriorModel]]:
 
 # ---------------------------------------------------------------------------- patches
 def heldout(n_patches: int) -> list:
-    """The held-out set of mapping.train (same seeds), with the scenes kept for exact SDF."""
+    """The held-out set of mapping.training.train (same seeds), with the scenes kept for exact
+    SDF."""
     cfg = PatchConfig()
     out, chunk = [], 64
     for i, start in enumerate(range(0, n_patches, chunk)):
@@ -151,7 +153,7 @@ def lattice_mesh_errors(model: PriorModel, sets) -> tuple[float, float, float, i
 
 
 def _one_scene(scenes, b: int):
-    from mapping.patches import Scenes
+    from mapping.training.patches import Scenes
 
     return Scenes(
         **{
@@ -279,7 +281,7 @@ def _tsdf_memory(frames: list, voxel_m: float) -> int:
 def points_metrics(points: np.ndarray, gt, gt_samples: np.ndarray) -> tuple[float, float, float]:
     from scipy.spatial import cKDTree
 
-    from slam.metrics.mesh import surface_distances
+    from slam.evaluation.metrics.mesh import surface_distances
 
     acc_pts = points[np.random.default_rng(1).choice(len(points), min(len(points), 100_000))]
     acc = surface_distances(acc_pts, gt)
@@ -290,7 +292,7 @@ def points_metrics(points: np.ndarray, gt, gt_samples: np.ndarray) -> tuple[floa
 def scene_metrics(mesh, gt, gt_samples: np.ndarray) -> tuple[float, float, float]:
     import trimesh
 
-    from slam.metrics.mesh import surface_distances
+    from slam.evaluation.metrics.mesh import surface_distances
 
     if len(mesh.faces) == 0:
         return float("inf"), float("inf"), 0.0
@@ -303,7 +305,7 @@ def scene_metrics(mesh, gt, gt_samples: np.ndarray) -> tuple[float, float, float
 def evaluate_scene(name: str, frames: list, gt, models, lines: list[str], note: str) -> None:
     import trimesh
 
-    from slam.metrics.mesh import visible_face_mask
+    from slam.evaluation.metrics.mesh import visible_face_mask
 
     results: list[SceneResult] = []
     tsdf_points = {}
@@ -474,7 +476,7 @@ def main(argv: list[str] | None = None) -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     cmd = shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
-        "## Learned prior (mapping/patches.py, mapping/train.py)",
+        "## Learned prior (mapping/training/patches.py, mapping/training/train.py)",
         "",
         f"- Command: `python -m benchmarks.bench_prior {cmd}`",
         f"- Date: {dt.datetime.now().isoformat(timespec='seconds')}",

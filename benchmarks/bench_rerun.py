@@ -2,8 +2,10 @@
 
     python -m benchmarks.bench_rerun [--quick] [--frames A:B]
 
-Each case is run twice in this process with ``slam.run``'s own ``execute``: once with ``--no-viz``
-(:class:`~slam.viz.NullLogger`) and once writing an ``.rrd`` file, after the sequence has been
+Each case is run twice in this process with ``slam.app.runner``'s own ``execute``: once with
+``--no-viz``
+(:class:`~slam.algorithm.viz.NullLogger`) and once writing an ``.rrd`` file, after the sequence has
+been
 generated/cached so that neither run pays for generation. Measured:
 
 - wall time of both runs and their difference (the end-to-end overhead, noisy on a shared machine);
@@ -42,7 +44,7 @@ SHARED_KITTI = REPO_ROOT.parent / "shared" / "data" / "kitti"
 
 @dataclass
 class Case:
-    """One ``slam.run`` command line (without viz flags)."""
+    """One ``slam.app.runner`` command line (without viz flags)."""
 
     name: str
     argv: list[str]
@@ -61,8 +63,8 @@ class TimedCalls:
 
 
 def timed_logger(inner, timings: TimedCalls):
-    """A :class:`~slam.viz.Logger` forwarding to ``inner`` and timing every call."""
-    from slam.viz import Logger
+    """A :class:`~slam.algorithm.viz.Logger` forwarding to ``inner`` and timing every call."""
+    from slam.algorithm.viz import Logger
 
     class TimedLogger(Logger):
         def _call(self, name: str, *args: Any, **kwargs: Any) -> None:
@@ -99,9 +101,11 @@ def timed_logger(inner, timings: TimedCalls):
 
 
 def run_case(argv: list[str], folder: Path, timings: TimedCalls | None) -> dict[str, Any]:
-    """``slam.run.execute`` in this process; with ``timings``, the logger is wrapped by a timer."""
-    import slam.builders as builders
-    from slam.run import build_parser, execute, resolve_config
+    """``slam.app.runner.execute`` in this process; with ``timings``, the logger is wrapped by a
+    timer."""
+    import slam.app.builders as builders
+    from slam.app.cli import build_parser, resolve_config
+    from slam.app.runner import execute
 
     args = build_parser().parse_args(argv)
     entry, cfg = resolve_config(args)
@@ -116,8 +120,8 @@ def run_case(argv: list[str], folder: Path, timings: TimedCalls | None) -> dict[
 
 def prepare(argv: list[str]) -> int:
     """Generate/cache the case's sequence; returns its number of frames."""
-    from slam.builders import build_source
-    from slam.run import build_parser, resolve_config
+    from slam.app.builders import build_source
+    from slam.app.cli import build_parser, resolve_config
 
     _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
     return len(build_source(cfg))
@@ -131,9 +135,9 @@ def logger_alone(argv: list[str], submap_frames: int = 20) -> dict[str, Any]:
     import trimesh
     from scipy.spatial import cKDTree
 
-    from slam.builders import build_source
-    from slam.rerun_logger import RerunLogger
-    from slam.run import build_parser, resolve_config
+    from slam.app.builders import build_source
+    from slam.app.cli import build_parser, resolve_config
+    from slam.app.rerun_logger import RerunLogger
 
     _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
     source = build_source(cfg)
@@ -182,7 +186,7 @@ def same_poses(a: Path, b: Path) -> bool:
 
 
 def measure(case: Case) -> dict[str, Any]:
-    from slam.rerun_logger import summarize_recording
+    from slam.app.rerun_logger import summarize_recording
 
     folder = WORK_DIR / case.name
     shutil.rmtree(folder, ignore_errors=True)
@@ -242,7 +246,8 @@ def markdown(
         f"- Command: `{command}`",
         f"- Date: {started}",
         f"- Machine: {machine()}",
-        "- Each case ran twice in one process (slam.run's `execute`): `--no-viz` (NullLogger) "
+        "- Each case ran twice in one process (slam.app.runner's `execute`): "
+        "`--no-viz` (NullLogger) "
         "first, then `--rrd`; the sequence was generated beforehand. Wall times on a shared "
         "machine are noisy; the time inside the logger is measured directly.",
         "- `map_logging` is the pipeline's stage that hands the map to the logger; with a "

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from slam.atomic_io import write_text_atomic
+from slam.app.atomic_io import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -75,14 +75,14 @@ class DriftingOdometry:
 
 
 def _peak_rss_mb() -> float:
-    from slam.run_metrics import peak_rss_mb
+    from slam.evaluation.run_metrics import peak_rss_mb
 
     return peak_rss_mb()
 
 
 def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float]]:
     """Error of every verified loop edge against the ground-truth relative anchor pose."""
-    from slam.loops import relative_motion
+    from slam.algorithm.loops import relative_motion
 
     errors = []
     for c in pipeline.accepted_loops():
@@ -94,9 +94,9 @@ def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float]]:
 
 
 def _run(cfg, source, odometry) -> tuple[Any, float]:
-    from slam.builders import build_map
-    from slam.pipeline import SlamPipeline
-    from slam.viz import NullLogger
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.algorithm.viz import NullLogger
+    from slam.app.builders import build_map
 
     neural_map = build_map(cfg)
     pipeline = SlamPipeline(cfg, source.sensor, odometry, neural_map, NullLogger())
@@ -108,7 +108,7 @@ def _run(cfg, source, odometry) -> tuple[Any, float]:
 
 
 def _summary(pipeline, wall_s: float, gt: np.ndarray) -> dict:
-    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
+    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
     errors = _loop_errors(pipeline, gt)
     events = pipeline.remapper.events
@@ -140,11 +140,11 @@ def _summary(pipeline, wall_s: float, gt: np.ndarray) -> dict:
 
 
 def _mesh_accuracy(pipeline, source, num_samples: int = 100_000) -> dict | None:
-    from slam.run_metrics import mesh_errors
+    from slam.evaluation.run_metrics import mesh_errors
 
     if source.gt_mesh_path is None:
         return None
-    from slam.metrics.trajectory import align_se3
+    from slam.evaluation.metrics.trajectory import align_se3
 
     gt = source.gt_poses
     frame = source[0]
@@ -205,8 +205,8 @@ def scenario_lidar(
 ) -> dict:
     """One LiDAR run; ``odometry`` overrides fields of configs/kitti.yaml's odometry section."""
     _child_setup()
-    from slam.builders import build_odometry
-    from slam.config import default_config_path, load_run_config
+    from slam.app.builders import build_odometry
+    from slam.app.config import default_config_path, load_run_config
 
     source = lidar_source(quick, terrain_relief_m)
     overrides: dict[str, Any] = {
@@ -233,9 +233,9 @@ def scenario_lidar(
 def scenario_room() -> dict:
     _child_setup()
     from frontends.sources import make_source
-    from slam.builders import build_map, build_odometry, source_kwargs
-    from slam.config import default_config_path, load_run_config
-    from slam.metrics.mesh import mesh_metrics
+    from slam.app.builders import build_map, build_odometry, source_kwargs
+    from slam.app.config import default_config_path, load_run_config
+    from slam.evaluation.metrics.mesh import mesh_metrics
 
     cfg = load_run_config(
         default_config_path("demo"),
@@ -290,8 +290,8 @@ def scenario_7scenes() -> dict | None:
     if not (DATA / "7scenes_redkitchen").is_dir():
         return None
     from frontends.sources import make_source
-    from slam.builders import build_odometry, source_kwargs
-    from slam.config import default_config_path, load_run_config
+    from slam.app.builders import build_odometry, source_kwargs
+    from slam.app.config import default_config_path, load_run_config
 
     cfg = load_run_config(
         default_config_path("7scenes"),
@@ -319,8 +319,8 @@ def scenario_kiss_slam(quick: bool) -> dict:
     if check.returncode != 0:
         last = (check.stderr.strip().splitlines() or ["?"])[-1]
         return {"skipped": f"KISS-SLAM does not import: {last}"}
-    from slam.metrics.trajectory import ate_rmse
-    from slam.trajectory_io import read_kitti
+    from slam.app.trajectory_io import read_kitti
+    from slam.evaluation.metrics.trajectory import ate_rmse
 
     source = lidar_source(quick)
     root = Path(source.sequence_dir).parents[1]

@@ -6,7 +6,8 @@
 The sequence is the 64-beam LiDAR simulated along all 4,541 poses of the real KITTI 00 trajectory
 (2048 firings per revolution, cached by ``frontends.sources.generated``); ``--frames N`` runs the
 first N scans (KISS-SLAM: ``--n-scans N``). Every method runs in its own
-process, one after the other, so its peak memory is its own. Ours runs as ``slam.run`` does with
+process, one after the other, so its peak memory is its own. Ours runs as ``slam.app.runner`` does
+with
 ``--no-viz``: configs/kitti.yaml, the whole pipeline, the final optimisation, the final mesh and
 ``map.npz``; RSS is sampled at 1,000 / 2,000 / ... frames and at the end.
 
@@ -91,7 +92,7 @@ def _source(num_frames: int, relief_m: float = 0.0):
 
 def _config(extra: dict[str, Any] | None = None):
     """configs/kitti.yaml for the generated scans, without viewer, with ``extra`` on top."""
-    from slam.config import default_config_path, load_run_config, merge_overrides
+    from slam.app.config import default_config_path, load_run_config, merge_overrides
 
     overrides: dict[str, Any] = {
         "source": {"dataset": "generated"},
@@ -102,9 +103,10 @@ def _config(extra: dict[str, Any] | None = None):
 
 
 def _apply_thread_budget(cfg) -> str:
-    """The run's thread budget where this code has one (issue 11), else slam.run's old setting."""
+    """The run's thread budget where this code has one (issue 11), else slam.app.runner's old
+    setting."""
     try:
-        from slam.threads import apply_thread_budget
+        from slam.app.threads import apply_thread_budget
     except ImportError:
         import torch
 
@@ -119,10 +121,10 @@ def scenario_ours(
     num_frames: int, override: dict[str, Any] | None = None, relief_m: float = 0.0
 ) -> dict:
     logging.basicConfig(level=logging.WARNING)
-    from slam.builders import build_map, build_odometry
-    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
-    from slam.pipeline import SlamPipeline
-    from slam.viz import NullLogger
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.algorithm.viz import NullLogger
+    from slam.app.builders import build_map, build_odometry
+    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
     cfg = _config(override)
     threads = _apply_thread_budget(cfg)
@@ -143,7 +145,7 @@ def scenario_ours(
     pipeline.finish()
     main_cpu_s = time.thread_time() - main_cpu_start
     mark = time.perf_counter()
-    from slam.threads import plan_thread_budget
+    from slam.app.threads import plan_thread_budget
 
     mesh_threads = plan_thread_budget(cfg.threads, cfg.map_worker).mesh_threads
     mesh = neural_map.extract_mesh(threads=mesh_threads)
@@ -157,8 +159,8 @@ def scenario_ours(
     map_save_s = wall - final_mesh_s - (mark - start)
     rss[str(count)], peak_rss_mb = _rss_mb()  # before scoring: the run's own peak
     gt = source.gt_poses
-    from slam.metrics.trajectory import align_se3
-    from slam.run_metrics import mesh_errors
+    from slam.evaluation.metrics.trajectory import align_se3
+    from slam.evaluation.run_metrics import mesh_errors
 
     errors = mesh_errors(
         mesh,
@@ -201,7 +203,7 @@ def scenario_kiss_icp(num_frames: int, relief_m: float = 0.0) -> dict:
     logging.basicConfig(level=logging.WARNING)
     from kiss_icp.kiss_icp import KissICP
 
-    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
+    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
     cfg = _config()
     threads = _apply_thread_budget(cfg)
@@ -230,8 +232,8 @@ def scenario_kiss_slam(num_frames: int, relief_m: float = 0.0) -> dict:
     python = KISS_SLAM_VENV / "bin" / "python"
     if not python.is_file():
         return {"skipped": f"no KISS-SLAM venv at {KISS_SLAM_VENV}"}
-    from slam.metrics.trajectory import ate_per_axis_rmse, ate_rmse
-    from slam.trajectory_io import read_kitti
+    from slam.app.trajectory_io import read_kitti
+    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
     source = _source(num_frames, relief_m)
     root = Path(source.sequence_dir).parents[1]

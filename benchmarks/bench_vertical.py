@@ -7,7 +7,8 @@ frames 0-1699, or every 3rd frame of 0-1650 with 1024 firings per revolution in 
 road always follows KITTI 00's elevations; ``--relief`` lists the heights of the hills beside the
 road (``generated.terrain_relief_m``) to run. configs/kitti.yaml, KISS-ICP odometry; each run in
 its own process (two at a time), once as configured and once with
-``odometry.ground_refinement.enabled`` (slam/ground_refinement.py: each scan's height, roll and
+``odometry.ground_refinement.enabled``
+(slam/algorithm/ground_refinement.py: each scan's height, roll and
 pitch fitted to the ground seen over the last 50 m of travel); ``--modes`` adds the unbounded
 ground map of stop 16. Per-axis ATE: RMSE along the world x, y, z (up) axes
 after the SE(3) alignment.
@@ -27,7 +28,7 @@ import sys
 from pathlib import Path
 
 from benchmarks.bench_slam import REPO, lidar_window, machine_line, scenario_lidar
-from slam.atomic_io import write_text_atomic
+from slam.app.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.bench_vertical")
 

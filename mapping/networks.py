@@ -213,7 +213,7 @@ class PriorModel(nn.Module):
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(
-                f"{path}: prior weights not found; run `python -m mapping.train`"
+                f"{path}: prior weights not found; run `python -m mapping.training.train`"
             )
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
@@ -225,7 +225,7 @@ class PriorModel(nn.Module):
             raise ValueError(
                 f"{path}: not a valid prior weights file ({exc.__class__.__name__}: "
                 f"{str(exc).splitlines()[0] if str(exc) else ''}); re-create it with "
-                "`python -m mapping.train`"
+                "`python -m mapping.training.train`"
             ) from exc
         model.metadata = payload.get("metadata", {})
         return model
@@ -245,7 +245,8 @@ def load_default_prior() -> PriorModel:
         raise FileNotFoundError(
             f"{DEFAULT_WEIGHTS}: the shipped prior weights are missing from this installation; "
             "reinstall the package (`pip install -e .`), set mapping.weights_path, or re-create "
-            "them with `python -m mapping.train --config configs/train_prior.yaml --export "
+            "them with `python -m mapping.training.train --config configs/train_prior.yaml "
+            "--export "
             f"{DEFAULT_WEIGHTS}`"
         )
     return PriorModel.load(DEFAULT_WEIGHTS)

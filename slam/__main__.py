@@ -2,6 +2,6 @@
 
 import sys
 
-from slam.run import main
+from slam.app.cli import main
 
 sys.exit(main())

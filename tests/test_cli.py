@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from slam.run import UsageError, parse_frames
+from slam.app.cli import UsageError, parse_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -242,8 +242,8 @@ def test_icl_trajectories_are_written_in_the_release_frame(tmp_path: Path):
     np.testing.assert_allclose(written, expected, atol=1e-5)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["trajectory"]["slam"]["ate_rmse_m"] < 1e-4
-    # slam.eval against the release file itself (dataset frame) agrees.
-    from slam.eval import evaluate_run
+    # slam.evaluation.cli against the release file itself (dataset frame) agrees.
+    from slam.evaluation.cli import evaluate_run
 
     evaluated = evaluate_run(out, gt_poses_path=gt_file, make_plots=False, write=False)
     assert evaluated["trajectory"]["slam"]["ate_rmse_m"] < 1e-4

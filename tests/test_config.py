@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from slam.config import (
+from slam.app.config import (
     CONFIG_DIR,
     ConfigError,
     RunConfig,

@@ -20,10 +20,10 @@ import numpy as np
 import torch
 
 from frontends.sources import make_source
-from slam.builders import build_map
-from slam.outputs import RunOutputs
-from slam.pipeline import SlamPipeline
-from slam.viz import NullLogger
+from slam.algorithm.pipeline import SlamPipeline
+from slam.algorithm.viz import NullLogger
+from slam.app.builders import build_map
+from slam.app.outputs import RunOutputs
 from tests.test_pipeline import STREET, DriftingOdometry, street_config
 
 

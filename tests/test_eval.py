@@ -1,4 +1,5 @@
-"""slam.eval: ground-truth association, culling of unobserved ground truth, and a finished demo run
+"""slam.evaluation.cli: ground-truth association, culling of unobserved ground truth, and a
+finished demo run
 re-evaluated to its own metrics."""
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from slam.eval import EvalError, evaluate_run, observed_face_mask, read_gt_poses
-from slam.trajectory_io import write_kitti, write_tum
+from slam.app.trajectory_io import write_kitti, write_tum
+from slam.evaluation.cli import EvalError, evaluate_run, observed_face_mask, read_gt_poses
 from tests.test_plots import assert_png
 from tests.test_rerun_logger import demo_run
 
@@ -47,7 +48,7 @@ def test_kitti_ground_truth_needs_one_pose_per_frame(tmp_path: Path) -> None:
 
 
 def test_trajectory_metrics_score_only_frames_with_ground_truth() -> None:
-    from slam.run_metrics import trajectory_section
+    from slam.evaluation.run_metrics import trajectory_section
 
     gt = _poses(10)
     estimate = gt.copy()
@@ -147,7 +148,7 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
     )
 
     # The numbers are recomputed from the files, not copied: change the inputs and they change.
-    from slam.trajectory_io import read_tum
+    from slam.app.trajectory_io import read_tum
 
     stamps, slam = read_tum(copy / "poses_slam.tum.txt")
     drifted = slam.copy()
@@ -172,7 +173,7 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
 
 
 def test_transform_experiment_outputs_summarize_per_variant(tmp_path: Path) -> None:
-    from slam.transform_experiment import summarize, write_outputs
+    from slam.evaluation.transform_experiment import summarize, write_outputs
 
     def result(accuracy: float) -> dict[str, float]:
         return {

@@ -8,12 +8,12 @@ from scipy.spatial.transform import Rotation
 
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry
-from slam.ground_refinement import (
+from slam.algorithm.ground_refinement import (
     GroundHeightMap,
     GroundRefinedOdometry,
     GroundRefinementConfig,
 )
-from slam.metrics.trajectory import ate_per_axis_rmse
+from slam.evaluation.metrics.trajectory import ate_per_axis_rmse
 
 
 def _terrain(xy: np.ndarray) -> np.ndarray:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam.config import default_config_path, load_run_config
-from slam.lidar_scale import scale_config, scan_extent_m
+from slam.app.config import default_config_path, load_run_config
+from slam.app.lidar_scale import scale_config, scan_extent_m
 
 
 def _ring_scan(radius_m: float, n: int = 5000) -> np.ndarray:

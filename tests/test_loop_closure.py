@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from frontends.sources import make_source
-from slam.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
-from slam.loop_lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
-from slam.loop_rgbd import RgbdVerifier
-from slam.loops import relative_motion
-from slam.submaps import SubmapRecord, transform_points, voxel_subsample
+from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
+from slam.algorithm.loop_lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
+from slam.algorithm.loop_rgbd import RgbdVerifier
+from slam.algorithm.loops import relative_motion
+from slam.algorithm.submaps import SubmapRecord, transform_points, voxel_subsample
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -172,7 +172,7 @@ def test_rgbd_3d_check_rejects_depth_inconsistent_with_pnp(room):
 
 
 def test_rgbd_odometry_quality_sees_a_wrong_pose(room):
-    from slam.loop_rgbd import depth_agreement
+    from slam.algorithm.loop_rgbd import depth_agreement
 
     verifier = RgbdVerifier(RgbdLoopConfig())
     reference, query, _ = _features(verifier, room, 0, 8)
@@ -213,7 +213,7 @@ def test_rgbd_dense_refinement_corrects_or_rejects_a_wrong_guess(room, offset):
 
 def test_rgbd_dense_refinement_rejects_a_flat_cost():
     """Two views of one plane: ICP cannot fix the in-plane motion, so the edge is rejected."""
-    from slam.loop_rgbd import RefineCloud
+    from slam.algorithm.loop_rgbd import RefineCloud
 
     rng = np.random.default_rng(0)
     points = np.column_stack([rng.uniform(-1, 1, (20000, 2)), np.full(20000, 2.0)])

@@ -13,10 +13,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from frontends.sources import make_source
-from slam.config import RgbdLoopConfig
-from slam.loop_rgbd import RgbdVerifier
-from slam.loops import relative_motion
-from slam.submaps import transform_points
+from slam.algorithm.config import RgbdLoopConfig
+from slam.algorithm.loop_rgbd import RgbdVerifier
+from slam.algorithm.loops import relative_motion
+from slam.algorithm.submaps import transform_points
 
 ROOM = {"kind": "rgbd", "num_frames": 240, "seed": 0, "width": 320, "height": 240}
 REFERENCE, QUERY = 2, 236

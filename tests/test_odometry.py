@@ -17,7 +17,7 @@ from frontends.odometry import make_odometry
 from frontends.odometry.ground_truth import GroundTruthOdometry
 from frontends.odometry.kiss import KissIcpOdometry
 from frontends.odometry.rgbd import RgbdOdometry
-from slam.metrics import ate_rmse
+from slam.evaluation.metrics import ate_rmse
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 KITTI_SCANS = DATA / "kitti" / "real_scans"

@@ -9,7 +9,7 @@ import pytest
 import torch
 import trimesh
 
-from mapping.patches import (
+from mapping.training.patches import (
     BOX,
     CYLINDER,
     PATCH_KINDS,

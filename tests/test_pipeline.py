@@ -15,14 +15,14 @@ from frontends.frame import Frame
 from frontends.odometry.base import Odometry
 from frontends.odometry.ground_truth import GroundTruthOdometry
 from frontends.sources import make_source
-from slam.builders import build_map
-from slam.config import RunConfig
-from slam.loops import LoopCandidate, LoopDetector
-from slam.metrics.mesh import mesh_metrics
-from slam.metrics.trajectory import ate_rmse
-from slam.pipeline import SlamPipeline, make_loop_detector
-from slam.submaps import SubmapRecord
-from slam.viz import NullLogger
+from slam.algorithm.loops import LoopCandidate, LoopDetector
+from slam.algorithm.pipeline import SlamPipeline, make_loop_detector
+from slam.algorithm.submaps import SubmapRecord
+from slam.algorithm.viz import NullLogger
+from slam.app.builders import build_map
+from slam.app.config import RunConfig
+from slam.evaluation.metrics.mesh import mesh_metrics
+from slam.evaluation.metrics.trajectory import ate_rmse
 
 ROOM = {"kind": "rgbd", "num_frames": 240, "seed": 0, "width": 320, "height": 240}
 STREET = {"kind": "lidar", "num_frames": 150, "seed": 0, "azimuth_steps": 1024}

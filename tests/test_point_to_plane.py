@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from frontends.odometry.point_to_plane import _exp_se3, point_to_plane_hessian, point_to_plane_icp
-from slam.submaps import transform_points
+from slam.algorithm.submaps import transform_points
 
 
 def plane(rng, n: int, axis: int, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -12,8 +12,8 @@ import pytest
 import trimesh
 
 from frontends.frame import Intrinsics
-from slam.rerun_logger import RerunLogger, metric_entity, summarize_recording
-from slam.viz import Logger, NullLogger
+from slam.algorithm.viz import Logger, NullLogger
+from slam.app.rerun_logger import RerunLogger, metric_entity, summarize_recording
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # A short demo: one lap of the generated room in 60 frames with ground-truth odometry (so that a
@@ -219,7 +219,7 @@ def test_demo_recording_and_null_logger_give_identical_slam_outputs(
 
 
 def test_mesh_decimation_keeps_the_surface_within_budget() -> None:
-    from slam.rerun_logger import decimate_mesh
+    from slam.app.rerun_logger import decimate_mesh
 
     sphere = trimesh.creation.icosphere(subdivisions=5)  # 20480 faces, radius 1
     colors = np.tile(np.array([[10, 200, 30]], np.uint8), (len(sphere.vertices), 1))

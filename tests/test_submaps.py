@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from frontends.frame import Frame, point_ranges_m
-from slam.config import SubmapConfig
-from slam.submaps import (
+from slam.algorithm.config import SubmapConfig
+from slam.algorithm.submaps import (
     DENSE_GROUPING_CELLS_PER_POINT,
     Keyframer,
     transform_points,

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from mapping.networks import DEFAULT_WEIGHTS, ModelConfig, PriorModel
-from mapping.patches import PatchConfig, generate_patches
-from mapping.train import (
+from mapping.training.patches import PatchConfig, generate_patches
+from mapping.training.train import (
     TrainConfig,
     evaluate,
     heldout_batches,

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from frontends.errors import DatasetError
-from slam.atomic_io import write_text_atomic
+from slam.app.atomic_io import write_text_atomic
 
 
 def _as_poses(poses: np.ndarray, what: str) -> np.ndarray:

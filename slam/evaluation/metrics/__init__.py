@@ -1,7 +1,12 @@
 """Evaluation against ground truth: trajectory errors and mesh accuracy/completion."""
 
-from slam.metrics.mesh import MeshMetrics, mesh_metrics, surface_distances, visible_face_mask
-from slam.metrics.trajectory import (
+from slam.evaluation.metrics.mesh import (
+    MeshMetrics,
+    mesh_metrics,
+    surface_distances,
+    visible_face_mask,
+)
+from slam.evaluation.metrics.trajectory import (
     KITTI_LENGTHS_M,
     RelativePoseError,
     TrajectoryMetrics,

@@ -16,7 +16,7 @@ frame with normals, range-limited; RGB-D depth is read at full resolution,
 
 Both maps are meshed; accuracy is the mean distance from the encode-transform mesh to the
 transform-encode mesh, completion the reverse, and the completion ratio the fraction of reference
-samples within 5 cm (``slam.metrics.mesh.mesh_metrics``). Per-frame numbers go to
+samples within 5 cm (``slam.evaluation.metrics.mesh.mesh_metrics``). Per-frame numbers go to
 ``results.json``; their distributions to ``transform_distributions.png`` and ``summary.md``.
 """
 
@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-logger = logging.getLogger("slam.transform_experiment")
+logger = logging.getLogger("slam.evaluation.transform_experiment")
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "first-order": {},
@@ -52,7 +52,7 @@ def frame_points(frame, submap_cfg) -> tuple[np.ndarray, np.ndarray]:
     and averaging it would leave too few points per voxel for the encoder's pruning
     (``mapping.min_points_per_voxel``).
     """
-    from slam.normals import estimate_normals
+    from slam.algorithm.normals import estimate_normals
 
     points = np.asarray(frame.points, dtype=np.float64)
     distance = np.linalg.norm(points, axis=1)
@@ -81,7 +81,7 @@ def two_paths(
 ) -> dict[str, dict[str, float]]:
     """Mesh accuracy/completion of encode-transform (per variant) against transform-encode."""
     from mapping.neural_map import NeuralMap
-    from slam.metrics.mesh import mesh_metrics
+    from slam.evaluation.metrics.mesh import mesh_metrics
 
     reference = NeuralMap(map_cfg, model=model)
     reference.fuse(reference.encode(0, points_S, normals_S, T_W_S))
@@ -187,8 +187,8 @@ def write_outputs(
     out_dir: Path, rows: list[dict[str, Any]], variants: Sequence[str], command: str
 ) -> dict[str, Path]:
     """``results.json``, ``summary.md`` and ``transform_distributions.png`` in ``out_dir``."""
-    from slam import plots
-    from slam.outputs import write_text_atomic
+    from slam.app.outputs import write_text_atomic
+    from slam.evaluation import plots
 
     out_dir = Path(out_dir)
     summary = summarize(rows, variants)
@@ -255,33 +255,44 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m slam.eval transform``; returns the exit status."""
     from frontends.errors import DatasetError
-    from slam.builders import build_source
-    from slam.config import ConfigError
-    from slam.run import UsageError, resolve_config
+    from slam.app.builders import build_source
+    from slam.app.config import (
+        ConfigError,
+        UsageError,
+        default_config_path,
+        load_run_config,
+        set_nested,
+        set_overrides,
+    )
+    from slam.app.datasets import DATASETS
+    from slam.app.threads import apply_thread_budget
 
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    run_args = argparse.Namespace(
-        dataset=args.dataset,
-        sequence=args.sequence,
-        root=args.root,
-        config=args.config,
-        frames=args.frames,
-        odometry=None,
-        device=args.device,
-        no_viz=True,
-        spawn=False,
-        connect=None,
-        rrd=None,
-        set=["source.depth.stride=1", *args.set],
-    )
+
+    def config():
+        entry = DATASETS.get(args.dataset)
+        if entry is None or entry.path_argument:
+            names = ", ".join(n for n, e in DATASETS.items() if not e.path_argument)
+            raise UsageError(f"--dataset {args.dataset}: choose one of {names}")
+        overrides = set_overrides(["source.depth.stride=1", *args.set])
+        set_nested(overrides, "source.dataset", entry.source)
+        for key, value in (
+            ("source.sequence", args.sequence),
+            ("source.root", None if args.root is None else str(args.root)),
+            ("source.frames", args.frames),
+            ("mapping.device", args.device),
+        ):
+            if value is not None:
+                set_nested(overrides, key, value)
+        set_nested(overrides, "viz.mode", "none")
+        return load_run_config(args.config or default_config_path(entry.config), overrides)
+
     command = "python -m slam.eval transform " + " ".join(argv)
     try:
-        from slam.threads import apply_thread_budget
-
-        _, cfg = resolve_config(run_args)
+        cfg = config()
         apply_thread_budget(cfg)
         source = build_source(cfg)
         rows = run_transform_experiment(

@@ -35,10 +35,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from frontends.odometry.point_to_plane import point_to_plane_hessian
-from slam.config import LidarLoopConfig, LoopClosureConfig
-from slam.loops import LoopCandidate, LoopDetector, relative_motion
-from slam.normals import estimate_normals
-from slam.submaps import SubmapRecord, orthonormalize, transform_points, voxel_keys
+from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig
+from slam.algorithm.loops import LoopCandidate, LoopDetector, relative_motion
+from slam.algorithm.normals import estimate_normals
+from slam.algorithm.submaps import SubmapRecord, orthonormalize, transform_points, voxel_keys
 
 logger = logging.getLogger(__name__)
 

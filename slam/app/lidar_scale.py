@@ -29,7 +29,7 @@ import logging
 import numpy as np
 from pydantic import BaseModel
 
-from slam.config import RunConfig
+from slam.app.config import RunConfig
 
 logger = logging.getLogger(__name__)
 

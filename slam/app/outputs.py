@@ -30,10 +30,10 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from slam.atomic_io import FILE_MODE, write_text_atomic
-from slam.config import RunConfig, dump_run_config
-from slam.loops import LoopCandidate
-from slam.trajectory_io import write_kitti, write_tum
+from slam.algorithm.loops import LoopCandidate
+from slam.app.atomic_io import FILE_MODE, write_text_atomic
+from slam.app.config import RunConfig, dump_run_config
+from slam.app.trajectory_io import write_kitti, write_tum
 
 logger = logging.getLogger(__name__)
 

@@ -7,8 +7,8 @@ from typing import Any
 
 from frontends.odometry.base import Odometry, make_odometry
 from frontends.sources.base import Source, make_source
-from slam.config import ConfigError, RunConfig
-from slam.viz import Logger, NullLogger
+from slam.algorithm.viz import Logger, NullLogger
+from slam.app.config import ConfigError, RunConfig
 
 
 def frame_slice(text: str | None) -> slice | None:
@@ -97,7 +97,7 @@ def build_odometry(cfg: RunConfig, sensor: str) -> Odometry:
     if method == "kiss-icp":
         odometry = make_odometry(method, config=cfg.odometry.kiss_icp)
         if cfg.odometry.ground_refinement.enabled:
-            from slam.ground_refinement import GroundRefinedOdometry
+            from slam.algorithm.ground_refinement import GroundRefinedOdometry
 
             return GroundRefinedOdometry(odometry, cfg.odometry.ground_refinement)
         return odometry
@@ -123,7 +123,7 @@ def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
     viz = cfg.viz
     if viz.mode == "none":
         return NullLogger()
-    from slam.rerun_logger import RerunLogger
+    from slam.app.rerun_logger import RerunLogger
 
     options: dict[str, Any] = {
         "voxel_size_m": cfg.mapping.voxel_size_m,

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam.submaps import SubmapRecord
+from slam.algorithm.submaps import SubmapRecord
 
 
 @dataclass

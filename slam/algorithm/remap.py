@@ -2,7 +2,8 @@
 
 After every optimisation, each submap's anchor estimate is compared with the pose the map
 currently holds it at. When the translation or the rotation angle of the difference exceeds the
-thresholds of :class:`~slam.config.RemapConfig`, the submap is removed from the global map,
+thresholds of :class:`~slam.algorithm.config.RemapConfig`, the submap is removed from the global
+map,
 transformed from its *original* encoding to the new pose and fused back
 (:meth:`mapping.neural_map.NeuralMap.move`). Small differences are left alone: they are below
 what the voxel grid resolves and moving them would only cost time.
@@ -15,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam.config import RemapConfig
-from slam.loops import relative_motion
+from slam.algorithm.config import RemapConfig
+from slam.algorithm.loops import relative_motion
 
 
 @dataclass

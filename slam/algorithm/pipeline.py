@@ -6,13 +6,15 @@ optimised anchor pose -> submaps whose anchors moved are remapped. A frame's pos
 anchor's current estimate composed with the frame's odometry pose relative to that anchor, so the
 whole trajectory follows every optimisation. The world frame is the first anchor (frame 0).
 
-Everything is reported to a :class:`~slam.viz.Logger`, unconditionally; what is recorded depends
+Everything is reported to a :class:`~slam.algorithm.viz.Logger`, unconditionally; what is recorded
+depends
 only on which logger the runner built. What only a recording needs (voxel centres, meshes, the
 error so far) is handed over as a callable that the null logger never calls, and per-frame
 logging is O(1): trajectories grow by one position, and the optimised one is recomputed only
 when a loop moved the graph.
 
-Map work (encode, fuse, remap) runs on a :class:`~slam.map_worker.MapWorker` (a worker thread when
+Map work (encode, fuse, remap) runs on a :class:`~slam.algorithm.map_worker.MapWorker` (a worker
+thread when
 ``cfg.map_worker``), in submission order with pose snapshots taken here, so results do not
 depend on timing.
 """
@@ -28,14 +30,14 @@ import numpy as np
 
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry
-from slam.config import RunConfig
-from slam.loops import LoopCandidate, LoopDetector
-from slam.map_worker import MapWorker
-from slam.memory import release_freed_memory
-from slam.pose_graph import PoseGraph
-from slam.remap import RemapEvent, Remapper
-from slam.submaps import Keyframer, SubmapRecord, transform_points
-from slam.viz import Logger
+from slam.algorithm.loops import LoopCandidate, LoopDetector
+from slam.algorithm.map_worker import MapWorker
+from slam.algorithm.memory import release_freed_memory
+from slam.algorithm.pose_graph import PoseGraph
+from slam.algorithm.remap import RemapEvent, Remapper
+from slam.algorithm.submaps import Keyframer, SubmapRecord, transform_points
+from slam.algorithm.viz import Logger
+from slam.app.config import RunConfig
 
 logger = logging.getLogger(__name__)
 
@@ -99,10 +101,10 @@ def make_loop_detector(cfg: RunConfig, sensor: str) -> LoopDetector | None:
         return None
     method = sensor if lc.method == "auto" else lc.method
     if method == "lidar":
-        from slam.loop_lidar import LidarLoopDetector
+        from slam.algorithm.loop_lidar import LidarLoopDetector
 
         return LidarLoopDetector(lc)
-    from slam.loop_rgbd import RgbdLoopDetector
+    from slam.algorithm.loop_rgbd import RgbdLoopDetector
 
     return RgbdLoopDetector(lc)
 
@@ -441,7 +443,7 @@ class SlamPipeline:
 
     def _map_snapshot(self, periodic: bool, loop_added: bool):
         """What a recording shows of the map now (waits for the map worker); see
-        :meth:`slam.viz.Logger.log_map_from`."""
+        :meth:`slam.algorithm.viz.Logger.log_map_from`."""
         self.worker.drain()
         start = _clock()
         centers, weights = self.map.voxel_centers()
@@ -458,7 +460,7 @@ class SlamPipeline:
         gt = self.gt_poses()
         if gt is None or len(gt) < 3:
             return scalars
-        from slam.metrics.trajectory import ate_rmse
+        from slam.evaluation.metrics.trajectory import ate_rmse
 
         scalars["ate_odometry_m"] = ate_rmse(self.odometry_poses(), gt)
         scalars["ate_slam_m"] = ate_rmse(self.slam_poses(), gt)

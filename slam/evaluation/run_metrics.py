@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from slam.pipeline import SlamPipeline
+from slam.algorithm.pipeline import SlamPipeline
 
 logger = logging.getLogger(__name__)
 
@@ -121,7 +121,7 @@ def unculled_face_mask(
     """Ground-truth faces the sensor could have seen, and the culling's name: in the frustum of a
     ground-truth camera (``cameras = (K, width, height)``), or within ``lidar_range_m`` of a
     ground-truth LiDAR position; None (and ``"none"``) when neither applies or nothing is kept."""
-    from slam.metrics.mesh import visible_face_mask
+    from slam.evaluation.metrics.mesh import visible_face_mask
 
     mask, name = None, "none"
     if cameras is not None:
@@ -147,7 +147,7 @@ def mesh_errors(
 ) -> dict[str, Any]:
     """Accuracy / completion of ``mesh`` (world frame W) against the ground-truth mesh file, with
     completion over the faces of :func:`unculled_face_mask` (frustum or LiDAR range)."""
-    from slam.metrics.mesh import mesh_metrics
+    from slam.evaluation.metrics.mesh import mesh_metrics
 
     gt = trimesh.load(gt_mesh_path, force="mesh", process=False)
     pred = mesh.copy()
@@ -249,7 +249,7 @@ def mesh_sections(
     ground-truth mesh used and the completion face mask under private keys ``_gt``/``_mask`` for
     plotting; :func:`public` drops them.
     """
-    from slam.metrics.mesh import mesh_metrics
+    from slam.evaluation.metrics.mesh import mesh_metrics
 
     gt = trimesh.load(gt_mesh_path, force="mesh", process=False)
     pred = mesh.copy()
@@ -314,14 +314,14 @@ def trajectory_section(
     odometry: np.ndarray, slam: np.ndarray, gt: np.ndarray
 ) -> dict[str, Any] | None:
     """``metrics.json["trajectory"]`` over the frames that have ground truth (NaN rows skipped)."""
-    from slam.metrics.trajectory import kitti_lengths_within, trajectory_metrics
+    from slam.evaluation.metrics.trajectory import kitti_lengths_within, trajectory_metrics
 
     mask = np.isfinite(np.asarray(gt)).all(axis=(1, 2))
     if mask.sum() < 2:
         return None
     gt = np.asarray(gt)[mask]
     lengths = kitti_lengths_within(gt)
-    quiet = logging.getLogger("slam.metrics.trajectory")
+    quiet = logging.getLogger("slam.evaluation.metrics.trajectory")
     level = quiet.level
     quiet.setLevel(logging.ERROR)  # "too short for the KITTI error" is expected here
     try:
@@ -354,7 +354,7 @@ def collect_metrics(
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Everything ``metrics.json`` holds."""
-    from slam.metrics.trajectory import align_se3
+    from slam.evaluation.metrics.trajectory import align_se3
 
     slam_peak_rss_mb = peak_rss_mb()  # before scoring, which loads and samples ground truth
     metrics: dict[str, Any] = dict(extra or {})

@@ -50,9 +50,9 @@ from scipy.spatial import cKDTree
 from frontends.depth import depth_to_points
 from frontends.frame import Frame, Intrinsics
 from frontends.odometry.point_to_plane import IcpResult, point_to_plane_icp
-from slam.config import LoopClosureConfig, RgbdLoopConfig
-from slam.loops import LoopCandidate, LoopDetector, relative_motion
-from slam.submaps import SubmapRecord, transform_points, voxel_downsample
+from slam.algorithm.config import LoopClosureConfig, RgbdLoopConfig
+from slam.algorithm.loops import LoopCandidate, LoopDetector, relative_motion
+from slam.algorithm.submaps import SubmapRecord, transform_points, voxel_downsample
 
 logger = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""A :class:`~slam.viz.Logger` that records a run with Rerun (rerun-sdk 0.41).
+"""A :class:`~slam.algorithm.viz.Logger` that records a run with Rerun (rerun-sdk 0.41).
 
 Entities follow the frame tree (all in the world frame ``world``)::
 
@@ -38,8 +38,8 @@ import numpy as np
 import trimesh
 
 from frontends.frame import Intrinsics
-from slam.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
-from slam.viz import Logger
+from slam.algorithm.viz import Logger
+from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
 
 log = logging.getLogger(__name__)
 

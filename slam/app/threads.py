@@ -7,7 +7,8 @@ threads spin, so on a small machine they thrash each other: on 2 cores a 128k-po
 30 ms with OpenBLAS on 2 threads next to KISS-ICP, against 1 ms on one thread.
 :func:`apply_thread_budget` sets them all from ``RunConfig.threads``: KISS-ICP and OpenCV get the
 whole budget, torch gets the budget minus the odometry's share when the map runs on its own worker
-thread (:mod:`slam.map_worker`), and BLAS gets one thread (its matrices here are ``N x 3``).
+thread (:mod:`slam.algorithm.map_worker`), and BLAS gets one thread (its matrices here are ``N x
+3``).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def plan_thread_budget(threads: int, map_worker: bool) -> ThreadBudget:
 def apply_thread_budget(cfg) -> ThreadBudget:
     """Set torch, OpenCV and BLAS threads and KISS-ICP's ``max_num_threads`` in ``cfg``.
 
-    ``cfg`` is a :class:`slam.config.RunConfig`; its odometry settings are updated in place, so
+    ``cfg`` is a :class:`slam.app.config.RunConfig`; its odometry settings are updated in place, so
     call this before the odometry is built. An explicit ``odometry.kiss_icp.max_num_threads``
     (non-zero) is kept.
     """

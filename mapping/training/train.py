@@ -1,6 +1,6 @@
 """Train the prior (encoder + decoder) on procedural patches.
 
-``python -m mapping.train [--config configs/train_prior.yaml] [--out DIR] [--steps N]
+``python -m mapping.training.train [--config configs/train_prior.yaml] [--out DIR] [--steps N]
 [--device auto|cpu|cuda] [--resume] [--export PATH]``
 
 Conditional-neural-process style (DESIGN 5.4): per patch, the encoder sees the noisy observed
@@ -31,7 +31,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapping.networks import ModelConfig, PriorModel
-from mapping.patches import PatchBatch, PatchConfig, generate_patches
+from mapping.training.patches import PatchBatch, PatchConfig, generate_patches
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,7 @@ class TrainConfig(BaseModel):
         default_factory=lambda: PatchConfig(
             n_queries=1024, shell_candidates=3072, surface_pool=256
         ),
-        description="Training patch generator (n_queries per patch; see mapping.patches).",
+        description="Training patch generator (n_queries per patch; see mapping.training.patches).",
     )
 
 
@@ -339,7 +339,7 @@ def load_config(path: Path | None) -> TrainConfig:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m mapping.train", description=__doc__.split("\n")[0]
+        prog="python -m mapping.training.train", description=__doc__.split("\n")[0]
     )
     parser.add_argument("--config", type=Path, default=None, help="YAML with TrainConfig fields")
     parser.add_argument("--out", type=Path, default=Path("checkpoints/prior"), help="output folder")
@@ -354,7 +354,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.steps is not None:
         cfg = cfg.model_copy(update={"steps": args.steps})
     device = resolve_device(args.device)
-    command = "python -m mapping.train " + " ".join(argv if argv is not None else sys.argv[1:])
+    arguments = argv if argv is not None else sys.argv[1:]
+    command = "python -m mapping.training.train " + " ".join(arguments)
     _, metadata = train(cfg, args.out, device, args.resume, not args.no_progress, command.strip())
     if args.export is not None:
         args.export.parent.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,8 @@
 """Keyframing: consecutive frames grouped into submaps that share an anchor pose.
 
 A submap is opened by a frame (its *anchor*, ``T_W_A`` = that frame's pose) and closed when the
-sensor has travelled, turned or counted past the limits of :class:`~slam.config.SubmapConfig`
+sensor has travelled, turned or counted past the limits of
+:class:`~slam.algorithm.config.SubmapConfig`
 relative to the anchor, or (``max_surface_views``) when the submap covers a given multiple of the
 largest surface one of its frames saw: every submap is stored for life, and each boundary between
 submaps stores about one view of surface twice, so closing by new surface rather than by time
@@ -19,8 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from frontends.frame import Frame, point_ranges_m
-from slam.config import SubmapConfig
-from slam.normals import estimate_normals
+from slam.algorithm.config import SubmapConfig
+from slam.algorithm.normals import estimate_normals
 
 SURFACE_CELL_FACTOR = 4
 """Surface coverage (``max_surface_views``) is counted in cells of this many ``map_voxel_m``."""

@@ -1,0 +1,325 @@
+"""``python -m slam.run DATASET [SEQUENCE] ...``: the command line of a run.
+
+Examples::
+
+    python -m slam.run demo                                  # generated RGB-D room, no data needed
+    python -m slam.run generated-lidar                        # generated LiDAR street loop
+    python -m slam.run kitti 00 --root /data/kitti --frames 0:1000
+    python -m slam.run icl lr-kt3 --root /data/icl --no-viz
+    python -m slam.run 7scenes seq-01 --root /data/7scenes/redkitchen --set submaps.max_frames=20
+    python -m slam.run lidar recording.bag --dataloader rosbag       # any kiss_icp dataloader
+    python -m slam.run lidar scans/ --dataloader generic --serve     # headless: web viewer
+    python -m slam.run rgbd my_rgbd/                                 # rgb/, depth/, intrinsics.txt
+
+This module turns the arguments into a validated :class:`~slam.app.config.RunConfig` and a run
+folder, calls :func:`slam.app.runner.execute`, and reports errors in one line. ``--out DIR`` must
+name a new or empty folder: a run never writes into, or deletes, a folder holding anything it did
+not create. Bad input (unknown dataset, missing root, bad frame range, bad config key) ends the
+run with one line on stderr and a nonzero exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import sys
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from frontends.errors import DatasetError
+from mapping.errors import MapFileError
+from slam.app.config import (
+    ConfigError,
+    RunConfig,
+    UsageError,
+    default_config_path,
+    describe_validation_error,
+    load_run_config,
+    set_nested,
+    set_overrides,
+)
+from slam.app.datasets import DATASETS, DatasetEntry
+from slam.app.summary import summary_lines
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse whose errors are a single line (no usage block)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{message} (see python -m slam.run --help)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _OneLineParser(
+        prog="python -m slam.run",
+        description="SLAM with loop closure and a remapped neural implicit map.",
+        epilog="datasets: " + ", ".join(DATASETS),
+    )
+    parser.add_argument("dataset", help="one of: " + ", ".join(DATASETS))
+    parser.add_argument(
+        "sequence",
+        nargs="?",
+        help="sequence name (e.g. 00, lr-kt3, seq-01); for lidar and rgbd: the recording's path",
+    )
+    parser.add_argument("--root", type=Path, help="dataset root folder (cache folder for demo)")
+    parser.add_argument("--config", type=Path, help="YAML config (default: configs/<dataset>.yaml)")
+    parser.add_argument("--frames", help="frame range A:B[:STEP] (Python slice syntax)")
+    parser.add_argument("--odometry", choices=["gt", "kiss-icp", "rgbd"], help="odometry method")
+    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], help="torch device of the map")
+    parser.add_argument(
+        "--dataloader",
+        help="lidar: kiss_icp dataloader (generic, rosbag, mcap, ouster, nuscenes, mulran, ncd, "
+        "helipr, boreas, apollo, nclt, kitti, kitti_raw, npy)",
+    )
+    parser.add_argument("--topic", help="lidar: PointCloud2 topic of a bag or MCAP file")
+    viz = parser.add_mutually_exclusive_group()
+    viz.add_argument("--rrd", type=Path, help="write the Rerun recording to this file")
+    viz.add_argument("--spawn", action="store_true", help="stream to a newly spawned viewer")
+    viz.add_argument("--connect", metavar="URL", help="stream to a running viewer")
+    viz.add_argument(
+        "--serve",
+        action="store_true",
+        help="serve the live run to Rerun's web viewer over HTTP (prints the URL; also writes "
+        "the .rrd); ports: viz.serve_web_port, viz.serve_grpc_port",
+    )
+    viz.add_argument("--no-viz", action="store_true", help="record nothing")
+    parser.add_argument("--out", type=Path, help="run folder (default: outputs/<name>-<time>)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set loop_closure.enabled=false (repeatable)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log INFO to stderr")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    return parser
+
+
+def parse_frames(text: str) -> slice:
+    """``"A:B[:STEP]"`` (parts may be empty) as a slice; a bad range is a :class:`UsageError`."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise UsageError(f"--frames '{text}': expected A:B or A:B:STEP, e.g. 0:500 or ::2")
+    try:
+        values = [int(p) if p.strip() else None for p in parts]
+    except ValueError:
+        raise UsageError(f"--frames '{text}': A, B and STEP must be integers") from None
+    start, stop = values[0], values[1]
+    step = values[2] if len(values) == 3 else None
+    if step is not None and step <= 0:
+        raise UsageError(f"--frames '{text}': STEP must be positive")
+    if (start is not None and start < 0) or (stop is not None and stop < 0):
+        raise UsageError(f"--frames '{text}': A and B must not be negative")
+    if start is not None and stop is not None and stop <= start:
+        raise UsageError(f"--frames '{text}': B must be greater than A")
+    return slice(start, stop, step)
+
+
+def cli_overrides(args: argparse.Namespace, entry: DatasetEntry) -> dict[str, Any]:
+    """The config values given on the command line, as a nested mapping."""
+    overrides = set_overrides(args.set)
+    set_nested(overrides, "source.dataset", entry.source)
+    if entry.path_argument and args.sequence is not None:
+        path = Path(args.sequence).expanduser()
+        if entry.source == "lidar":
+            set_nested(overrides, "source.root", str(path))
+        else:  # an RGB-D folder: its parent is the root, its name the sequence
+            resolved = path.resolve()
+            set_nested(overrides, "source.root", str(resolved.parent))
+            set_nested(overrides, "source.sequence", resolved.name)
+    elif args.sequence is not None:
+        set_nested(overrides, "source.sequence", args.sequence)
+    if args.root is not None:
+        set_nested(overrides, "source.root", str(args.root))
+    if args.dataloader is not None:
+        set_nested(overrides, "source.lidar.dataloader", args.dataloader)
+    if args.topic is not None:
+        set_nested(overrides, "source.lidar.topic", args.topic)
+    if args.frames is not None:
+        parse_frames(args.frames)
+        set_nested(overrides, "source.frames", args.frames)
+    if args.odometry is not None:
+        set_nested(overrides, "odometry.method", args.odometry)
+    if args.device is not None:
+        set_nested(overrides, "mapping.device", args.device)
+    if args.no_viz:
+        set_nested(overrides, "viz.mode", "none")
+    elif args.spawn:
+        set_nested(overrides, "viz.mode", "spawn")
+    elif args.serve:
+        set_nested(overrides, "viz.mode", "serve")
+    elif args.connect:
+        set_nested(overrides, "viz.mode", "connect")
+        set_nested(overrides, "viz.connect_url", args.connect)
+    elif args.rrd is not None:
+        set_nested(overrides, "viz.mode", "rrd")
+        set_nested(overrides, "viz.rrd_path", str(args.rrd))
+    return overrides
+
+
+def resolve_config(args: argparse.Namespace) -> tuple[DatasetEntry, RunConfig]:
+    """Dataset entry and validated config from the command line."""
+    entry = DATASETS.get(args.dataset)
+    if entry is None:
+        raise UsageError(f"unknown dataset '{args.dataset}'; choose one of: {', '.join(DATASETS)}")
+    if entry.path_argument and args.sequence is None:
+        raise UsageError(
+            f"{args.dataset} needs the recording's PATH, e.g. python -m slam.run {args.dataset} "
+            + ("scans/ --dataloader generic" if entry.source == "lidar" else "my_rgbd_folder/")
+        )
+    if (args.dataloader is not None or args.topic is not None) and entry.source != "lidar":
+        raise UsageError("--dataloader and --topic apply to the lidar dataset only")
+    if entry.needs_sequence and args.sequence is None:
+        raise UsageError(
+            f"{args.dataset} needs a SEQUENCE, e.g. python -m slam.run {args.dataset} "
+            f"{'00' if args.dataset == 'kitti' else '<name>'} --root DIR"
+        )
+    if not entry.needs_sequence and args.sequence is not None:
+        raise UsageError(f"{args.dataset} takes no SEQUENCE (got '{args.sequence}')")
+    if entry.needs_root and args.root is None and args.config is None:
+        raise UsageError(f"{args.dataset} needs --root DIR, the folder holding the dataset")
+    path = args.config if args.config is not None else default_config_path(entry.config)
+    cfg = load_run_config(path, cli_overrides(args, entry))
+    if entry.path_argument and not Path(cfg.source.root).expanduser().exists():
+        raise FileNotFoundError(f"{cfg.source.root} does not exist; pass the recording's path")
+    if entry.needs_root:
+        root = cfg.source.root
+        if root is None:
+            raise UsageError(f"{args.dataset} needs --root DIR, the folder holding the dataset")
+        if not Path(root).expanduser().is_dir():
+            raise FileNotFoundError(f"dataset root {root} does not exist; pass --root DIR")
+    if cfg.source.frames is not None:
+        parse_frames(cfg.source.frames)
+    return entry, cfg
+
+
+def run_folder(cfg: RunConfig, args: argparse.Namespace) -> tuple[Path, bool]:
+    """The run folder and whether this run creates it (only then may a failed run remove it).
+
+    ``--out`` must name a new or an empty folder: writing into a folder that holds files would
+    mix this run's outputs with stale ones.
+    """
+    if args.out is not None:
+        folder = Path(args.out)
+        if folder.exists():
+            if not folder.is_dir():
+                raise UsageError(f"--out {folder}: exists and is not a folder; pass a new folder")
+            if any(folder.iterdir()):
+                raise UsageError(
+                    f"--out {folder}: folder is not empty; pass a new or empty folder (a run never "
+                    "mixes its files with others)"
+                )
+            return folder, False
+        folder.mkdir(parents=True)
+        return folder, True
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    parts = (args.dataset, args.sequence)
+    if DATASETS.get(args.dataset, DATASETS["demo"]).path_argument and args.sequence:
+        parts = (args.dataset, Path(args.sequence).stem)
+    name = cfg.output.run_name or "-".join(part for part in parts if part)
+    cfg.output.root.mkdir(parents=True, exist_ok=True)
+    suffix = 1
+    folder = cfg.output.root / f"{name}-{stamp}"
+    while True:
+        try:
+            folder.mkdir()
+            return folder, True
+        except FileExistsError:
+            suffix += 1
+            folder = cfg.output.root / f"{name}-{stamp}-{suffix}"
+
+
+def _setup_logging(log_file: Path, verbose: bool) -> None:
+    root = logging.getLogger()
+    root.setLevel(logging.INFO)
+    for handler in list(root.handlers):
+        root.removeHandler(handler)
+    console = logging.StreamHandler(sys.stderr)
+    console.setLevel(logging.INFO if verbose else logging.WARNING)
+    console.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root.addHandler(console)
+    log_file.parent.mkdir(parents=True, exist_ok=True)
+    file_handler = logging.FileHandler(log_file)
+    file_handler.setLevel(logging.INFO)
+    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root.addHandler(file_handler)
+
+
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    UsageError,
+    ConfigError,
+    DatasetError,
+    MapFileError,
+    FileNotFoundError,
+    NotADirectoryError,
+    PermissionError,
+    ValidationError,
+)
+"""Errors caused by the user's input: reported in one line, without a traceback."""
+
+
+def _one_line(exc: BaseException) -> str:
+    if isinstance(exc, ValidationError):
+        return describe_validation_error(exc, "config")
+    text = " ".join(str(exc).split())
+    if isinstance(exc, FileNotFoundError) and exc.filename and str(exc.filename) not in text:
+        text = f"{exc.filename}: {text}"
+    return text or type(exc).__name__
+
+
+def _discard_empty_run(folder: Path | None, created: bool) -> None:
+    """Remove a run folder that this run created and that holds nothing but its log and config
+    (the run never started). A folder the run did not create is never removed."""
+    if folder is None or not created or not folder.is_dir():
+        return
+    if {p.name for p in folder.iterdir()} <= {"run.log", "config.yaml"}:
+        logging.shutdown()
+        for name in ("run.log", "config.yaml"):
+            (folder / name).unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit status."""
+    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    folder: Path | None = None
+    created = False
+    try:
+        args = build_parser().parse_args(argv)
+        entry, cfg = resolve_config(args)
+        folder, created = run_folder(cfg, args)
+        _setup_logging(folder / "run.log", args.verbose)
+        from slam.app.runner import execute
+
+        metrics = execute(
+            entry,
+            cfg,
+            folder,
+            progress=not args.no_progress,
+            announce=lambda line: print(line, file=sys.stderr, flush=True),
+        )
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except USER_ERRORS as exc:
+        if debug:
+            raise
+        _discard_empty_run(folder, created)
+        status = 2 if isinstance(exc, UsageError) else 1
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return status
+    if not metrics.get("summary_announced"):
+        for line in summary_lines(metrics):
+            print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

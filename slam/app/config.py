@@ -1,0 +1,383 @@
+"""Configuration of a run: one pydantic model per part, composed into :class:`RunConfig`.
+
+Every model forbids unknown keys, so a typo in a YAML file is an error that names the key rather
+than a silently ignored setting. :func:`load_run_config` reads a YAML file and turns validation
+errors into a one-line :class:`ConfigError`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, ValidationError
+
+from frontends.odometry.kiss import KissIcpConfig
+from frontends.odometry.rgbd import RgbdOdometryConfig
+from frontends.sources._io import DepthOptions
+from mapping.config import MapConfig
+from slam.algorithm.config import (
+    LoopClosureConfig,
+    PoseGraphConfig,
+    RemapConfig,
+    Strict,
+    SubmapConfig,
+)
+from slam.algorithm.ground_refinement import GroundRefinementConfig
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the message is one line naming the key."""
+
+
+_Strict = Strict
+
+
+class KittiOptions(_Strict):
+    """Options of the KITTI source."""
+
+    correct_vertical_angle: bool = Field(
+        True, description="apply KISS-ICP's 0.205 deg vertical-angle correction of KITTI scans"
+    )
+    max_range_m: float | None = Field(
+        None, description="drop points farther than this when loading (None: keep all)"
+    )
+
+
+class CameraIntrinsics(_Strict):
+    """Pinhole intrinsics of the depth/colour images, in pixels."""
+
+    fx: float = Field(gt=0, description="focal length along x (pixels)")
+    fy: float = Field(gt=0, description="focal length along y (pixels)")
+    cx: float = Field(description="principal point x (pixels)")
+    cy: float = Field(description="principal point y (pixels)")
+    width: int = Field(640, ge=1, description="image width (pixels)")
+    height: int = Field(480, ge=1, description="image height (pixels)")
+
+
+class TumOptions(_Strict):
+    """Options of the TUM and ICL-NUIM sources."""
+
+    max_time_difference_s: float = Field(
+        0.02, gt=0, description="largest colour/depth/ground-truth timestamp gap when pairing"
+    )
+    intrinsics: CameraIntrinsics | None = Field(
+        None,
+        description="TUM: camera intrinsics (None: the folder's intrinsics.txt, else the "
+        "published calibration of freiburg1/2/3 picked by the sequence name, else 525/525)",
+    )
+    depth_scale: float | None = Field(
+        None, gt=0, description="TUM: depth PNG units per metre (None: intrinsics.txt, else 5000)"
+    )
+
+
+class LidarOptions(_Strict):
+    """Options of the ``lidar`` source (a kiss_icp.datasets dataloader)."""
+
+    dataloader: str = Field(
+        "generic",
+        description="kiss_icp dataloader: generic, rosbag, mcap, ouster, nuscenes, mulran, ncd, "
+        "helipr, boreas, apollo, nclt, kitti, kitti_raw, or npy (a folder of .npy scans)",
+    )
+    sequence: str | None = Field(
+        None, description="sequence name for kitti, kitti_raw, nuscenes and helipr"
+    )
+    topic: str | None = Field(
+        None, description="PointCloud2 topic of a bag/MCAP file (needed when it has several)"
+    )
+    gt_poses: Path | None = Field(
+        None,
+        description="ground truth when the dataloader has none: KITTI rows (one per scan) or a "
+        "TUM trajectory (associated by timestamp), sensor frame",
+    )
+    nominal_rate_hz: float = Field(
+        10.0, gt=0, description="scan rate for timestamps when the dataloader gives none"
+    )
+    max_range_m: float | None = Field(
+        None, gt=0, description="drop points farther than this when loading (None: keep all)"
+    )
+    scale_from_first_scan: bool = Field(
+        False,
+        description="set the ranges, submap length and voxel sizes that the config leaves unset "
+        "from the extent of the first scan (slam/lidar_scale.py)",
+    )
+
+
+class SourceConfig(_Strict):
+    """Which recorded sequence to read and how."""
+
+    dataset: str = Field(
+        "generated",
+        description="source registry name: kitti, tum, icl, replica, 7scenes, lidar or generated",
+    )
+    sequence: str | None = Field(
+        None, description="sequence name inside the dataset root (e.g. '00', 'lr-kt3', 'seq-01')"
+    )
+    root: Path | None = Field(
+        None, description="dataset root folder; for generated data, the cache folder"
+    )
+    frames: str | None = Field(
+        None, description="frame range 'A:B[:STEP]' (Python slice syntax; empty parts allowed)"
+    )
+    depth: DepthOptions = Field(
+        default_factory=DepthOptions, description="how RGB-D depth images are lifted to points"
+    )
+    kitti: KittiOptions = Field(default_factory=KittiOptions, description="KITTI options")
+    tum: TumOptions = Field(default_factory=TumOptions, description="TUM / ICL-NUIM options")
+    lidar: LidarOptions = Field(
+        default_factory=LidarOptions, description="options of the 'lidar' source"
+    )
+
+
+class GeneratedConfig(_Strict):
+    """A generated sequence (used when ``source.dataset`` is ``generated``)."""
+
+    kind: Literal["lidar", "rgbd"] = Field("rgbd", description="sensor of the generated sequence")
+    num_frames: int = Field(240, ge=2, description="number of frames to generate")
+    seed: int = Field(0, description="random seed of the scene and the sensor noise")
+    trajectory: Literal["loop", "kitti"] = Field(
+        "loop",
+        description="LiDAR: one lap around a block, or a window of a real KITTI trajectory",
+    )
+    kitti_poses: Path | None = Field(
+        None, description="LiDAR 'kitti' trajectory: the KITTI poses/NN.txt file"
+    )
+    kitti_calib: Path | None = Field(
+        None, description="LiDAR 'kitti' trajectory: its sequences/NN/calib.txt"
+    )
+    start: int = Field(0, ge=0, description="LiDAR 'kitti' trajectory: first frame")
+    step: int = Field(1, ge=1, description="LiDAR 'kitti' trajectory: frame step")
+    azimuth_steps: int = Field(
+        2048, ge=64, description="LiDAR firings per revolution (2048 ~ HDL-64E)"
+    )
+    terrain_relief_m: float = Field(
+        0.0,
+        ge=0,
+        description=(
+            "LiDAR street: height (m) of the hills that rise beside the road, from 7 m off the "
+            "path to full height 25 m off it. The road always follows the trajectory's own "
+            "elevation (the real KITTI profile for 'kitti'); 0 keeps the ground beside it level "
+            "with the road"
+        ),
+    )
+    width: int = Field(640, ge=32, description="RGB-D image width")
+    height: int = Field(480, ge=32, description="RGB-D image height")
+
+
+class OdometryConfig(_Strict):
+    """The odometry front-end."""
+
+    method: Literal["auto", "gt", "kiss-icp", "rgbd"] = Field(
+        "auto", description="'auto' picks kiss-icp for LiDAR and rgbd for RGB-D sources"
+    )
+    kiss_icp: KissIcpConfig = Field(
+        default_factory=KissIcpConfig, description="KISS-ICP options (method kiss-icp)"
+    )
+    rgbd: RgbdOdometryConfig = Field(
+        default_factory=RgbdOdometryConfig, description="OpenCV RGB-D options (method rgbd)"
+    )
+    ground_refinement: GroundRefinementConfig = Field(
+        default_factory=GroundRefinementConfig,
+        description="LiDAR: refine each scan's height, roll and pitch against the ground seen "
+        "so far (slam/algorithm/ground_refinement.py)",
+    )
+
+
+class VizConfig(_Strict):
+    """Where the Rerun recording goes and how much it holds."""
+
+    mode: Literal["rrd", "spawn", "connect", "serve", "none"] = Field(
+        "rrd",
+        description="write an .rrd file, spawn a viewer, connect to one, serve the web viewer "
+        "over HTTP (and write the .rrd), or log nothing",
+    )
+    rrd_path: Path | None = Field(
+        None, description="recording file (default: recording.rrd in the run folder)"
+    )
+    connect_url: str | None = Field(None, description="viewer URL for mode 'connect'")
+    serve_grpc_port: int = Field(
+        9876, ge=1, le=65535, description="mode 'serve': port of the gRPC server viewers read"
+    )
+    serve_web_port: int = Field(
+        9090, ge=1, le=65535, description="mode 'serve': port of the web viewer page (HTTP)"
+    )
+    serve_bind_ip: str = Field(
+        "127.0.0.1",
+        description="mode 'serve': address both servers listen on (localhost: reach them "
+        "through an SSH port forward; 0.0.0.0 exposes them to the network)",
+    )
+    serve_linger_s: float | None = Field(
+        None,
+        ge=0,
+        description="mode 'serve': keep serving this long after the run ends (None: until Ctrl-C)",
+    )
+    scan_every: int = Field(1, ge=1, description="log every n-th scan")
+    mesh_every_submaps: int = Field(
+        1, ge=1, description="extract and log the mesh every n-th closed submap"
+    )
+    mesh_after_remap: bool = Field(
+        True, description="extract and log the mesh after every remapping pass"
+    )
+
+
+class OutputConfig(_Strict):
+    """The run folder."""
+
+    root: Path = Field(Path("outputs"), description="parent folder of run folders")
+    run_name: str | None = Field(
+        None, description="run folder name (default: <dataset>-<sequence>-<time>)"
+    )
+    write_mesh: bool = Field(True, description="write mesh.ply at the end")
+    write_map: bool = Field(True, description="write the neural map file at the end")
+    mesh_samples: int = Field(
+        100_000, ge=1000, description="surface samples per mesh for mesh accuracy/completion"
+    )
+
+
+class RunConfig(_Strict):
+    """Everything a run needs."""
+
+    source: SourceConfig = Field(default_factory=SourceConfig, description="input sequence")
+    generated: GeneratedConfig = Field(
+        default_factory=GeneratedConfig, description="generated sequence (dataset 'generated')"
+    )
+    odometry: OdometryConfig = Field(default_factory=OdometryConfig, description="odometry")
+    submaps: SubmapConfig = Field(default_factory=SubmapConfig, description="keyframing")
+    loop_closure: LoopClosureConfig = Field(
+        default_factory=LoopClosureConfig, description="loop closure"
+    )
+    pose_graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig, description="pose graph")
+    remap: RemapConfig = Field(default_factory=RemapConfig, description="remapping")
+    mapping: MapConfig = Field(default_factory=MapConfig, description="the neural implicit map")
+    viz: VizConfig = Field(default_factory=VizConfig, description="Rerun logging")
+    output: OutputConfig = Field(default_factory=OutputConfig, description="run folder")
+    threads: int = Field(
+        0,
+        ge=0,
+        description="CPU thread budget of the run (0 = the machine's cores): KISS-ICP and OpenCV "
+        "get all of it, torch all but one when map_worker is on, numpy/scipy BLAS one "
+        "(slam/threads.py; idle pool threads spin, so oversubscribed pools thrash)",
+    )
+    map_worker: bool = Field(
+        True,
+        description="run encoding, fusion, remapping and map logging on a worker thread while "
+        "the main thread runs odometry, keyframing and loop detection; results do not depend on "
+        "it (the worker applies map work in submap order)",
+    )
+
+
+class UsageError(ValueError):
+    """Bad command-line input (exit status 2)."""
+
+
+def set_nested(target: dict[str, Any], dotted: str, value: Any) -> None:
+    """Set ``target[a][b][c] = value`` for ``dotted = "a.b.c"``, creating sections."""
+    keys = dotted.split(".")
+    node = target
+    for key in keys[:-1]:
+        node = node.setdefault(key, {})
+        if not isinstance(node, dict):
+            raise UsageError(f"--set {dotted}: '{key}' is not a config section")
+    node[keys[-1]] = value
+
+
+def set_overrides(items: list[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` arguments as a nested mapping (values parsed as YAML scalars)."""
+    import yaml
+
+    overrides: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"--set '{item}': expected KEY=VALUE, e.g. submaps.max_frames=20")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else None
+        except yaml.YAMLError:
+            value = raw
+        set_nested(overrides, key.strip(), value)
+    return overrides
+
+
+def _location(loc: tuple[Any, ...]) -> str:
+    return ".".join(str(part) for part in loc) or "<root>"
+
+
+def describe_validation_error(error: ValidationError, origin: str) -> str:
+    """One line naming the first offending key of a pydantic error."""
+    first = error.errors()[0]
+    key = _location(first["loc"])
+    if first["type"] == "extra_forbidden":
+        return f"{origin}: unknown key '{key}'; check the spelling against slam/config.py"
+    if first["type"] == "missing":
+        return f"{origin}: missing key '{key}'"
+    value = first.get("input")
+    shown = repr(value)
+    if len(shown) > 60:
+        shown = shown[:57] + "..."
+    return f"{origin}: invalid value {shown} for '{key}': {first['msg']}"
+
+
+def merge_overrides(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with the nested mapping ``override`` applied on top (neither is modified)."""
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_overrides(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def read_yaml(path: Path) -> dict[str, Any]:
+    """A YAML mapping from a file (empty file: empty mapping)."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found; pass an existing YAML file")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}:{where} is not valid YAML; fix the syntax") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping of config sections")
+    return data
+
+
+def build_run_config(data: dict[str, Any], origin: str) -> RunConfig:
+    """Validate a nested mapping into a :class:`RunConfig` (one-line :class:`ConfigError`)."""
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, origin)) from None
+
+
+def load_run_config(path: Path | None = None, overrides: dict[str, Any] | None = None) -> RunConfig:
+    """Read ``path`` (YAML), apply nested ``overrides`` on top, validate.
+
+    Raises:
+        ConfigError: one line naming the file and the offending key.
+    """
+    data = read_yaml(path) if path is not None else {}
+    origin = str(path) if path is not None else "config"
+    if overrides:
+        data = merge_overrides(data, overrides)
+    return build_run_config(data, origin)
+
+
+def default_config_path(name: str) -> Path:
+    """``configs/<name>.yaml`` of the repository."""
+    return CONFIG_DIR / f"{name}.yaml"
+
+
+def dump_run_config(cfg: RunConfig) -> str:
+    """The resolved config as YAML text (paths as strings)."""
+    import yaml
+
+    return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)

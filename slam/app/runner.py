@@ -1,0 +1,181 @@
+"""Run the pipeline on one configured sequence and write its run folder.
+
+:func:`execute` builds the source, odometry, map and logger from a validated
+:class:`~slam.app.config.RunConfig`, feeds every frame to
+:class:`~slam.algorithm.pipeline.SlamPipeline`,
+writes the outputs as the run goes (so a crash keeps what was written) and returns the metrics.
+The command line around it is :mod:`slam.app.cli`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from frontends.errors import DatasetError
+from slam.app.config import RunConfig
+from slam.app.datasets import DatasetEntry
+from slam.app.summary import summary_lines
+
+logger = logging.getLogger("slam.run")
+
+
+def _scale_lidar_config(cfg: RunConfig, source) -> None:
+    """``source.lidar.scale_from_first_scan``: fill unset scale-dependent fields (see
+    slam/lidar_scale.py)."""
+    from slam.app.lidar_scale import scale_config
+
+    if source.sensor != "lidar" or not cfg.source.lidar.scale_from_first_scan:
+        return
+    try:
+        scale_config(cfg, source[0].points)
+    except ValueError as exc:
+        raise DatasetError(f"{cfg.source.root}: {exc}; check the recording") from None
+
+
+def _linger(seconds: float | None, announce) -> None:
+    """Keep the process (and so the viewer servers) alive: ``seconds``, or until Ctrl-C."""
+    if seconds is not None and seconds <= 0:
+        return
+    until = "Ctrl-C" if seconds is None else f"{seconds:g} s or Ctrl-C"
+    announce(f"run finished; still serving the viewer until {until}")
+    deadline = None if seconds is None else time.monotonic() + seconds
+    try:
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.2 if deadline is None else min(0.2, max(0.0, deadline - time.monotonic())))
+    except KeyboardInterrupt:
+        announce("stopped serving")
+
+
+def execute(
+    entry: DatasetEntry,
+    cfg: RunConfig,
+    folder: Path,
+    progress: bool,
+    announce=None,
+) -> dict[str, Any]:
+    """Run the pipeline on the configured sequence and write the run folder; returns metrics.
+
+    ``announce(line)`` receives what the user must see while the run goes on (the viewer URL of
+    ``viz.mode: serve``, and the summary before serving on after the run).
+    """
+
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.app.builders import build_logger, build_map, build_odometry, build_source
+    from slam.app.outputs import RunOutputs
+    from slam.app.threads import apply_thread_budget
+    from slam.evaluation.run_metrics import collect_metrics
+
+    def say(line: str) -> None:
+        logger.info(line)
+        if announce is not None:
+            announce(line)
+
+    threads = apply_thread_budget(cfg)
+    if cfg.viz.mode == "none":  # nobody would see intermediate meshes
+        cfg.viz.mesh_every_submaps = 10**9
+        cfg.viz.mesh_after_remap = False
+    outputs = RunOutputs(folder)
+    outputs.write_config(cfg)
+    start = time.perf_counter()
+    source = build_source(cfg)
+    _scale_lidar_config(cfg, source)
+    outputs.write_config(cfg)
+    sensor = source.sensor
+    odometry = build_odometry(cfg, sensor)
+    neural_map = build_map(cfg)
+    viz = build_logger(cfg, sensor, outputs.recording_path)
+    viewer_url = viz.viewer_url
+    if viewer_url:
+        say(f"viewer: {viewer_url}")
+    pipeline = SlamPipeline(cfg, sensor, odometry, neural_map, viz)
+    logger.info("%s: %d frames, sensor %s", source.name, len(source), sensor)
+
+    def write_poses() -> None:
+        outputs.write_poses(
+            source.to_dataset_frame(pipeline.odometry_poses()),
+            source.to_dataset_frame(pipeline.slam_poses()),
+            pipeline.timestamps(),
+        )
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(source), unit="frame", desc=source.name, dynamic_ncols=True)
+    intrinsics = None
+    loop_start = time.perf_counter()
+    try:
+        for frame in source.read_ahead():
+            result = pipeline.process(frame)
+            if intrinsics is None and frame.intrinsics is not None:
+                intrinsics = frame.intrinsics
+            if result.closed_submap_id is not None:
+                write_poses()
+                outputs.write_loops(pipeline.loop_candidates)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(
+                    submaps=len(pipeline.submaps),
+                    loops=len(pipeline.accepted_loops()),
+                    refresh=False,
+                )
+        if bar is not None:
+            bar.set_postfix_str("final optimisation and mesh")
+        pipeline.finish()
+    except BaseException:
+        viz.close()  # keep what was recorded
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    pipeline_s = time.perf_counter() - loop_start
+    write_poses()
+    outputs.write_loops(pipeline.loop_candidates)
+    mesh = neural_map.extract_mesh(threads=threads.mesh_threads)
+    if cfg.output.write_mesh:
+        outputs.write_mesh(mesh)
+    if cfg.output.write_map:
+        outputs.write_map(neural_map, list(pipeline.submaps.values()))
+    wall_s = time.perf_counter() - start
+    metrics = collect_metrics(
+        pipeline,
+        wall_s=wall_s,
+        pipeline_s=pipeline_s,
+        setup_s=loop_start - start,
+        mesh=mesh,
+        gt_mesh_path=source.gt_mesh_path,
+        intrinsics=intrinsics,
+        lidar_range_m=cfg.submaps.max_range_m if sensor == "lidar" else None,
+        num_mesh_samples=cfg.output.mesh_samples,
+        extra={"dataset": cfg.source.dataset, "sequence": cfg.source.sequence, "sensor": sensor},
+    )
+    outputs.write_metrics(metrics)
+    viz.log_metrics(**_final_scalars(metrics))
+    metrics["run_folder"] = str(folder)
+    metrics["recording"] = (
+        str(cfg.viz.rrd_path or outputs.recording_path)
+        if cfg.viz.mode in ("rrd", "serve")
+        else None
+    )
+    if viewer_url:
+        for line in summary_lines(metrics):
+            say(line)
+        metrics["summary_announced"] = announce is not None
+        _linger(cfg.viz.serve_linger_s, say)
+    viz.close()
+    return metrics
+
+
+def _final_scalars(metrics: dict[str, Any]) -> dict[str, float]:
+    out: dict[str, float] = {}
+    trajectory = metrics.get("trajectory")
+    if trajectory:
+        out["final_ate_odometry_m"] = float(trajectory["odometry"]["ate_rmse_m"])
+        out["final_ate_slam_m"] = float(trajectory["slam"]["ate_rmse_m"])
+    mesh = metrics.get("mesh")
+    if mesh and mesh.get("accuracy_m") is not None:
+        out["final_mesh_accuracy_m"] = float(mesh["accuracy_m"])
+    return out
