@@ -148,8 +148,10 @@ def test_full_resolution_scan_has_hdl64_like_point_count():
     points, _ = simulate_scan(
         Raycaster(scene.mesh), scene, poses[40], config, np.random.default_rng(0)
     )
-    assert 2048 * 64 == 131072
-    assert 110_000 < len(points) < 131072 * (1 - 0.5 * config.dropout)
+    rays = config.beams * config.azimuth_steps  # one return per ray at most
+    # On the street nearly every ray hits something within range (the sky is the only miss),
+    # and dropout removes its share: measured 125.3k of 131.1k rays (95.6 %).
+    assert 0.9 * rays < len(points) < rays * (1 - 0.5 * config.dropout)
 
 
 def test_loop_trajectories_close_and_move_smoothly():

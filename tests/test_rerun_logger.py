@@ -74,8 +74,21 @@ def _drive(logger: Logger, rgbd: bool, scan_points: int = 6000) -> None:
     logger.close()
 
 
-def test_null_logger_accepts_the_same_calls() -> None:
+def test_null_logger_never_builds_what_only_a_recording_needs(tmp_path: Path) -> None:
+    """The null logger takes every call and never calls the snapshot callables (voxel centres,
+    meshes, the error so far), so a run without a viewer pays nothing for them; a recording
+    logger does call them."""
     _drive(NullLogger(), rgbd=True)
+    empty_map = (np.zeros((0, 3)), np.zeros(0), None)
+    for logger, expected in (
+        (NullLogger(), []),
+        (RerunLogger(rrd_path=tmp_path / "rec.rrd"), ["map", "metrics"]),
+    ):
+        calls: list[str] = []
+        logger.log_map_from(lambda calls=calls: calls.append("map") or empty_map)
+        logger.log_metrics_from(lambda calls=calls: calls.append("metrics") or {"x": 1.0})
+        logger.close()
+        assert calls == expected
 
 
 @pytest.mark.parametrize("rgbd", [False, True])
