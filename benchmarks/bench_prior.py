@@ -39,7 +39,8 @@ import numpy as np
 import torch
 
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
-from mapping.training.patches import PATCH_KINDS, PatchConfig, generate_patches_with_scenes
+from mapping.training.patches import PatchConfig, generate_patches_with_scenes
+from mapping.training.scenes import PATCH_KINDS
 from mapping.training.train import EVAL_SEED_BASE, encode_patches, evaluate
 
 log = logging.getLogger("benchmarks.bench_prior")
@@ -153,7 +154,7 @@ def lattice_mesh_errors(model: PriorModel, sets) -> tuple[float, float, float, i
 
 
 def _one_scene(scenes, b: int):
-    from mapping.training.patches import Scenes
+    from mapping.training.scenes import Scenes
 
     return Scenes(
         **{

@@ -9,16 +9,8 @@ import pytest
 import torch
 import trimesh
 
-from mapping.training.patches import (
-    BOX,
-    CYLINDER,
-    PATCH_KINDS,
-    WEDGE,
-    PatchConfig,
-    generate_patches,
-    generate_patches_with_scenes,
-    primitive_scene,
-)
+from mapping.training.patches import PatchConfig, generate_patches, generate_patches_with_scenes
+from mapping.training.scenes import BOX, CYLINDER, PATCH_KINDS, WEDGE, primitive_scene
 
 
 @pytest.fixture(autouse=True, scope="module")
