@@ -25,7 +25,7 @@ def test_sizes_follow_the_scan_extent(radius_m: float) -> None:
     changed = scale_config(cfg, scan)
     assert cfg.mapping.voxel_size_m == pytest.approx(extent / 30.0)
     assert cfg.submaps.max_range_m == pytest.approx(extent)
-    assert cfg.odometry.kiss_icp.max_range_m >= farthest
+    assert cfg.odometry.kiss_icp.data.max_range >= farthest
     assert cfg.loop_closure.min_travel_m == pytest.approx(3 * extent)
     assert "mapping.voxel_size_m" in changed
 
