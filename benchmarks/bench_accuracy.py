@@ -100,10 +100,10 @@ def _loop_diagnosis(pipeline, source, gt: np.ndarray, a: int, b: int, T_a_b: np.
     give even from a perfect start, with submaps free of odometry drift. (3) Depth agreement
     within 1 cm of keyframe a moved into keyframe b by the edge and by the ground truth.
     """
+    from common.geometry import transform_points
     from frontends.odometry.point_to_plane import point_to_plane_icp
     from slam.algorithm.loop_rgbd import RefineCloud, RgbdVerifier, depth_agreement
     from slam.algorithm.loops import relative_motion
-    from slam.algorithm.submaps import transform_points
 
     cfg = pipeline.cfg.loop_closure.rgbd
     verifier = RgbdVerifier(cfg)

@@ -167,7 +167,9 @@ def map_file_stats(path: Path) -> dict[str, Any]:
 
 def raw_baseline(run_dir: Path) -> dict[str, Any]:
     """Points of the run's submaps at V/4, replayed through the keyframer with its odometry."""
-    from slam.algorithm.submaps import Keyframer, voxel_subsample
+    from kiss_icp.voxelization import voxel_down_sample
+
+    from slam.algorithm.submaps import Keyframer
     from slam.app.builders import build_source
     from slam.app.config import load_run_config
     from slam.app.trajectory_io import read_kitti
@@ -184,10 +186,10 @@ def raw_baseline(run_dir: Path) -> dict[str, Any]:
     for frame, T_W_S in zip(source, poses, strict=True):
         closed, _, _ = keyframer.add(frame, T_W_S)
         if closed is not None:
-            counts.append(len(voxel_subsample(closed.points_A, quarter)))
+            counts.append(len(voxel_down_sample(closed.points_A, quarter)))
     last = keyframer.finish()
     if last is not None:
-        counts.append(len(voxel_subsample(last.points_A, quarter)))
+        counts.append(len(voxel_down_sample(last.points_A, quarter)))
     points = int(sum(counts))
     return {
         "submaps": len(counts),

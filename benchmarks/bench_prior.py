@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common.geometry import orthonormalize
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.training.patches import PatchConfig, generate_patches_with_scenes
 from mapping.training.scenes import PATCH_KINDS
@@ -199,19 +200,11 @@ def _frames_of(source, every: int, limit: int) -> list:
     frames = []
     for i in range(0, len(source), every):
         frame = source[i]
-        frame.T_W_S_gt = _orthonormal(frame.T_W_S_gt)
+        frame.T_W_S_gt = orthonormalize(frame.T_W_S_gt)
         frames.append(frame)
         if len(frames) >= limit:
             break
     return frames
-
-
-def _orthonormal(T: np.ndarray) -> np.ndarray:
-    """Nearest rigid transform (7-Scenes' KinectFusion poses are slightly non-orthonormal)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    out = T.copy()
-    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return out
 
 
 def run_ours(model: PriorModel, frames: list):

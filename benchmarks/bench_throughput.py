@@ -111,9 +111,8 @@ def _apply_thread_budget(cfg) -> str:
         import torch
 
         torch.set_num_threads(cfg.torch_threads)
-        return (
-            f"torch {cfg.torch_threads}, KISS-ICP {cfg.odometry.kiss_icp.max_num_threads or 'all'}"
-        )
+        kiss_threads = cfg.odometry.kiss_icp.registration.max_num_threads
+        return f"torch {cfg.torch_threads}, KISS-ICP {kiss_threads or 'all'}"
     return apply_thread_budget(cfg).describe()
 
 

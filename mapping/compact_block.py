@@ -34,7 +34,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from mapping.voxel_block import VoxelBlock, unpack_keys
+from common.voxel_keys import unpack_keys
+from mapping.voxel_block import VoxelBlock
 
 StorageDtype = Literal["float16", "bfloat16", "float32"]
 JacobianStorage = Literal["int8", "float16", "bfloat16", "float32"]

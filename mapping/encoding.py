@@ -19,10 +19,11 @@ from functools import partial
 
 import torch
 
+from common.voxel_keys import pack_keys, unpack_keys
 from mapping.latent_table import UNIT_NORMAL_TOLERANCE, latent_table
 from mapping.networks import PriorModel
 from mapping.span_encoder import point_latents
-from mapping.voxel_block import VoxelBlock, pack_keys, unpack_keys
+from mapping.voxel_block import VoxelBlock
 
 ENCODE_CHUNK = 4096
 CORNER_OFFSETS = torch.tensor(

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import torch
 
+from common.voxel_keys import pack_keys
 from mapping.encoding import point_voxel_pairs
 from mapping.networks import Decoder
-from mapping.voxel_block import pack_keys
 from mapping.voxel_store import VoxelStore
 
 DECODE_ROWS = 8192

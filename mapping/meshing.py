@@ -25,9 +25,9 @@ import numpy as np
 import torch
 import trimesh
 
+from common.voxel_keys import pack_keys, unpack_keys
 from mapping.field import decode_indexed, decode_lattice, voxel_query_terms
 from mapping.networks import Decoder
-from mapping.voxel_block import pack_keys, unpack_keys
 from mapping.voxel_store import VoxelStore
 
 log = logging.getLogger(__name__)

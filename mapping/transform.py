@@ -46,7 +46,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from mapping.voxel_block import VoxelBlock, pack_keys, unpack_keys
+from common.voxel_keys import pack_keys, unpack_keys
+from mapping.voxel_block import VoxelBlock
 
 _CELL_TOLERANCE = 1e-6
 _DIST_LEVELS = 1 << 24  # distance quantisation of the single (target, distance) sort key

@@ -1,8 +1,9 @@
-"""A set of world-grid voxels with their latents, and the int64 packing of grid keys.
+"""A set of world-grid voxels with their latents.
 
 Voxel ``g`` (integer grid coordinates) has centre ``(g + 1/2) V``. Sparse storage never allocates
-anything over the scene bounds: voxels are identified by a packed int64 key (21 bits per axis),
-whose numeric order is the lexicographic order of ``(x, y, z)``.
+anything over the scene bounds: voxels are identified by a packed int64 key
+(:mod:`common.voxel_keys`, 21 bits per axis), whose numeric order is the lexicographic order of
+``(x, y, z)``.
 """
 
 from __future__ import annotations
@@ -12,31 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-KEY_BITS = 21
-KEY_OFFSET = 1 << (KEY_BITS - 1)
-KEY_MASK = (1 << KEY_BITS) - 1
-KEY_LIMIT = KEY_OFFSET - 2  # |g| must stay below this (a margin for neighbour look-ups)
-
-
-def pack_keys(grid: torch.Tensor) -> torch.Tensor:
-    """``(M, 3)`` int64 grid coordinates -> ``(M,)`` int64 keys (order = lexicographic order)."""
-    if grid.numel() and int(grid.abs().max()) >= KEY_LIMIT:
-        raise ValueError(
-            f"voxel grid coordinate beyond +-{KEY_LIMIT}: the scene is too large for this voxel "
-            "size; increase mapping.voxel_size_m"
-        )
-    shifted = grid + KEY_OFFSET
-    return (shifted[:, 0] << (2 * KEY_BITS)) | (shifted[:, 1] << KEY_BITS) | shifted[:, 2]
-
-
-def unpack_keys(keys: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`pack_keys`."""
-    return (
-        torch.stack(
-            [keys >> (2 * KEY_BITS), (keys >> KEY_BITS) & KEY_MASK, keys & KEY_MASK], dim=-1
-        )
-        - KEY_OFFSET
-    )
+from common.voxel_keys import pack_keys
 
 
 def _as_tensor(x: np.ndarray | torch.Tensor, dtype: torch.dtype) -> torch.Tensor:

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import torch
 
-from mapping.voxel_block import VoxelBlock, unpack_keys
+from common.voxel_keys import unpack_keys
+from mapping.voxel_block import VoxelBlock
 
 WEIGHT_TOLERANCE = 1e-6
 

@@ -40,7 +40,7 @@ def test_ranges_cover_the_scan() -> None:
     scale_config(cfg, scan)
     assert 0.8 * 60.0 < extent < 60.0 <= farthest + 1.0
     # odometry sees every point; a submap keeps the bulk of each scan
-    assert cfg.odometry.kiss_icp.max_range_m >= farthest
+    assert cfg.odometry.kiss_icp.data.max_range >= farthest
     assert np.mean(np.linalg.norm(scan, axis=1) <= cfg.submaps.max_range_m) >= 0.85
     # the map voxel is a small fraction of the scene, the loop cloud coarser than the map cloud
     assert cfg.mapping.voxel_size_m < 0.1 * extent

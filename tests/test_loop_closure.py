@@ -6,13 +6,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from kiss_icp.voxelization import voxel_down_sample
 
+from common.geometry import transform_points
 from frontends.sources import make_source
 from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
 from slam.algorithm.loop_lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
 from slam.algorithm.loop_rgbd import RgbdVerifier
 from slam.algorithm.loops import relative_motion
-from slam.algorithm.submaps import SubmapRecord, transform_points, voxel_subsample
+from slam.algorithm.submaps import SubmapRecord
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -81,7 +83,7 @@ def street_cloud(source, start: int, stop: int, voxel_m: float = 0.5) -> np.ndar
         transform_points(np.linalg.inv(gt[start]) @ gt[k], source[k].points)
         for k in range(start, stop)
     ]
-    return voxel_subsample(np.concatenate(parts), voxel_m)
+    return voxel_down_sample(np.concatenate(parts), voxel_m)
 
 
 def perturb(T: np.ndarray, dx: float, dy: float, yaw_deg: float) -> np.ndarray:
@@ -269,7 +271,7 @@ def test_icp_rejects_a_degenerate_corridor():
     ground = np.column_stack([x[:n], rng.uniform(-8, 8, n), np.zeros(n)])
     left = np.column_stack([x[n : 2 * n], np.full(n, 8.0), rng.uniform(0, 6, n)])
     right = np.column_stack([x[2 * n :], np.full(n, -8.0), rng.uniform(0, 6, n)])
-    cloud = voxel_subsample(np.vstack([ground, left, right]), 0.5)
+    cloud = voxel_down_sample(np.vstack([ground, left, right]), 0.5)
     guess = np.eye(4)
     guess[0, 3] = 3.0  # ICP cannot see this
     accepted, reason, _, scores = IcpVerifier(LidarLoopConfig()).verify(

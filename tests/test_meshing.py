@@ -8,12 +8,12 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from common.voxel_keys import unpack_keys
 from mapping.analytic_prior import planar_prior
 from mapping.config import MapConfig
 from mapping.meshing import lattice_offsets
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.neural_map import NeuralMap
-from mapping.voxel_block import unpack_keys
 
 torch.set_num_threads(1)
 V = 0.1

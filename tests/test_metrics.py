@@ -16,6 +16,7 @@ from slam.evaluation.metrics import (
     align_se3,
     ate_per_axis_rmse,
     ate_rmse,
+    ate_rotation_rmse_deg,
     kitti_relative_error,
     mesh_metrics,
     rpe,
@@ -95,7 +96,8 @@ def test_per_axis_ate_splits_the_ate() -> None:
     rng = np.random.default_rng(4)
     est[:, :3, 3] += rng.normal(size=(60, 3)) * [0.05, 0.1, 0.4]
     per_axis = ate_per_axis_rmse(est, gt)
-    assert np.sum(per_axis**2) == pytest.approx(ate_rmse(est, gt) ** 2, rel=1e-9)
+    # ate_rmse is KISS-ICP's float32; the per-axis split is ours in float64
+    assert np.sum(per_axis**2) == pytest.approx(ate_rmse(est, gt) ** 2, rel=1e-6)
     assert per_axis[2] > per_axis[1] > per_axis[0]
     metrics = trajectory_metrics(est, gt)
     assert metrics.ate_z_rmse_m == pytest.approx(per_axis[2])
@@ -105,8 +107,22 @@ def test_ate_matches_kiss_icp() -> None:
     kiss_metrics = pytest.importorskip("kiss_icp.metrics")
     gt = _random_trajectory(80, seed=2)
     est = _random_trajectory(80, seed=3)
-    _, kiss_trans = kiss_metrics.absolute_trajectory_error(list(gt), list(est))
-    assert ate_rmse(est, gt) == pytest.approx(kiss_trans, rel=1e-4)
+    kiss_rot, kiss_trans = kiss_metrics.absolute_trajectory_error(list(gt), list(est))
+    assert ate_rmse(est, gt) == pytest.approx(kiss_trans, rel=1e-6)
+    assert ate_rotation_rmse_deg(est, gt) == pytest.approx(np.degrees(kiss_rot), rel=1e-6)
+    # our alignment (which KISS-ICP does not return) gives the same ATE
+    aligned = align_se3(est, gt) @ est
+    own = np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1)))
+    assert own == pytest.approx(kiss_trans, rel=1e-6)
+    assert ate_rmse(est, gt, align=False) > 2 * kiss_trans
+
+
+def test_ate_of_a_standing_trajectory() -> None:
+    gt = np.tile(np.eye(4), (3, 1, 1))
+    est = gt.copy()
+    est[:, :3, 3] = [1.0, 2.0, 3.0]
+    assert ate_rmse(est, gt) < 1e-9
+    np.testing.assert_allclose(align_se3(est, gt)[:3, 3], [-1.0, -2.0, -3.0], atol=1e-12)
 
 
 def test_mismatched_lengths_are_rejected() -> None:
@@ -176,8 +192,18 @@ def test_kitti_error_matches_kiss_icp_up_to_its_pi() -> None:
     t_err, r_err = kitti_relative_error(est, gt)
     kiss_t, kiss_r = kiss_metrics.sequence_error(list(gt), list(est))
     assert t_err == pytest.approx(kiss_t, rel=1e-4)
-    # KISS-ICP reports deg/m computed with 180/3.14.
+    # KISS-ICP reports deg/m computed with 180/3.14: a real difference of 0.05 %.
     assert r_err == pytest.approx(kiss_r * 100 * 3.14 / np.pi, rel=1e-4)
+    assert r_err != pytest.approx(kiss_r * 100, rel=1e-4)
+
+
+def test_kitti_error_of_a_short_trajectory_only_with_our_lengths() -> None:
+    kiss_metrics = pytest.importorskip("kiss_icp.metrics")
+    gt = _straight_line(100, 0.5)  # 49.5 m: no 100 m segment
+    est = _straight_line(100, 0.505)
+    assert all(math.isnan(x) for x in kiss_metrics.sequence_error(list(gt), list(est)))
+    t_err, _ = kitti_relative_error(est, gt, lengths_m=(10.0,))
+    assert t_err == pytest.approx(100 * 10.5 * 0.01 / 10.0, rel=1e-9)
 
 
 def test_kitti_error_is_nan_on_a_short_trajectory_unless_lengths_are_given() -> None:

@@ -111,9 +111,9 @@ def test_capped_jacobian_is_the_mean_over_an_even_subset_of_pairs() -> None:
     """With ``jacobian_pairs_per_voxel`` the latents and weights are those of every pair; each
     voxel's Jacobian is the exact mean of dF/dr over at most that many of its pairs, every
     ``ceil(c / cap)``-th in Z-order, and voxels with fewer pairs keep their exact Jacobian."""
+    from common.voxel_keys import pack_keys
     from mapping.encoding import jacobian_pair_mask
     from mapping.span_encoder import point_latents
-    from mapping.voxel_block import pack_keys
 
     cap = 5
     model = _random_model(4).double()

@@ -201,7 +201,7 @@ def test_kiss_icp_on_five_consecutive_real_scans() -> None:
         assert 0.2 < step[0, 3] < 0.6
         assert abs(step[1, 3]) < 0.15 and abs(step[2, 3]) < 0.05
         assert _angle_deg(step) < 3.0
-    assert odometry.voxel_size_m == pytest.approx(1.0)  # max_range_m / 100, as KISS-ICP does
+    assert odometry.voxel_size_m == pytest.approx(1.0)  # max_range / 100, as KISS-ICP does
     assert len(odometry.last_keypoints) > 1000
 
 
@@ -215,7 +215,7 @@ def test_kiss_icp_recovers_a_known_motion_of_a_synthetic_scene() -> None:
     scene = trimesh.util.concatenate([box, *pillars])
     points_W, _ = trimesh.sample.sample_surface(scene, 60_000, seed=1)
     step = _se3((0.0, 0.0, 0.02), (0.5, 0.1, 0.0))
-    odometry = KissIcpOdometry(max_range_m=60.0, min_range_m=3.0, deskew=False)
+    odometry = KissIcpOdometry(data={"max_range": 60.0, "min_range": 3.0, "deskew": False})
     T_W_S = np.eye(4)
     for i in range(6):
         points_S = (points_W - T_W_S[:3, 3]) @ T_W_S[:3, :3]
@@ -236,19 +236,37 @@ def test_kiss_icp_empty_scan_names_the_frame() -> None:
     with pytest.raises(DatasetError, match="frame 3: empty scan"):
         odometry.register(Frame(3, 0.0, np.zeros((0, 3))))
     with pytest.raises(DatasetError, match="frame 4: empty scan"):
-        odometry.register(Frame(4, 0.0, np.full((10, 3), 500.0)))  # all beyond max_range_m
+        odometry.register(Frame(4, 0.0, np.full((10, 3), 500.0)))  # all beyond data.max_range
     with pytest.raises(DatasetError, match="point times"):
         odometry.register(Frame(5, 0.0, np.ones((10, 3)), point_times=np.zeros(3)))
 
 
 def test_kiss_icp_options() -> None:
-    odometry = make_odometry("kiss-icp", max_range_m=50.0, min_range_m=2.0)
+    odometry = make_odometry("kiss-icp", data={"max_range": 50.0, "min_range": 2.0})
     assert odometry.voxel_size_m == pytest.approx(0.5)
-    assert KissIcpOdometry(voxel_size_m=0.3).voxel_size_m == pytest.approx(0.3)
-    with pytest.raises(ValueError):
-        KissIcpOdometry(max_range_m=1.0, min_range_m=2.0)
-    with pytest.raises(ValueError):
-        KissIcpOdometry(voxel_size=1.0)  # not an option name
+    assert KissIcpOdometry(mapping={"voxel_size": 0.3}).voxel_size_m == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="must exceed"):
+        KissIcpOdometry(data={"max_range": 1.0, "min_range": 2.0})
+    with pytest.raises(ValueError, match="voxel_size"):
+        KissIcpOdometry(mapping={"voxel_size": -1.0})
+    with pytest.raises(ValueError, match="Extra inputs"):
+        KissIcpOdometry(voxel_size=1.0)  # not a section name
+    with pytest.raises(ValueError, match="max_rnge"):
+        KissIcpOdometry(data={"max_rnge": 1.0})  # a typo inside a kiss_icp section
+
+
+def test_kiss_icp_config_is_kiss_icps_own() -> None:
+    from kiss_icp.config import KISSConfig
+
+    from frontends.odometry.kiss import KissIcpConfig
+
+    ours = KissIcpConfig.model_validate({"data": {"max_range": 80.0}}).to_kiss()
+    assert isinstance(ours, KISSConfig)
+    assert ours.mapping.voxel_size == pytest.approx(0.8)  # resolved as kiss_icp's load_config
+    defaults = KISSConfig().model_dump()
+    got = KissIcpConfig().to_kiss().model_dump()
+    for section in ("data", "registration", "adaptive_threshold"):
+        assert got[section] == defaults[section]
 
 
 # --- ground truth -----------------------------------------------------------------------------

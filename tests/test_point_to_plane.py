@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from common.geometry import transform_points
 from frontends.odometry.point_to_plane import _exp_se3, point_to_plane_hessian, point_to_plane_icp
-from slam.algorithm.submaps import transform_points
 
 
 def plane(rng, n: int, axis: int, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -5,15 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.geometry import transform_points
+from common.voxel_keys import KEY_LIMIT
+from common.voxel_keys import point_voxel_keys as voxel_keys
 from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.config import SubmapConfig
 from slam.algorithm.submaps import (
     DENSE_GROUPING_CELLS_PER_POINT,
     Keyframer,
-    transform_points,
     voxel_downsample,
     voxel_groups,
-    voxel_keys,
 )
 
 
@@ -80,7 +81,7 @@ def _reference_downsample(voxel_size_m: float, points: np.ndarray, normals: np.n
 
 @pytest.mark.parametrize(
     ("spread_m", "voxel_size_m", "dense"),
-    [(10.0, 0.35, True), (2.0, 0.05, True), (300.0, 0.05, False), (1e6, 0.35, False)],
+    [(10.0, 0.35, True), (2.0, 0.05, True), (300.0, 0.05, False), (1e5, 0.35, False)],
 )
 def test_voxel_grouping_equals_sorting_the_voxel_keys(spread_m, voxel_size_m, dense) -> None:
     rng = np.random.default_rng(7)
@@ -105,22 +106,36 @@ def test_voxel_grouping_equals_sorting_the_voxel_keys(spread_m, voxel_size_m, de
     ref_means, ref_normals = _reference_downsample(voxel_size_m, points, normals)
     np.testing.assert_allclose(means, ref_means, rtol=0, atol=1e-9)
     np.testing.assert_allclose(mean_normals, ref_normals, rtol=0, atol=1e-9)
-    if spread_m < 1e5:  # within voxel_keys' range: every output point is in its own voxel
-        keys = voxel_keys(means, voxel_size_m)
-        assert len(np.unique(keys)) == len(means)
-        assert np.array_equal(keys, np.unique(voxel_keys(points, voxel_size_m)))
+    keys = voxel_keys(means, voxel_size_m)  # every output point is in its own voxel
+    assert len(np.unique(keys)) == len(means)
+    assert np.array_equal(keys, np.unique(voxel_keys(points, voxel_size_m)))
 
 
-def test_transform_points_is_the_rigid_motion() -> None:
-    rng = np.random.default_rng(3)
-    angle = 0.7
-    T = np.eye(4)
-    T[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
-    T[:3, 3] = [4.0, -2.0, 0.5]
-    points = rng.normal(size=(500, 3))
-    homogeneous = np.c_[points, np.ones(len(points))] @ T.T
-    np.testing.assert_allclose(transform_points(T, points), homogeneous[:, :3], atol=1e-12)
-    assert transform_points(T, points[:0]).shape == (0, 3)
+def test_voxel_grouping_beyond_the_key_range_raises() -> None:
+    # 1e6 m at 0.35 m is ~2.9e6 voxels from the origin: keys would collide (they used to be
+    # clipped silently, merging every far point into one voxel)
+    points = np.array([[0.0, 0.0, 0.0], [1e6, 0.0, 0.0], [1e6, 1.0, 0.0]])
+    with pytest.raises(ValueError, match=f"beyond \\+-{KEY_LIMIT - 1}"):
+        voxel_groups(points, 0.35)
+    with pytest.raises(ValueError, match="larger voxel size"):
+        voxel_downsample(0.35, points)
+    # the same points far from the origin but a few voxels apart fit a coarser grid
+    assert len(voxel_groups(points, 10.0)[1]) == 2
+
+
+def test_averaging_differs_from_kiss_icps_first_point_per_voxel() -> None:
+    from kiss_icp.voxelization import voxel_down_sample
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(0.0, 4.0, size=(5000, 3))
+    (means,) = voxel_downsample(1.0, points)
+    firsts = voxel_down_sample(points, 1.0)
+    assert len(means) == len(firsts) == 64
+    # the same voxels, but means sit near the voxel centres and first points anywhere in them
+    key_order = np.argsort(voxel_keys(firsts, 1.0))
+    assert np.array_equal(voxel_keys(means, 1.0), voxel_keys(firsts, 1.0)[key_order])
+    offset = np.abs(means - (np.floor(means) + 0.5)).max(axis=1)
+    assert offset.max() < 0.2 and np.median(np.abs(firsts % 1.0 - 0.5).max(axis=1)) > 0.3
 
 
 def test_keyframer_keeps_points_within_the_range_limits_inclusive() -> None:

@@ -30,15 +30,17 @@ def test_apply_sets_every_pool() -> None:
         cfg = RunConfig.model_validate({"threads": 3, "map_worker": True})
         plan = apply_thread_budget(cfg)
         assert torch.get_num_threads() == plan.torch == 2
-        assert cfg.odometry.kiss_icp.max_num_threads == 3
+        assert cfg.odometry.kiss_icp.registration.max_num_threads == 3
         assert cv2.getNumThreads() == 3
         blas = [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
         assert blas and all(n == 1 for n in blas)
         explicit = RunConfig.model_validate(
-            {"threads": 3, "odometry": {"kiss_icp": {"max_num_threads": 1}}}
+            {"threads": 3, "odometry": {"kiss_icp": {"registration": {"max_num_threads": 1}}}}
         )
         apply_thread_budget(explicit)
-        assert explicit.odometry.kiss_icp.max_num_threads == 1  # an explicit setting is kept
+        assert (
+            explicit.odometry.kiss_icp.registration.max_num_threads == 1
+        )  # an explicit setting is kept
     finally:
         torch.set_num_threads(previous[0])
         cv2.setNumThreads(previous[1])

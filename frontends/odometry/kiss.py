@@ -5,7 +5,14 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from kiss_icp.config import KISSConfig
+from kiss_icp.config.config import (
+    AdaptiveThresholdConfig,
+    DataConfig,
+    MappingConfig,
+    RegistrationConfig,
+)
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from frontends.errors import DatasetError
 from frontends.frame import Frame, point_ranges_m
@@ -14,59 +21,71 @@ from frontends.odometry.base import Odometry, register_odometry
 logger = logging.getLogger(__name__)
 
 
+_STRICT = ConfigDict(extra="forbid")
+
+
+class KissDataConfig(DataConfig):
+    """``kiss_icp``'s ``data`` section; unknown keys are rejected."""
+
+    model_config = _STRICT
+
+
+class KissMappingConfig(MappingConfig):
+    """``kiss_icp``'s ``mapping`` section; unknown keys are rejected."""
+
+    model_config = _STRICT
+
+
+class KissRegistrationConfig(RegistrationConfig):
+    """``kiss_icp``'s ``registration`` section; unknown keys are rejected."""
+
+    model_config = _STRICT
+
+
+class KissAdaptiveThresholdConfig(AdaptiveThresholdConfig):
+    """``kiss_icp``'s ``adaptive_threshold`` section; unknown keys are rejected."""
+
+    model_config = _STRICT
+
+
 class KissIcpConfig(BaseModel):
-    """Options of the KISS-ICP front-end (defaults are KISS-ICP's own)."""
+    """KISS-ICP's own configuration (``kiss_icp.config.KISSConfig`` without ``out_dir``), with
+    unknown keys rejected. Fields, units (metres) and defaults are KISS-ICP's
+    (``kiss_icp/config/config.py``); ``mapping.voxel_size`` None means ``data.max_range / 100``
+    as KISS-ICP does, and ``data.deskew`` applies only to frames that carry per-point times
+    (``Frame.point_times``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
-    max_range_m: float = Field(100.0, gt=0, description="Points farther than this are dropped.")
-    min_range_m: float = Field(
-        0.0, ge=0, description="Points closer than this are dropped (e.g. the ego vehicle)."
+    data: KissDataConfig = Field(
+        default_factory=KissDataConfig,
+        description="max_range / min_range: points outside are dropped; deskew: motion-compensate",
     )
-    voxel_size_m: float | None = Field(
-        None,
-        gt=0,
-        description="Local-map voxel size; None uses max_range_m / 100 as KISS-ICP does.",
+    mapping: KissMappingConfig = Field(
+        default_factory=KissMappingConfig,
+        description="voxel_size of the local map (None: max_range / 100); max_points_per_voxel",
     )
-    max_points_per_voxel: int = Field(20, ge=1, description="Points kept per local-map voxel.")
-    deskew: bool = Field(
-        True,
-        description="Motion-compensate scans with constant velocity; only applies to frames "
-        "that carry per-point times (Frame.point_times).",
+    registration: KissRegistrationConfig = Field(
+        default_factory=KissRegistrationConfig,
+        description="ICP max_num_iterations, convergence_criterion, max_num_threads (0 = all)",
     )
-    initial_threshold_m: float = Field(
-        2.0, gt=0, description="Initial correspondence threshold of the adaptive threshold."
+    adaptive_threshold: KissAdaptiveThresholdConfig = Field(
+        default_factory=KissAdaptiveThresholdConfig,
+        description="correspondence threshold: initial_threshold, min_motion_th, or a "
+        "fixed_threshold instead of the adaptive one",
     )
-    min_motion_m: float = Field(
-        0.1, ge=0, description="Motion below this does not update the adaptive threshold."
-    )
-    fixed_threshold_m: float | None = Field(
-        None, gt=0, description="Use this correspondence threshold instead of the adaptive one."
-    )
-    max_num_iterations: int = Field(500, ge=1, description="ICP iterations per scan at most.")
-    convergence_criterion: float = Field(
-        1e-4, gt=0, description="ICP stops when the update norm falls below this."
-    )
-    max_num_threads: int = Field(0, ge=0, description="Threads for KISS-ICP (0 = all cores).")
 
-    def to_kiss(self):
-        """The equivalent ``kiss_icp.config.KISSConfig``."""
-        from kiss_icp.config import KISSConfig
+    @model_validator(mode="after")
+    def _positive(self) -> KissIcpConfig:
+        if self.data.min_range < 0 or (self.mapping.voxel_size or 1.0) <= 0:
+            raise ValueError("data.min_range must be >= 0 and mapping.voxel_size > 0")
+        return self
 
-        config = KISSConfig()
-        config.data.max_range = self.max_range_m
-        config.data.min_range = self.min_range_m
-        config.data.deskew = self.deskew
-        config.mapping.voxel_size = (
-            self.voxel_size_m if self.voxel_size_m is not None else self.max_range_m / 100.0
-        )
-        config.mapping.max_points_per_voxel = self.max_points_per_voxel
-        config.adaptive_threshold.initial_threshold = self.initial_threshold_m
-        config.adaptive_threshold.min_motion_th = self.min_motion_m
-        config.adaptive_threshold.fixed_threshold = self.fixed_threshold_m
-        config.registration.max_num_iterations = self.max_num_iterations
-        config.registration.convergence_criterion = self.convergence_criterion
-        config.registration.max_num_threads = self.max_num_threads
+    def to_kiss(self) -> KISSConfig:
+        """The equivalent ``kiss_icp.config.KISSConfig`` with the voxel size resolved."""
+        config = KISSConfig(**self.model_dump())
+        if config.mapping.voxel_size is None:
+            config.mapping.voxel_size = config.data.max_range / 100.0
         return config
 
 
@@ -74,9 +93,9 @@ class KissIcpConfig(BaseModel):
 class KissIcpOdometry(Odometry):
     """KISS-ICP scan-to-local-map registration. W is the frame of the first scan.
 
-    Construct with a :class:`KissIcpConfig` or its fields as keyword arguments, e.g.
-    ``KissIcpOdometry(max_range_m=80.0)``. After each :meth:`register`, ``last_points`` holds the
-    deskewed, range-filtered scan (sensor frame, what :meth:`map_points` returns) and
+    Construct with a :class:`KissIcpConfig` or its sections as keyword arguments, e.g.
+    ``KissIcpOdometry(data={"max_range": 80.0})``. After each :meth:`register`, ``last_points``
+    holds the deskewed, range-filtered scan (sensor frame, what :meth:`map_points` returns) and
     ``last_keypoints`` the downsampled points that were registered.
     """
 
@@ -84,10 +103,11 @@ class KissIcpOdometry(Odometry):
         if config is not None and options:
             raise TypeError("pass either a KissIcpConfig or keyword options, not both")
         self.config = config if config is not None else KissIcpConfig(**options)
-        if self.config.max_range_m <= self.config.min_range_m:
+        data = self.config.data
+        if data.max_range <= data.min_range:
             raise ValueError(
-                f"KissIcpConfig: max_range_m={self.config.max_range_m} must exceed "
-                f"min_range_m={self.config.min_range_m}"
+                f"KissIcpConfig: data.max_range={data.max_range} must exceed "
+                f"data.min_range={data.min_range}"
             )
         from kiss_icp.kiss_icp import KissICP
 
@@ -113,15 +133,15 @@ class KissIcpOdometry(Odometry):
             )
         ranges = point_ranges_m(points)
         usable = np.count_nonzero(
-            (ranges > self.config.min_range_m) & (ranges < self.config.max_range_m)
+            (ranges > self.config.data.min_range) & (ranges < self.config.data.max_range)
         )
         if usable == 0:
             raise DatasetError(
                 f"frame {frame.index}: empty scan ({len(points)} points, none within "
-                f"{self.config.min_range_m}-{self.config.max_range_m} m); check the scan file "
-                f"or the range limits"
+                f"{self.config.data.min_range}-{self.config.data.max_range} m); check the scan "
+                "file or the range limits"
             )
-        if frame.point_times is not None and self.config.deskew:
+        if frame.point_times is not None and self.config.data.deskew:
             times = np.asarray(frame.point_times, dtype=np.float64).reshape(-1)
             if len(times) != len(points):
                 raise DatasetError(

@@ -20,21 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-
-def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """Points from frame b to frame a."""
-    return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
-
-
-def orthonormalize(T: np.ndarray) -> np.ndarray:
-    """``T`` with its rotation projected onto SO(3)."""
-    T = np.array(T, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    if np.linalg.det(U @ Vt) < 0:
-        U[:, -1] *= -1
-    T[:3, :3] = U @ Vt
-    T[3] = [0.0, 0.0, 0.0, 1.0]
-    return T
+from common.geometry import orthonormalize, so3_exp, transform_points
 
 
 @dataclass
@@ -94,16 +80,9 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 def _exp_se3(xi: np.ndarray) -> np.ndarray:
     """4x4 transform of a twist ``[w, v]`` (small steps: first-order translation is enough)."""
-    w, v = xi[:3], xi[3:]
-    theta = np.linalg.norm(w)
-    K = _skew(w)
-    if theta < 1e-12:
-        R = np.eye(3) + K
-    else:
-        R = np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
     T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = v
+    T[:3, :3] = so3_exp(xi[:3])
+    T[:3, 3] = xi[3:]
     return T
 
 

@@ -47,6 +47,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from common.geometry import rotation_angle_rad
 from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, register_odometry
@@ -177,8 +178,7 @@ def _downscale_depth(depth: np.ndarray, factor: int, max_spread_m: float) -> np.
 
 
 def _rotation_deg(T: np.ndarray) -> float:
-    cos = 0.5 * (np.trace(T[:3, :3]) - 1.0)
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return float(np.degrees(rotation_angle_rad(T[:3, :3])))
 
 
 @register_odometry("rgbd")

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common.geometry import orthonormalize
 from frontends.frame import Intrinsics
 from frontends.sources._io import (
     DepthOptions,
@@ -137,8 +138,7 @@ def _read_pose(path: Path) -> np.ndarray:
     if not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6):
         raise fail(path, "last row is not 0 0 0 1", "restore the pose file")
     # The KinectFusion poses are stored with ~1e-4 of non-orthogonality: project onto SO(3).
-    U, _, Vt = np.linalg.svd(pose[:3, :3])
-    if np.linalg.det(U @ Vt) < 0 or np.abs(U @ Vt - pose[:3, :3]).max() > 1e-2:
+    rigid = orthonormalize(pose)
+    if np.abs(rigid[:3, :3] - pose[:3, :3]).max() > 1e-2:  # also a reflection
         raise fail(path, "rotation block is not a rotation", "restore the pose file")
-    pose[:3, :3] = U @ Vt
-    return pose
+    return rigid

@@ -34,11 +34,13 @@ import logging
 import numpy as np
 from scipy.spatial import cKDTree
 
+from common.geometry import orthonormalize, transform_points
+from common.voxel_keys import point_voxel_keys
 from frontends.odometry.point_to_plane import point_to_plane_hessian
 from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig
 from slam.algorithm.loops import LoopCandidate, LoopDetector, relative_motion
 from slam.algorithm.normals import estimate_normals
-from slam.algorithm.submaps import SubmapRecord, orthonormalize, transform_points, voxel_keys
+from slam.algorithm.submaps import SubmapRecord
 
 logger = logging.getLogger(__name__)
 
@@ -61,8 +63,8 @@ def above_ground(points: np.ndarray, cell_m: float, clearance_m: float) -> np.nd
 
 def voxel_overlap(points_a: np.ndarray, points_b: np.ndarray, voxel_size_m: float) -> float:
     """Shared voxels of two clouds (same frame) over the voxels of the smaller one."""
-    keys_a = np.unique(voxel_keys(points_a, voxel_size_m))
-    keys_b = np.unique(voxel_keys(points_b, voxel_size_m))
+    keys_a = np.unique(point_voxel_keys(points_a, voxel_size_m))
+    keys_b = np.unique(point_voxel_keys(points_b, voxel_size_m))
     if len(keys_a) == 0 or len(keys_b) == 0:
         return 0.0
     shared = len(np.intersect1d(keys_a, keys_b, assume_unique=True))

@@ -47,12 +47,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from common.geometry import transform_points
 from frontends.depth import depth_to_points
 from frontends.frame import Frame, Intrinsics
 from frontends.odometry.point_to_plane import IcpResult, point_to_plane_icp
 from slam.algorithm.config import LoopClosureConfig, RgbdLoopConfig
 from slam.algorithm.loops import LoopCandidate, LoopDetector, relative_motion
-from slam.algorithm.submaps import SubmapRecord, transform_points, voxel_downsample
+from slam.algorithm.submaps import SubmapRecord, voxel_downsample
 
 logger = logging.getLogger(__name__)
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.geometry import rotation_angle_rad
 from slam.algorithm.submaps import SubmapRecord
 
 
@@ -52,5 +53,4 @@ class LoopDetector(ABC):
 def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""
     D = np.linalg.inv(T_a) @ T_b
-    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
+    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle_rad(D[:3, :3])))

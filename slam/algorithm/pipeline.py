@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.geometry import transform_points
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry
 from slam.algorithm.loops import LoopCandidate, LoopDetector
@@ -35,7 +36,7 @@ from slam.algorithm.map_worker import MapWorker
 from slam.algorithm.memory import release_freed_memory
 from slam.algorithm.pose_graph import PoseGraph
 from slam.algorithm.remap import RemapEvent, Remapper
-from slam.algorithm.submaps import Keyframer, SubmapRecord, transform_points
+from slam.algorithm.submaps import Keyframer, SubmapRecord
 from slam.algorithm.viz import Logger
 from slam.app.config import RunConfig
 

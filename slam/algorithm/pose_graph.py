@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from common.geometry import orthonormalize, rotation_angle_rad
 from slam.algorithm.config import PoseGraphConfig
-from slam.algorithm.submaps import orthonormalize, rotation_angle_rad
 
 logger = logging.getLogger(__name__)
 

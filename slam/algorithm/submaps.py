@@ -18,7 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from kiss_icp.voxelization import voxel_down_sample
 
+from common.geometry import rotation_angle_rad, transform_points
+from common.voxel_keys import KEY_LIMIT, point_voxel_keys
 from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.config import SubmapConfig
 from slam.algorithm.normals import estimate_normals
@@ -26,43 +29,6 @@ from slam.algorithm.normals import estimate_normals
 SURFACE_CELL_FACTOR = 4
 """Surface coverage (``max_surface_views``) is counted in cells of this many ``map_voxel_m``."""
 
-
-def rotation_angle_rad(R: np.ndarray) -> float:
-    """Angle in radians of a rotation matrix."""
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-
-
-def orthonormalize(T: np.ndarray) -> np.ndarray:
-    """``T`` with its rotation projected onto SO(3) (poses read from text files are only
-    orthogonal to ~1e-8, which Sophus-based libraries such as KISS-ICP reject)."""
-    T = np.array(T, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    T[:3, :3] = R
-    T[3] = [0.0, 0.0, 0.0, 1.0]
-    return T
-
-
-def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """Points from frame b to frame a."""
-    points_a = points_b @ T_a_b[:3, :3].T
-    for axis in range(3):  # column by column: broadcasting over rows of 3 is ~5x slower
-        points_a[:, axis] += T_a_b[axis, 3]
-    return points_a
-
-
-def voxel_keys(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
-    """One int64 key per point for the voxel containing it (21 bits per axis)."""
-    grid = np.floor(points / voxel_size_m).astype(np.int64) + (1 << 20)
-    grid = np.clip(grid, 0, (1 << 21) - 1)
-    return (grid[:, 0] << 42) | (grid[:, 1] << 21) | grid[:, 2]
-
-
-GRID_HALF_EXTENT = 1 << 20
-"""Voxel indices per axis that :func:`voxel_keys` keeps apart (it clips beyond +-2**20)."""
 
 DENSE_GROUPING_CELLS_PER_POINT = 8
 """:func:`voxel_groups` counts the points into the cells of their bounding box when it holds at
@@ -73,8 +39,10 @@ otherwise (counting costs about as much per cell as sorting per point)."""
 def voxel_groups(points: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
     """The voxel of every point: ``(inverse, counts)``.
 
-    Voxels are numbered in increasing :func:`voxel_keys` order, so this equals
-    ``np.unique(voxel_keys(points, voxel_size_m), return_inverse=True, return_counts=True)[1:]``.
+    Voxels are numbered in increasing :func:`~common.voxel_keys.point_voxel_keys` order, so
+    this equals ``np.unique(point_voxel_keys(points, voxel_size_m), return_inverse=True,
+    return_counts=True)[1:]``, and like it raises a ``ValueError`` for points beyond the range
+    of voxel keys.
     Where the bounding box of the points holds few enough cells (one LiDAR scan, one submap) the
     points are counted into those cells in linear time instead of sorting their keys, which was
     the largest cost of keyframing a 126k-point scan.
@@ -89,10 +57,10 @@ def _column_voxel_groups(columns: np.ndarray, voxel_size_m: float) -> tuple[np.n
     high = [int(g.max()) for g in grid]
     dims = [h - lo + 1 for lo, h in zip(low, high, strict=True)]
     cells = dims[0] * dims[1] * dims[2]
-    inside = min(low) >= -GRID_HALF_EXTENT and max(high) < GRID_HALF_EXTENT
+    inside = min(low) > -KEY_LIMIT and max(high) < KEY_LIMIT
     if not inside or cells > DENSE_GROUPING_CELLS_PER_POINT * columns.shape[1]:
         _, inverse, counts = np.unique(
-            voxel_keys(columns.T, voxel_size_m), return_inverse=True, return_counts=True
+            point_voxel_keys(columns.T, voxel_size_m), return_inverse=True, return_counts=True
         )
         return inverse.ravel(), counts
     cell = grid[0] - low[0]
@@ -112,10 +80,13 @@ def voxel_downsample(
 ) -> tuple[np.ndarray, ...]:
     """Average points (and per-point float attributes) over the voxels of a grid.
 
+    Differs from ``kiss_icp.voxelization.voxel_down_sample`` on purpose: the mean of each voxel
+    (less noise for the map and the normals), not its first point, and in key order.
+
     Returns ``(points, *attributes)`` with one row per occupied voxel, in increasing
-    :func:`voxel_keys` order. An attribute that is the same for every row (a broadcast array,
-    e.g. one viewpoint per frame) or all zero (LiDAR frames carry no normals) is not averaged:
-    its mean is that row.
+    :func:`~common.voxel_keys.point_voxel_keys` order. An attribute that is the same for every
+    row (a broadcast array, e.g. one viewpoint per frame) or all zero (LiDAR frames carry no
+    normals) is not averaged: its mean is that row.
     """
     if len(points) == 0:
         return (points, *attributes)
@@ -133,14 +104,6 @@ def voxel_downsample(
     return tuple(out)
 
 
-def voxel_subsample(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
-    """Keep the first point of every voxel (cheap, keeps real points)."""
-    if len(points) == 0:
-        return points
-    _, first = np.unique(voxel_keys(points, voxel_size_m), return_index=True)
-    return points[np.sort(first)]
-
-
 @dataclass
 class SubmapRecord:
     """A closed (or open) group of frames sharing an anchor.
@@ -152,7 +115,8 @@ class SubmapRecord:
         travelled_m: path length of the odometry trajectory from the first frame to the anchor.
         points_A: (N, 3) map points in the anchor frame, voxel-averaged.
         normals_A: (N, 3) unit normals of ``points_A`` (towards the sensor).
-        loop_points_A: (M, 3) float32 coarse cloud in the anchor frame for loop closure.
+        loop_points_A: (M, 3) float32 coarse cloud in the anchor frame for loop closure: the
+            first point of every ``loop_voxel_m`` voxel (``kiss_icp``'s ``voxel_down_sample``).
         keyframe: the anchor frame with its images (RGB-D) or None.
         T_A_S: relative pose of every frame to the anchor (same order as ``frame_indices``).
     """
@@ -302,7 +266,7 @@ class Keyframer:
 
     def _track_surface(self, points_A: np.ndarray) -> None:
         """Grow the set of surface cells the submap covers, and its largest single view."""
-        cells = np.unique(voxel_keys(points_A, SURFACE_CELL_FACTOR * self.cfg.map_voxel_m))
+        cells = np.unique(point_voxel_keys(points_A, SURFACE_CELL_FACTOR * self.cfg.map_voxel_m))
         self._surface_keys = np.union1d(self._surface_keys, cells)
         self._view_surface = max(self._view_surface, len(cells))
 
@@ -331,7 +295,9 @@ class Keyframer:
                     num_neighbours=self.cfg.normal_neighbours,
                     max_radius_m=self.cfg.normal_radius_m,
                 )
-            sub.loop_points_A = voxel_subsample(points_A, self.cfg.loop_voxel_m).astype(np.float32)
+            sub.loop_points_A = voxel_down_sample(points_A, self.cfg.loop_voxel_m).astype(
+                np.float32
+            )
             points_A, normals_A = points_A[valid], normals_A[valid]
             cap = self.cfg.max_map_points
             if cap is not None and len(points_A) > cap:

@@ -10,7 +10,7 @@ percentile of its point ranges). The factors reproduce the hand-tuned KITTI sett
 =====================================================  =======================
 field                                                  value
 =====================================================  =======================
-odometry.kiss_icp.max_range_m                          max point range (>= 2 R)
+odometry.kiss_icp.data.max_range                       max point range (>= 2 R)
 submaps.max_range_m, submaps.max_distance_m            R
 mapping.voxel_size_m                                   R / 30
 submaps.map_voxel_m                                    voxel / 3
@@ -56,8 +56,10 @@ def scale_config(cfg: RunConfig, first_scan: np.ndarray) -> dict[str, float]:
     extent, farthest = scan_extent_m(first_scan)
     voxel = extent / 30.0
     changed: dict[str, float] = {}
-    kiss = cfg.odometry.kiss_icp
-    _set_unset(kiss, "max_range_m", max(farthest, 2.0 * extent), changed, "odometry.kiss_icp")
+    kiss_data = cfg.odometry.kiss_icp.data
+    _set_unset(
+        kiss_data, "max_range", max(farthest, 2.0 * extent), changed, "odometry.kiss_icp.data"
+    )
     submaps = cfg.submaps
     for field, value in (
         ("max_range_m", extent),

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from common.voxel_keys import KEY_LIMIT, pack_keys
 from frontends.frame import Intrinsics
 from slam.algorithm.viz import Logger
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
@@ -488,9 +489,11 @@ def decimate_mesh(
         ).sum()
     )
     cell = max(math.sqrt(1.2 * area / max(max_faces, 1)), 1e-9)
+    extent = float(np.ptp(vertices, axis=0).max())
+    cell = max(cell, extent / (KEY_LIMIT - 1))  # fewer than KEY_LIMIT cells per axis
     while True:
         grid = np.floor((vertices - vertices.min(axis=0)) / cell).astype(np.int64)
-        keys = (grid[:, 0] << 42) | (grid[:, 1] << 21) | grid[:, 2]  # < 2**21 cells per axis
+        keys = pack_keys(grid)
         _, cluster, counts = np.unique(keys, return_inverse=True, return_counts=True)
         cluster = cluster.ravel()
         new_faces = cluster[faces]
@@ -501,8 +504,8 @@ def decimate_mesh(
         )
         new_faces = new_faces[keep]
         ordered = np.sort(new_faces, axis=1)
-        if len(counts) < 1 << 21:
-            ordered = (ordered[:, 0] << 42) | (ordered[:, 1] << 21) | ordered[:, 2]
+        if len(counts) < KEY_LIMIT:  # vertex-index triples pack like voxel coordinates
+            ordered = pack_keys(ordered)
         _, first = np.unique(ordered, axis=0 if ordered.ndim == 2 else None, return_index=True)
         new_faces = new_faces[np.sort(first)]
         if len(new_faces) <= max_faces:

@@ -62,16 +62,17 @@ def apply_thread_budget(cfg) -> ThreadBudget:
     """Set torch, OpenCV and BLAS threads and KISS-ICP's ``max_num_threads`` in ``cfg``.
 
     ``cfg`` is a :class:`slam.app.config.RunConfig`; its odometry settings are updated in place, so
-    call this before the odometry is built. An explicit ``odometry.kiss_icp.max_num_threads``
+    call this before the odometry is built. An explicit
+    ``odometry.kiss_icp.registration.max_num_threads``
     (non-zero) is kept.
     """
     import torch
 
     plan = plan_thread_budget(cfg.threads, cfg.map_worker)
     torch.set_num_threads(plan.torch)
-    kiss = cfg.odometry.kiss_icp
-    if kiss.max_num_threads == 0:
-        kiss.max_num_threads = plan.kiss_icp
+    registration = cfg.odometry.kiss_icp.registration
+    if not registration.max_num_threads:
+        registration.max_num_threads = plan.kiss_icp
     try:
         import cv2
 

@@ -3,17 +3,19 @@
 All poses are (N, 4, 4) float64 ``T_W_S`` arrays with frame ``i`` of the estimate corresponding to
 frame ``i`` of the ground truth.
 
-- :func:`ate_rmse` follows KISS-ICP's ``absolute_trajectory_error`` and evo's ``evo_ape --align``:
-  positions are aligned with Umeyama's method without scale (rotation + translation), then the RMSE
-  of the position differences is taken; :func:`ate_per_axis_rmse` splits it into x, y and z.
-- :func:`kitti_relative_error` follows the KITTI odometry devkit (the same algorithm as
-  ``kiss_icp.metrics.sequence_error``): segments of 100, 200, ..., 800 m of ground-truth path
+- :func:`ate_rmse` and :func:`ate_rotation_rmse_deg` are KISS-ICP's
+  ``kiss_icp.metrics.absolute_trajectory_error`` (as evo's ``evo_ape --align``): positions are
+  aligned with Umeyama's method without scale (rotation + translation), then the RMSE of the
+  position differences (and of the orientation angles) is taken; KISS-ICP returns them as
+  float32 (relative precision ~1e-7).
+- :func:`align_se3` is the same alignment, returned: KISS-ICP computes it but does not expose it,
+  and :func:`ate_per_axis_rmse` (the ATE split into x, y and z) and the plots need it.
+- :func:`kitti_relative_error` follows the KITTI odometry devkit like
+  ``kiss_icp.metrics.sequence_error``: segments of 100, 200, ..., 800 m of ground-truth path
   length starting every 10th frame; the error of each segment's relative motion is divided by
-  the segment length and averaged. It is reimplemented here (vectorised) because KISS-ICP's
-  binding converts degrees with ``180 / 3.14`` and divides by zero on short sequences. A
-  trajectory shorter than the shortest segment has no segment: the result is then ``nan`` (and a
-  warning is logged); pass shorter ``lengths_m`` for short indoor sequences and say so when
-  reporting the number.
+  the segment length and averaged. A trajectory shorter than the shortest segment has no
+  segment: the result is then ``nan`` (and a warning is logged); pass shorter ``lengths_m`` for
+  short indoor sequences and say so when reporting the number.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
+from common.geometry import rotation_angle_rad
 
 logger = logging.getLogger(__name__)
 
@@ -43,15 +47,11 @@ def _check_pair(est: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return est, gt
 
 
-def _rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Angle (rad) of rotation matrices (..., 3, 3)."""
-    cos = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
-    return np.arccos(np.clip(cos, -1.0, 1.0))
-
-
 def umeyama_alignment(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Rigid transform (4x4, no scale) minimising ``sum |T source_i - target_i|^2``.
 
+    Ours because KISS-ICP's ATE computes it (Eigen's ``umeyama``) without returning it, and
+    scipy's ``Rotation.align_vectors`` rejects a trajectory that stands still.
     ``source`` and ``target`` are (N, 3) corresponding points. Umeyama (1991), with the
     reflection fix; degenerate inputs (N < 3 or collinear points) still give a proper rotation,
     though not a unique one.
@@ -77,6 +77,14 @@ def align_se3(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return umeyama_alignment(est[:, :3, 3], gt[:, :3, 3])
 
 
+def _kiss_icp_ate(est: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
+    """``(rotation RMSE rad, translation RMSE m)`` after alignment, from KISS-ICP."""
+    from kiss_icp.metrics import absolute_trajectory_error
+
+    rotation_rad, translation_m = absolute_trajectory_error(list(gt), list(est))
+    return float(rotation_rad), float(translation_m)
+
+
 def ate_rmse(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
     """Absolute trajectory error: RMSE (metres) of position differences after SE(3) alignment.
 
@@ -84,7 +92,7 @@ def ate_rmse(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
     """
     est, gt = _check_pair(est, gt)
     if align:
-        est = align_se3(est, gt) @ est
+        return _kiss_icp_ate(est, gt)[1]
     return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
 
 
@@ -104,9 +112,9 @@ def ate_rotation_rmse_deg(est: np.ndarray, gt: np.ndarray, *, align: bool = True
     """RMSE (degrees) of the absolute orientation error after the same alignment as ATE."""
     est, gt = _check_pair(est, gt)
     if align:
-        est = align_se3(est, gt) @ est
+        return float(np.degrees(_kiss_icp_ate(est, gt)[0]))
     delta = np.swapaxes(est[:, :3, :3], 1, 2) @ gt[:, :3, :3]
-    return float(np.degrees(np.sqrt(np.mean(_rotation_angle(delta) ** 2))))
+    return float(np.degrees(np.sqrt(np.mean(rotation_angle_rad(delta) ** 2))))
 
 
 @dataclass(frozen=True)
@@ -139,7 +147,7 @@ def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> RelativePoseError:
     rel_gt = np.linalg.inv(gt[:-delta]) @ gt[delta:]
     err = np.linalg.inv(rel_gt) @ rel_est
     t = np.sqrt(np.mean(np.sum(err[:, :3, 3] ** 2, axis=1)))
-    r = np.degrees(np.sqrt(np.mean(_rotation_angle(err[:, :3, :3]) ** 2)))
+    r = np.degrees(np.sqrt(np.mean(rotation_angle_rad(err[:, :3, :3]) ** 2)))
     return RelativePoseError(float(t), float(r), delta, n)
 
 
@@ -169,6 +177,10 @@ def kitti_relative_error(
 ) -> tuple[float, float]:
     """KITTI devkit relative error: (translation error %, rotation error deg / 100 m).
 
+    Differs from ``kiss_icp.metrics.sequence_error`` on purpose: any ``lengths_m`` (KISS-ICP fixes
+    100-800 m, so short sequences get no number), exact degrees (KISS-ICP uses ``180 / 3.14``), and
+    deg / 100 m like the KITTI leaderboard (KISS-ICP: deg / m).
+
     Averages over every segment that starts at a multiple of ``step_frames`` and spans a
     ground-truth path length of ``lengths_m``: the segment ends at the first frame whose
     distance from the start exceeds the length. Returns ``(nan, nan)`` with a warning when no
@@ -190,7 +202,7 @@ def kitti_relative_error(
         delta_est = np.linalg.inv(est[first]) @ est[last]
         err = np.linalg.inv(delta_est) @ delta_gt
         t_errs.append(np.linalg.norm(err[:, :3, 3], axis=1) / length)
-        r_errs.append(_rotation_angle(err[:, :3, :3]) / length)
+        r_errs.append(rotation_angle_rad(err[:, :3, :3]) / length)
     if not t_errs:
         logger.warning(
             "kitti_relative_error: trajectory of %.1f m is shorter than the shortest segment "
@@ -252,9 +264,10 @@ def trajectory_metrics(
     relative = rpe(est, gt, 1)
     t_err, r_err = kitti_relative_error(est, gt, lengths_m=kitti_lengths_m)
     per_axis = ate_per_axis_rmse(est, gt)
+    ate_rotation_rad, ate_translation_m = _kiss_icp_ate(est, gt)
     return TrajectoryMetrics(
-        ate_rmse_m=ate_rmse(est, gt),
-        ate_rot_rmse_deg=ate_rotation_rmse_deg(est, gt),
+        ate_rmse_m=ate_translation_m,
+        ate_rot_rmse_deg=float(np.degrees(ate_rotation_rad)),
         ate_x_rmse_m=float(per_axis[0]),
         ate_y_rmse_m=float(per_axis[1]),
         ate_z_rmse_m=float(per_axis[2]),
