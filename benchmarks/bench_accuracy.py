@@ -211,7 +211,6 @@ def _run(
 
     from frontends.sources import make_source
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.algorithm.viz import NullLogger
     from slam.app.builders import build_map, build_odometry, source_kwargs
     from slam.app.config import default_config_path, load_run_config
 
@@ -223,7 +222,7 @@ def _run(
     cfg = load_run_config(default_config_path(config_name), merge_overrides(base, overrides))
     source = make_source(dataset, **source_kwargs(cfg))
     odometry = build_odometry(cfg, "rgbd")
-    pipeline = SlamPipeline(cfg, source.sensor, odometry, build_map(cfg), NullLogger())
+    pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, build_map(cfg))
     start = time.perf_counter()
     for frame in source:
         pipeline.process(frame)

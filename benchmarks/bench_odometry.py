@@ -74,7 +74,7 @@ def _run(name: str, method: str, options: dict, source, *, kitti_lengths=None) -
     seconds = 0.0
     for frame in source:
         t0 = time.perf_counter()
-        poses.append(odometry.register(frame))
+        poses.append(odometry.register(frame).T_W_S)
         seconds += time.perf_counter() - t0
     est = np.stack(poses)
     gt = np.linalg.inv(source.gt_poses[0]) @ source.gt_poses
@@ -174,7 +174,7 @@ def real_scan_speed() -> str:
     previous = np.eye(4)
     for i, cloud in enumerate(clouds):
         t0 = time.perf_counter()
-        T = odometry.register(Frame(i, 0.1 * i, cloud))
+        T = odometry.register(Frame(i, 0.1 * i, cloud)).T_W_S
         seconds.append(time.perf_counter() - t0)
         steps.append(np.linalg.norm((np.linalg.inv(previous) @ T)[:3, 3]))
         previous = T

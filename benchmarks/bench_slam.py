@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from frontends.odometry.base import Odometry, OdometryResult
 from slam.app.atomic_io import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,7 +54,7 @@ log = logging.getLogger("benchmarks.bench_slam")
 # --------------------------------------------------------------------------- helpers
 
 
-class DriftingOdometry:
+class DriftingOdometry(Odometry):
     """Ground-truth increments with a constant yaw bias per frame (z up)."""
 
     def __init__(self, yaw_deg_per_frame: float) -> None:
@@ -66,12 +67,12 @@ class DriftingOdometry:
         self._bias = np.eye(4)
         self._bias[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
 
-    def register(self, frame) -> np.ndarray:
-        T = self._gt.register(frame)
+    def register(self, frame) -> OdometryResult:
+        T = self._gt.register(frame).T_W_S
         if self._previous is not None:
             self._pose = self._pose @ (np.linalg.inv(self._previous) @ T) @ self._bias
         self._previous = T
-        return self._pose.copy()
+        return OdometryResult(self._pose.copy())
 
 
 def _peak_rss_mb() -> float:
@@ -95,11 +96,10 @@ def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float]]:
 
 def _run(cfg, source, odometry) -> tuple[Any, float]:
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.algorithm.viz import NullLogger
     from slam.app.builders import build_map
 
     neural_map = build_map(cfg)
-    pipeline = SlamPipeline(cfg, source.sensor, odometry, neural_map, NullLogger())
+    pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, neural_map)
     start = time.perf_counter()
     for frame in source.read_ahead():
         pipeline.process(frame)

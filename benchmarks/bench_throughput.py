@@ -121,7 +121,6 @@ def scenario_ours(
 ) -> dict:
     logging.basicConfig(level=logging.WARNING)
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.algorithm.viz import NullLogger
     from slam.app.builders import build_map, build_odometry
     from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
@@ -130,7 +129,7 @@ def scenario_ours(
     source = _source(num_frames, relief_m)
     odometry = build_odometry(cfg, "lidar")
     neural_map = build_map(cfg)
-    pipeline = SlamPipeline(cfg, "lidar", odometry, neural_map, NullLogger())
+    pipeline = SlamPipeline(cfg.pipeline_config(), "lidar", odometry, neural_map)
     rss: dict[str, float] = {}
     start = time.perf_counter()
     cpu_start = time.process_time()

@@ -21,7 +21,6 @@ import torch
 
 from frontends.sources import make_source
 from slam.algorithm.pipeline import SlamPipeline
-from slam.algorithm.viz import NullLogger
 from slam.app.builders import build_map
 from slam.app.outputs import RunOutputs
 from tests.test_pipeline import STREET, DriftingOdometry, street_config
@@ -44,7 +43,7 @@ def _run(map_worker: bool, folder: Path) -> tuple[bytes, bytes, str, int]:
     cfg = street_config(map_worker=map_worker)
     source = make_source("generated", **STREET)
     odometry = DriftingOdometry(yaw_deg_per_frame=0.015, scale=1.0, up_axis=2)
-    pipeline = SlamPipeline(cfg, source.sensor, odometry, build_map(cfg), NullLogger())
+    pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, build_map(cfg))
     assert pipeline.worker.threaded == map_worker
     for frame in source:
         pipeline.process(frame)

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from frontends.frame import Frame
-from frontends.odometry.base import Odometry
+from frontends.odometry.base import Odometry, OdometryResult
 from slam.algorithm.ground_refinement import (
     GroundHeightMap,
     GroundRefinedOdometry,
@@ -60,12 +60,12 @@ class PitchDriftingOdometry(Odometry):
         self._i = -1
         self._pose = gt[0].copy()
 
-    def register(self, frame: Frame) -> np.ndarray:
+    def register(self, frame: Frame) -> OdometryResult:
         self._i += 1
         if self._i > 0:
             step = np.linalg.inv(self._gt[self._i - 1]) @ self._gt[self._i]
             self._pose = self._pose @ step @ self._bias
-        return self._pose.copy()
+        return OdometryResult(self._pose.copy())
 
 
 def test_ground_map_averages_flat_cells_and_skips_walls() -> None:
@@ -103,11 +103,11 @@ def test_ground_refinement_removes_the_vertical_drift_on_a_hill() -> None:
     scans = [_scan(T, rng) for T in gt]
     cfg = GroundRefinementConfig(enabled=True)
     alone = PitchDriftingOdometry(gt, 0.001)
-    drifting = np.array([alone.register(Frame(i, 0.1 * i, s)) for i, s in enumerate(scans)])
+    drifting = np.array([alone.register(Frame(i, 0.1 * i, s)).T_W_S for i, s in enumerate(scans)])
     inner = PitchDriftingOdometry(gt, 0.001)
     refined_odometry = GroundRefinedOdometry(inner, cfg)
     refined = np.array(
-        [refined_odometry.register(Frame(i, 0.1 * i, s)) for i, s in enumerate(scans)]
+        [refined_odometry.register(Frame(i, 0.1 * i, s)).T_W_S for i, s in enumerate(scans)]
     )
     before = ate_per_axis_rmse(drifting, gt)
     after = ate_per_axis_rmse(refined, gt)

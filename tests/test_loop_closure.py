@@ -13,7 +13,7 @@ from frontends.sources import make_source
 from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
 from slam.algorithm.loop_lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
 from slam.algorithm.loop_rgbd import RgbdVerifier
-from slam.algorithm.loops import relative_motion
+from slam.algorithm.loops import Verification, relative_motion
 from slam.algorithm.submaps import SubmapRecord
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -44,13 +44,13 @@ def verify_pair(verifier: RgbdVerifier, source, i: int, j: int):
     query = verifier.features(source[j])
     matches = verifier.match(reference, query)
     if len(matches) < 6:
-        return False, "too few matches", None, {}
+        return Verification(False, "too few matches", None, {})
     return verifier.verify(reference, query, matches)
 
 
 @pytest.mark.parametrize("pair", [(0, 8), (2, 236)])
 def test_rgbd_verification_recovers_the_relative_pose(room, pair):
-    accepted, reason, T_Si_Sj, scores = verify_pair(RgbdVerifier(RgbdLoopConfig()), room, *pair)
+    accepted, reason, T_Si_Sj, scores, _ = verify_pair(RgbdVerifier(RgbdLoopConfig()), room, *pair)
     assert accepted, reason
     error_m, error_deg = relative_motion(relative_gt(room, *pair), T_Si_Sj)
     assert error_m < 0.02 and error_deg < 1.0, scores
@@ -60,7 +60,7 @@ def test_rgbd_verification_recovers_the_relative_pose(room, pair):
 def test_rgbd_verification_rejects_unrelated_views(room):
     verifier = RgbdVerifier(RgbdLoopConfig())
     for i, j in [(0, 120), (60, 180)]:
-        accepted, reason, _, _ = verify_pair(verifier, room, i, j)
+        accepted, reason, _, _, _ = verify_pair(verifier, room, i, j)
         assert not accepted, f"frames {i} and {j} do not see the same surfaces: {reason}"
 
 
@@ -68,11 +68,11 @@ def test_rgbd_verification_rejects_unrelated_views(room):
 def test_rgbd_verification_on_real_7scenes():
     source = make_source("7scenes", root=DATA / "7scenes_redkitchen", sequence="seq-01")
     verifier = RgbdVerifier(RgbdLoopConfig())
-    accepted, reason, T, _ = verify_pair(verifier, source, 0, 30)
+    accepted, reason, T, _, _ = verify_pair(verifier, source, 0, 30)
     assert accepted, reason
     error_m, error_deg = relative_motion(relative_gt(source, 0, 30), T)
     assert error_m < 0.03 and error_deg < 2.0
-    accepted, reason, _, _ = verify_pair(verifier, source, 0, 399)
+    accepted, reason, _, _, _ = verify_pair(verifier, source, 0, 399)
     assert not accepted, reason
 
 
@@ -99,7 +99,7 @@ def test_icp_verification_recovers_a_revisit(street):
     query = street_cloud(street, 140, 150)
     truth = relative_gt(street, 0, 140)
     guess = perturb(truth, 1.0, -0.6, 3.0)
-    accepted, reason, T, scores = IcpVerifier(LidarLoopConfig()).verify(reference, query, guess)
+    accepted, reason, T, scores, _ = IcpVerifier(LidarLoopConfig()).verify(reference, query, guess)
     assert accepted, reason
     error_m, error_deg = relative_motion(truth, T)
     assert error_m < 0.15 and error_deg < 0.5, scores
@@ -109,7 +109,7 @@ def test_icp_verification_recovers_a_revisit(street):
 def test_icp_verification_rejects_a_wrong_place(street):
     reference = street_cloud(street, 0, 10)
     query = street_cloud(street, 70, 80)
-    accepted, _, _, scores = IcpVerifier(LidarLoopConfig()).verify(reference, query, np.eye(4))
+    accepted, _, _, scores, _ = IcpVerifier(LidarLoopConfig()).verify(reference, query, np.eye(4))
     assert not accepted, scores
 
 
@@ -160,7 +160,7 @@ def test_rgbd_pnp_rejects_scrambled_matches(room):
     verifier = RgbdVerifier(RgbdLoopConfig())
     reference, query, matches = _features(verifier, room, 0, 8)
     query.pixels = np.random.default_rng(0).permutation(query.pixels)
-    accepted, reason, _, scores = verifier.verify(reference, query, matches)
+    accepted, reason, _, scores, _ = verifier.verify(reference, query, matches)
     assert not accepted and reason.startswith("pnp:"), (reason, scores)
 
 
@@ -169,7 +169,7 @@ def test_rgbd_3d_check_rejects_depth_inconsistent_with_pnp(room):
     verifier = RgbdVerifier(RgbdLoopConfig())
     reference, query, matches = _features(verifier, room, 0, 8)
     query.points_S = query.points_S * 1.05 + [0.0, 0.0, 0.1]
-    accepted, reason, _, scores = verifier.verify(reference, query, matches)
+    accepted, reason, _, scores, _ = verifier.verify(reference, query, matches)
     assert not accepted and reason.startswith("3d:"), (reason, scores)
 
 
@@ -235,10 +235,10 @@ def test_rgbd_odometry_stage_is_judged_on_its_own_real_7scenes():
     stage; with it, ICP from the PnP pose makes the depth agree."""
     source = make_source("7scenes", root=DATA / "7scenes_redkitchen", sequence="seq-01")
     plain = RgbdVerifier(RgbdLoopConfig(max_3d_residual_m=0.12, refine=False))
-    accepted, reason, _, scores = verify_pair(plain, source, 0, 240)
+    accepted, reason, _, scores, _ = verify_pair(plain, source, 0, 240)
     assert not accepted and reason.startswith("odometry:"), (reason, scores)
     dense = RgbdVerifier(RgbdLoopConfig(max_3d_residual_m=0.12))
-    accepted, reason, T, scores = verify_pair(dense, source, 0, 240)
+    accepted, reason, T, scores, _ = verify_pair(dense, source, 0, 240)
     assert accepted, (reason, scores)
     assert scores["final_depth_agreement"] > scores["odometry_depth_agreement"] + 0.3
     error_m, error_deg = relative_motion(relative_gt(source, 0, 240), T)
@@ -253,13 +253,15 @@ def test_icp_proximity_candidate_with_large_drift_is_judged_by_its_result(street
     truth = relative_gt(street, 0, 140)
     guess = perturb(truth, 5.0, -3.3, 2.0)
     verifier = IcpVerifier(LidarLoopConfig())
-    accepted, reason, T, scores = verifier.verify(reference, query, guess, limit_correction=False)
+    accepted, reason, T, scores, covariance = verifier.verify(
+        reference, query, guess, limit_correction=False
+    )
     assert accepted, (reason, scores)
     error_m, error_deg = relative_motion(truth, T)
     assert error_m < 0.15 and error_deg < 0.5, scores
     assert scores["icp_correction_m"] > LidarLoopConfig().max_icp_correction_m
-    assert verifier.last_covariance is not None
-    accepted, reason, _, _ = verifier.verify(reference, query, guess)
+    assert covariance is not None
+    accepted, reason, _, _, _ = verifier.verify(reference, query, guess)
     assert not accepted and reason.startswith("icp correction"), reason
 
 
@@ -274,7 +276,7 @@ def test_icp_rejects_a_degenerate_corridor():
     cloud = voxel_down_sample(np.vstack([ground, left, right]), 0.5)
     guess = np.eye(4)
     guess[0, 3] = 3.0  # ICP cannot see this
-    accepted, reason, _, scores = IcpVerifier(LidarLoopConfig()).verify(
+    accepted, reason, _, scores, _ = IcpVerifier(LidarLoopConfig()).verify(
         cloud, cloud + rng.normal(0, 0.02, cloud.shape), guess, limit_correction=False
     )
     assert not accepted and reason.startswith("degenerate"), (reason, scores)

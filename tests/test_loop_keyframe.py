@@ -75,9 +75,11 @@ def test_keyframe_refinement_removes_the_submap_drift_from_the_edge(room):
         )
         verifier = RgbdVerifier(cfg)
         reference, query = _pair(verifier, room, drift_deg=1.5, drift_m=0.02)
-        accepted, reason, T, scores = verifier.verify_dense(reference, query, _guess(truth))
+        accepted, reason, T, scores, covariance = verifier.verify_dense(
+            reference, query, _guess(truth)
+        )
         assert accepted, (keyframe_refine, reason, scores)
-        assert verifier.last_covariance is not None
+        assert covariance is not None
         errors[keyframe_refine] = relative_motion(truth, T)
     # The bent submaps pull the submap-level edge off; the keyframes' own depth does not.
     assert errors[False][0] > 0.01 or errors[False][1] > 0.5, errors
@@ -90,11 +92,11 @@ def test_keyframe_refinement_keeps_a_loop_that_drifted_submaps_would_lose(room):
     truth = np.linalg.inv(room.gt_poses[REFERENCE]) @ room.gt_poses[QUERY]
     plain = RgbdVerifier(RgbdLoopConfig(keyframe_refine=False))
     reference, query = _pair(plain, room, drift_deg=1.5, drift_m=0.02)
-    accepted, reason, _, _ = plain.verify_dense(reference, query, _guess(truth))
+    accepted, reason, _, _, _ = plain.verify_dense(reference, query, _guess(truth))
     assert not accepted and "depth agreement" in reason, reason
     verifier = RgbdVerifier(RgbdLoopConfig())
     reference, query = _pair(verifier, room, drift_deg=1.5, drift_m=0.02)
-    accepted, reason, T, scores = verifier.verify_dense(reference, query, _guess(truth))
+    accepted, reason, T, scores, _ = verifier.verify_dense(reference, query, _guess(truth))
     assert accepted, (reason, scores)
     error_m, error_deg = relative_motion(truth, T)
     assert error_m < 0.005 and error_deg < 0.1
@@ -135,8 +137,7 @@ def test_keyframe_refinement_rejects_keyframes_whose_depth_cannot_fix_the_pose(r
         query.depth = _single_plane(query.depth, query.K)
         assert np.count_nonzero(query.depth) > 1000
         results[keyframe_refine] = verifier.verify_dense(reference, query, _guess(truth))
-        if keyframe_refine:
-            assert verifier.last_covariance is None
     assert results[False][0], results[False][1:]
-    accepted, reason, _, scores = results[True]
+    accepted, reason, _, scores, covariance = results[True]
+    assert covariance is None
     assert not accepted and reason.startswith("keyframe: degenerate"), (reason, scores)

@@ -99,8 +99,8 @@ T_W_C0 = _se3((-np.pi / 2, 0.0, 0.0), (0.0, -1.5, 0.0))
 def test_rgbd_recovers_a_known_motion_in_the_right_direction(room: trimesh.Trimesh) -> None:
     T_C0_C1 = _se3((0.0, 0.03, 0.01), (0.05, -0.02, 0.04))
     odometry = RgbdOdometry(downscale=1)
-    assert np.array_equal(odometry.register(_render(room, T_W_C0, 0)), np.eye(4))
-    T_W_C1 = odometry.register(_render(room, T_W_C0 @ T_C0_C1, 1))
+    assert np.array_equal(odometry.register(_render(room, T_W_C0, 0)).T_W_S, np.eye(4))
+    T_W_C1 = odometry.register(_render(room, T_W_C0 @ T_C0_C1, 1)).T_W_S
     # The estimate is T_C0_C1 itself, not its inverse (which is what cv2.Odometry returns).
     np.testing.assert_allclose(T_W_C1[:3, 3], T_C0_C1[:3, 3], atol=3e-3)
     assert _angle_deg(np.linalg.inv(T_C0_C1) @ T_W_C1) < 0.2
@@ -113,7 +113,7 @@ def test_rgbd_tracks_a_rendered_trajectory(room: trimesh.Trimesh, downscale: int
     step = _se3((0.0, 0.02, 0.005), (0.02, 0.0, 0.01))
     gt = np.stack([T_W_C0 @ np.linalg.matrix_power(step, i) for i in range(8)])
     odometry = make_odometry("rgbd", downscale=downscale)
-    est = np.stack([odometry.register(_render(room, T, i)) for i, T in enumerate(gt)])
+    est = np.stack([odometry.register(_render(room, T, i)).T_W_S for i, T in enumerate(gt)])
     gt_rel = np.linalg.inv(gt[0]) @ gt
     # 16 cm and 8 degrees travelled on noise-free renders; measured 0.2 mm / 0.01 degree.
     assert np.linalg.norm(est[-1, :3, 3] - gt_rel[-1, :3, 3]) < 0.003
@@ -126,7 +126,7 @@ def test_rgbd_failure_falls_back_to_constant_velocity(room: trimesh.Trimesh) -> 
     poses = [T_W_C0 @ np.linalg.matrix_power(step, i) for i in range(3)]
     poses.append(poses[-1] @ _se3(t=(0.3, 0.0, 0.15)))  # beyond max_translation_m = 0.15
     odometry = RgbdOdometry(downscale=1, keyframe_translation_m=0.0)
-    est = [odometry.register(_render(room, T, i)) for i, T in enumerate(poses)]
+    est = [odometry.register(_render(room, T, i)).T_W_S for i, T in enumerate(poses)]
     assert odometry.num_failures == 1
     expected = est[2] @ np.linalg.inv(est[1]) @ est[2]
     np.testing.assert_allclose(est[3], expected, atol=1e-9)
@@ -172,7 +172,7 @@ def test_rgbd_on_real_7scenes_frames() -> None:
 
     source = make_source("7scenes", root=SEVEN_SCENES, sequence="seq-01", frames=slice(0, 30))
     odometry = make_odometry("rgbd")
-    est = np.stack([odometry.register(frame) for frame in source])
+    est = np.stack([odometry.register(frame).T_W_S for frame in source])
     gt = np.linalg.inv(source.gt_poses[0]) @ source.gt_poses
     # Measured: ATE 1.8 mm, end-point error 8.6 mm over these 30 frames (6.7 cm of hand-held
     # motion; the camera moves slowly at the start of the sequence).
@@ -193,7 +193,7 @@ def test_kiss_icp_on_five_consecutive_real_scans() -> None:
     if not (KITTI_SCANS / "000014.bin").is_file():
         pytest.skip(f"real KITTI scans not found under {KITTI_SCANS}")
     odometry = make_odometry("kiss-icp")
-    poses = [odometry.register(Frame(i, 0.1 * i, _kitti_scan(10 + i))) for i in range(5)]
+    poses = [odometry.register(Frame(i, 0.1 * i, _kitti_scan(10 + i))).T_W_S for i in range(5)]
     assert np.array_equal(poses[0], np.eye(4))
     for previous, current in itertools.pairwise(poses):
         step = np.linalg.inv(previous) @ current
@@ -220,13 +220,14 @@ def test_kiss_icp_recovers_a_known_motion_of_a_synthetic_scene() -> None:
     for i in range(6):
         points_S = (points_W - T_W_S[:3, 3]) @ T_W_S[:3, :3]
         frame = Frame(i, 0.1 * i, points_S)
-        est = odometry.register(frame)
+        result = odometry.register(frame)
+        est = result.T_W_S
         np.testing.assert_allclose(est[:3, 3], T_W_S[:3, 3], atol=0.02)
         assert _angle_deg(np.linalg.inv(T_W_S) @ est) < 0.2
         T_W_S = T_W_S @ step
         # the map gets the scan KISS-ICP registered: the frame's points within its range limits
         ranges = np.linalg.norm(points_S, axis=1)
-        map_points = odometry.map_points(frame)
+        map_points = result.map_points(frame)
         assert len(map_points) == np.count_nonzero((ranges > 3.0) & (ranges < 60.0))
         assert np.linalg.norm(map_points, axis=1).min() > 3.0
 
@@ -276,12 +277,16 @@ def test_ground_truth_odometry_is_relative_to_the_first_frame() -> None:
     gt = [_se3((0.1, 0.2, 0.3), (1.0, 2.0, 3.0)), _se3((0.1, 0.25, 0.3), (1.5, 2.0, 3.0))]
     odometry = make_odometry("gt")
     assert isinstance(odometry, GroundTruthOdometry)
-    est = [odometry.register(Frame(i, 0.0, np.zeros((0, 3)), T_W_S_gt=T)) for i, T in enumerate(gt)]
+    est = [
+        odometry.register(Frame(i, 0.0, np.zeros((0, 3)), T_W_S_gt=T)).T_W_S
+        for i, T in enumerate(gt)
+    ]
     np.testing.assert_allclose(est[0], np.eye(4), atol=1e-12)
     np.testing.assert_allclose(est[1], np.linalg.inv(gt[0]) @ gt[1], atol=1e-12)
     frame = Frame(1, 0.0, np.ones((4, 3)), T_W_S_gt=gt[1])
-    odometry.register(frame)
-    assert odometry.map_points(frame) is frame.points  # the map gets the frame's own points
+    result = odometry.register(frame)
+    assert result.points is None  # the map gets the frame's own points
+    assert result.map_points(frame) is frame.points
     with pytest.raises(DatasetError, match="frame 2: the source has no ground-truth pose"):
         odometry.register(Frame(2, 0.0, np.zeros((0, 3))))
 
@@ -308,7 +313,7 @@ def test_kiss_icp_on_a_generated_lidar_loop(generated_root: Path) -> None:
         frames=slice(0, 60),
     )
     odometry = make_odometry("kiss-icp")
-    est = np.stack([odometry.register(frame) for frame in source])
+    est = np.stack([odometry.register(frame).T_W_S for frame in source])
     gt = np.linalg.inv(source.gt_poses[0]) @ source.gt_poses
     # Measured: ATE 7 cm, end-point error 12 cm and 0.23 degree after 58.5 m.
     assert ate_rmse(est, gt) < 0.3
@@ -324,7 +329,7 @@ def test_rgbd_on_a_generated_room_lap(generated_root: Path) -> None:
         "generated", kind="rgbd", root=generated_root, num_frames=150, width=320, height=240
     )
     odometry = make_odometry("rgbd")
-    est = np.stack([odometry.register(frame) for frame in source])
+    est = np.stack([odometry.register(frame).T_W_S for frame in source])
     gt = np.linalg.inv(source.gt_poses[0]) @ source.gt_poses
     # Measured: ATE 5 mm, end-point error 1.8 cm, no failure.
     assert odometry.downscale == 1  # chosen automatically for 320-pixel-wide images
@@ -350,9 +355,10 @@ def test_rgbd_odometry_covariance_grows_along_the_chain(generated_root: Path) ->
     odometry = make_odometry("rgbd")
     covariances = {}
     for frame in source:
-        odometry.register(frame)
+        result = odometry.register(frame)
         if frame.index in (0, 5, 30):
-            covariances[frame.index] = odometry.take_covariance()
+            covariances[frame.index] = result.covariance
+            odometry.restart_covariance()  # as the pipeline does at a new anchor
     short, long = covariances[5], covariances[30]
     for cov in (short, long):
         assert np.all(np.linalg.eigvalsh(cov) > 0)
@@ -360,8 +366,7 @@ def test_rgbd_odometry_covariance_grows_along_the_chain(generated_root: Path) ->
     # Frames rendered without normals cannot be evaluated: the pose graph's sigmas apply.
     plain = RgbdOdometry(downscale=1)
     plain.register(_render(_room(), T_W_C0, 0))
-    plain.register(_render(_room(), T_W_C0 @ _se3(t=(0.01, 0.0, 0.0)), 1))
-    assert plain.take_covariance() is None
+    assert plain.register(_render(_room(), T_W_C0 @ _se3(t=(0.01, 0.0, 0.0)), 1)).covariance is None
 
 
 # --- frame-to-model tracking (local TSDF model) -----------------------------------------------
@@ -432,7 +437,7 @@ def test_frame_to_model_beats_frame_to_frame_on_a_generated_sequence(generated_r
     model = RgbdOdometry(tracking="model", model={"voxel_size_m": 0.04, "resolution": 160})
     ate = {}
     for name, odometry in (("frame", frame_to_frame), ("model", model)):
-        est = np.stack([odometry.register(frame) for frame in frames])
+        est = np.stack([odometry.register(frame).T_W_S for frame in frames])
         ate[name] = ate_rmse(est, gt)
         assert odometry.num_failures == 0
     # Every frame after the first is registered to the model; none falls back.
@@ -454,7 +459,7 @@ def test_frame_to_model_falls_back_to_the_keyframe_with_a_reason(
     with caplog.at_level("INFO", logger="frontends.odometry.rgbd"):
         for frame in frames:
             np.testing.assert_allclose(
-                uncovered.register(frame), keyframe.register(frame), atol=1e-9
+                uncovered.register(frame).T_W_S, keyframe.register(frame).T_W_S, atol=1e-9
             )
     assert uncovered.model_fallbacks == {"the model covers too little of the view": 4}
     assert uncovered.num_model_frames == 0

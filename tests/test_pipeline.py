@@ -12,13 +12,12 @@ import pytest
 import torch
 
 from frontends.frame import Frame
-from frontends.odometry.base import Odometry
+from frontends.odometry.base import Odometry, OdometryResult
 from frontends.odometry.ground_truth import GroundTruthOdometry
 from frontends.sources import make_source
 from slam.algorithm.loops import LoopCandidate, LoopDetector
 from slam.algorithm.pipeline import SlamPipeline, make_loop_detector
 from slam.algorithm.submaps import SubmapRecord
-from slam.algorithm.viz import NullLogger
 from slam.app.builders import build_map
 from slam.app.config import RunConfig
 from slam.evaluation.metrics.mesh import mesh_metrics
@@ -43,14 +42,14 @@ class DriftingOdometry(Odometry):
         self._bias[axes[1], axes[0]] = np.sin(angle)
         self._scale = scale
 
-    def register(self, frame: Frame) -> np.ndarray:
-        T = self._gt.register(frame)
+    def register(self, frame: Frame) -> OdometryResult:
+        T = self._gt.register(frame).T_W_S
         if self._previous is not None:
             step = np.linalg.inv(self._previous) @ T
             step[:3, 3] *= self._scale
             self._pose = self._pose @ step @ self._bias
         self._previous = T
-        return self._pose.copy()
+        return OdometryResult(self._pose.copy())
 
 
 class FalseLoopInjector(LoopDetector):
@@ -95,7 +94,7 @@ def room_config(**submaps) -> RunConfig:
 
 def run(cfg: RunConfig, source, odometry: Odometry, detector=None) -> SlamPipeline:
     pipeline = SlamPipeline(
-        cfg, source.sensor, odometry, build_map(cfg), NullLogger(), loop_detector=detector
+        cfg.pipeline_config(), source.sensor, odometry, build_map(cfg), loop_detector=detector
     )
     for frame in source:
         pipeline.process(frame)
@@ -165,7 +164,9 @@ def test_remapped_map_matches_a_map_encoded_at_the_final_poses(room_run):
 def test_a_false_loop_edge_does_not_spoil_the_trajectory(room, room_run):
     _, clean = room_run
     cfg = room_config(max_map_points=1000)
-    detector = FalseLoopInjector(make_loop_detector(cfg, "rgbd"), at_submap=8, wrong_by_m=2.0)
+    detector = FalseLoopInjector(
+        make_loop_detector(cfg.loop_closure, "rgbd"), at_submap=8, wrong_by_m=2.0
+    )
     corrupted = run(cfg, room, room_odometry(), detector)
     injected = [c for c in corrupted.loop_candidates if c.detector == "injected"]
     assert len(injected) == 1 and injected[0].graph_inlier is False

@@ -1,10 +1,11 @@
-"""Odometry interface and registry: frames in, sensor poses ``T_W_S`` out."""
+"""Odometry interface and registry: frames in, one :class:`OdometryResult` per frame out."""
 
 from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,23 +21,41 @@ _ODOMETRY_MODULES: dict[str, str] = {
 }
 
 
+@dataclass(frozen=True)
+class OdometryResult:
+    """What an odometry reports for one frame.
+
+    Attributes:
+        T_W_S: 4x4 float64 pose of the frame (W = the first sensor frame).
+        points: (N, 3) points in the sensor frame S that the map should hold for this frame when
+            the odometry corrected them (KISS-ICP's motion-compensated scan), or None for the
+            frame's own points.
+        covariance: 6x6 covariance (GTSAM order ``[rx, ry, rz, tx, ty, tz]``, right
+            perturbation) of the motion from the frame of the latest
+            :meth:`Odometry.restart_covariance` (or the first frame) to this one; None when the
+            odometry gives none.
+    """
+
+    T_W_S: np.ndarray
+    points: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+
+    def map_points(self, frame: Frame) -> np.ndarray:
+        """The points the map should hold for ``frame`` (the frame this result is of)."""
+        return frame.points if self.points is None else self.points
+
+
 class Odometry(ABC):
     """Estimates the pose of each new frame relative to the first one (``T_W_S`` with W = S_0)."""
 
     @abstractmethod
-    def register(self, frame: Frame) -> np.ndarray:
-        """Consume the next frame and return its 4x4 float64 pose ``T_W_S``."""
+    def register(self, frame: Frame) -> OdometryResult:
+        """Consume the next frame and return its pose, map points and covariance."""
 
-    def map_points(self, frame: Frame) -> np.ndarray:
-        """(N, 3) points in the sensor frame S that the map should hold for ``frame``, the frame
-        :meth:`register` consumed last: the frame's own points unless the odometry corrects them
-        (KISS-ICP returns its motion-compensated scan)."""
-        return frame.points
-
-    def take_covariance(self) -> np.ndarray | None:
-        """6x6 covariance (GTSAM order ``[rx, ry, rz, tx, ty, tz]``) of the motion registered
-        since the last call, and start a new interval; None when the odometry gives none."""
-        return None
+    def restart_covariance(self) -> None:  # noqa: B027 - optional hook
+        """Make the frame registered last the origin of the motion whose covariance later
+        results carry (the pipeline calls it when that frame anchors a new submap, so each
+        odometry edge of the pose graph gets the covariance of its own motion)."""
 
 
 def register_odometry(name: str) -> Callable[[type[Odometry]], type[Odometry]]:

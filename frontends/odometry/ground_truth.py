@@ -6,7 +6,7 @@ import numpy as np
 
 from frontends.errors import DatasetError
 from frontends.frame import Frame
-from frontends.odometry.base import Odometry, register_odometry
+from frontends.odometry.base import Odometry, OdometryResult, register_odometry
 
 
 @register_odometry("gt")
@@ -17,7 +17,7 @@ class GroundTruthOdometry(Odometry):
     def __init__(self) -> None:
         self._T_S0_Wgt: np.ndarray | None = None
 
-    def register(self, frame: Frame) -> np.ndarray:
+    def register(self, frame: Frame) -> OdometryResult:
         if frame.T_W_S_gt is None:
             raise DatasetError(
                 f"frame {frame.index}: the source has no ground-truth pose; choose another "
@@ -31,4 +31,4 @@ class GroundTruthOdometry(Odometry):
             )
         if self._T_S0_Wgt is None:
             self._T_S0_Wgt = np.linalg.inv(T_Wgt_S)
-        return self._T_S0_Wgt @ T_Wgt_S
+        return OdometryResult(self._T_S0_Wgt @ T_Wgt_S)

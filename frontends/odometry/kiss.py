@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from frontends.errors import DatasetError
 from frontends.frame import Frame, point_ranges_m
-from frontends.odometry.base import Odometry, register_odometry
+from frontends.odometry.base import Odometry, OdometryResult, register_odometry
 
 logger = logging.getLogger(__name__)
 
@@ -94,9 +94,9 @@ class KissIcpOdometry(Odometry):
     """KISS-ICP scan-to-local-map registration. W is the frame of the first scan.
 
     Construct with a :class:`KissIcpConfig` or its sections as keyword arguments, e.g.
-    ``KissIcpOdometry(data={"max_range": 80.0})``. After each :meth:`register`, ``last_points``
-    holds the deskewed, range-filtered scan (sensor frame, what :meth:`map_points` returns) and
-    ``last_keypoints`` the downsampled points that were registered.
+    ``KissIcpOdometry(data={"max_range": 80.0})``. Each result's ``points`` are the deskewed,
+    range-filtered scan (sensor frame); after each :meth:`register`, ``last_keypoints`` holds the
+    downsampled points that were registered.
     """
 
     def __init__(self, config: KissIcpConfig | None = None, **options) -> None:
@@ -112,7 +112,6 @@ class KissIcpOdometry(Odometry):
         from kiss_icp.kiss_icp import KissICP
 
         self._kiss = KissICP(self.config.to_kiss())
-        self.last_points: np.ndarray = np.zeros((0, 3))
         self.last_keypoints: np.ndarray = np.zeros((0, 3))
 
     @property
@@ -120,12 +119,7 @@ class KissIcpOdometry(Odometry):
         """Local-map voxel size in use."""
         return float(self._kiss.config.mapping.voxel_size)
 
-    def map_points(self, frame: Frame) -> np.ndarray:
-        """The deskewed, range-filtered scan of the last registered frame (the frame's own points
-        before the first one)."""
-        return self.last_points if len(self.last_points) > 0 else frame.points
-
-    def register(self, frame: Frame) -> np.ndarray:
+    def register(self, frame: Frame) -> OdometryResult:
         points = np.asarray(frame.points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise DatasetError(
@@ -151,6 +145,9 @@ class KissIcpOdometry(Odometry):
         else:
             times = np.zeros(0)
         deskewed, keypoints = self._kiss.register_frame(points, times)
-        self.last_points = np.asarray(deskewed)
+        deskewed = np.asarray(deskewed)
         self.last_keypoints = np.asarray(keypoints)
-        return np.array(self._kiss.last_pose, dtype=np.float64)
+        return OdometryResult(
+            np.array(self._kiss.last_pose, dtype=np.float64),
+            points=deskewed if len(deskewed) > 0 else None,
+        )

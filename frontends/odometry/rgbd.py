@@ -34,111 +34,29 @@ Information: OpenCV does not return the Hessian of its cost, so after each regis
 point-to-plane cost of the frame's points against the reference frame's points and normals is
 evaluated at the estimated pose (:func:`~frontends.odometry.point_to_plane.point_to_plane_hessian`,
 a few thousand points). ``covariance_factor * sigma^2 H^-1`` of each registration is chained from
-keyframe to keyframe (``Ad`` transforms); :meth:`RgbdOdometry.take_covariance` returns the
-covariance of the motion since its previous call, which the pipeline calls at every new submap
-anchor to weigh the pose graph's odometry edge. A failed registration adds a large covariance.
+keyframe to keyframe (``Ad`` transforms); each result carries the covariance of the motion since
+the latest :meth:`RgbdOdometry.restart_covariance`, which the pipeline calls at every new submap
+anchor, so the anchor's result weighs the pose graph's odometry edge. A failed registration adds a
+large covariance.
 """
 
 from __future__ import annotations
 
 import logging
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from common.geometry import rotation_angle_rad
 from frontends.errors import DatasetError
 from frontends.frame import Frame
-from frontends.odometry.base import Odometry, register_odometry
-from frontends.odometry.model_tracking import LocalTsdfModel, LocalTsdfModelConfig
+from frontends.odometry.base import Odometry, OdometryResult, register_odometry
+from frontends.odometry.model_tracking import LocalTsdfModel
 from frontends.odometry.point_to_plane import adjoint, point_to_plane_hessian
+from frontends.odometry.rgbd_config import RgbdOdometryConfig
+
+__all__ = ["RgbdOdometry", "RgbdOdometryConfig"]
 
 logger = logging.getLogger(__name__)
-
-
-class RgbdOdometryConfig(BaseModel):
-    """Options of the OpenCV RGB-D odometry front-end."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    odometry_type: Literal["rgbd", "depth", "rgb"] = Field(
-        "rgbd",
-        description="Terms used: 'rgbd' (photometric + ICP), 'depth' (ICP only), 'rgb' "
-        "(photometric only).",
-    )
-    algorithm: Literal["common", "fast"] = Field(
-        "common", description="OpenCV's OdometryAlgoType: 'common' (accurate) or 'fast'."
-    )
-    min_depth_m: float = Field(0.0, ge=0, description="Depth below this is ignored.")
-    max_depth_m: float = Field(4.0, gt=0, description="Depth beyond this is ignored.")
-    max_depth_diff_m: float = Field(
-        0.07, gt=0, description="Largest depth difference of an ICP correspondence."
-    )
-    max_points_part: float = Field(
-        0.07, gt=0, le=1, description="Fraction of pixels used by the photometric term."
-    )
-    iter_counts: list[int] = Field(
-        default_factory=lambda: [7, 7, 7, 10],
-        min_length=1,
-        description="Iterations per pyramid level, finest level first.",
-    )
-    min_gradient_magnitudes: list[float] = Field(
-        default_factory=lambda: [10.0, 10.0, 10.0, 10.0],
-        min_length=1,
-        description="Per-level image-gradient threshold of photometric pixels (same length as "
-        "iter_counts).",
-    )
-    max_translation_m: float = Field(
-        0.15, gt=0, description="A registration that moves further than this counts as failed."
-    )
-    max_rotation_deg: float = Field(
-        15.0, gt=0, description="A registration that rotates more than this counts as failed."
-    )
-    downscale: int | None = Field(
-        None,
-        ge=1,
-        le=8,
-        description="Shrink images by this integer factor before registration; None picks "
-        "round(width / 320), i.e. 2 at 640x480 (~3x faster than 1 there with the same drift on "
-        "7-Scenes; at 320x240 shrinking further doubled the drift on the generated room).",
-    )
-    keyframe_translation_m: float = Field(
-        0.03,
-        ge=0,
-        description="Replace the keyframe once the camera is this far from it (0: register "
-        "frame to frame).",
-    )
-    keyframe_rotation_deg: float = Field(
-        2.0, ge=0, description="Replace the keyframe once the camera has turned this much."
-    )
-    tracking: Literal["keyframe", "model"] = Field(
-        "keyframe",
-        description="'keyframe': register each frame to the latest keyframe. 'model': register it "
-        "to a local TSDF model of the recent frames ray-cast at the keyframe's pose (frame to "
-        "model, as KinectFusion), falling back to the keyframe when the model is empty, covers "
-        "too little of the view or registration to it fails.",
-    )
-    model: LocalTsdfModelConfig = Field(
-        default_factory=LocalTsdfModelConfig,
-        description="The local TSDF model (tracking='model').",
-    )
-    covariance_points: int = Field(
-        2000,
-        ge=0,
-        description="Points of each frame used to evaluate the registration's point-to-plane "
-        "Hessian (its covariance); 0 turns the covariance off.",
-    )
-    covariance_max_distance_m: float = Field(
-        0.05, gt=0, description="Correspondence gate of that evaluation."
-    )
-    covariance_factor: float = Field(
-        20.0,
-        gt=0,
-        description="Covariance of a registration = this factor * sigma^2 H^-1 (sigma: its "
-        "point-to-plane RMSE). Inflates the raw estimate for correlated residuals and the "
-        "photometric term it does not model.",
-    )
 
 
 def _level_values(values: list, dtype: type) -> np.ndarray:
@@ -229,9 +147,9 @@ class RgbdOdometry(Odometry):
         self._reference = None
         self._key_cloud = None  # (points, normals, tree) of the keyframe for the covariance
         self._prev_cloud = None
-        self._cov_chain = np.zeros((6, 6))  # since take_covariance(), at the current keyframe
+        self._cov_chain = np.zeros((6, 6))  # since restart_covariance(), at the current keyframe
         self._cov_key_cur = np.zeros((6, 6))
-        self._cov_complete = True  # every registration since take_covariance() had its Hessian
+        self._cov_complete = True  # every registration since restart_covariance() had its Hessian
 
     def _build(self, frame: Frame) -> None:
         import cv2
@@ -373,7 +291,7 @@ class RgbdOdometry(Odometry):
             return None, "registration to the model failed"
         return self._T_W_key @ T_key_cur, ""
 
-    def register(self, frame: Frame) -> np.ndarray:
+    def register(self, frame: Frame) -> OdometryResult:
         self._check(frame)
         if self._odometry is None:
             self._build(frame)
@@ -387,7 +305,7 @@ class RgbdOdometry(Odometry):
             self._key_depth, self._key_gray = depth, gray
             if self._model is not None:
                 self._model.integrate(depth, np.eye(4))
-            return np.eye(4)
+            return OdometryResult(np.eye(4), covariance=self._covariance_since_restart())
 
         T_W_cur = None
         if self._model is not None:
@@ -451,7 +369,7 @@ class RgbdOdometry(Odometry):
         self._previous, self._T_W_prev = current, T_W_cur
         if self._model is not None and (self._keyframe is current or not c.model.keyframes_only):
             self._model.integrate(depth, T_W_cur)
-        return T_W_cur.copy()
+        return OdometryResult(T_W_cur.copy(), covariance=self._covariance_since_restart())
 
     def _cloud(self, frame: Frame):
         """A thinned copy of the frame's points and normals with a k-d tree (or None)."""
@@ -484,18 +402,22 @@ class RgbdOdometry(Odometry):
             return np.diag([0.05**2] * 3 + [0.1**2] * 3)
         return result.covariance(self.config.covariance_factor)
 
-    def take_covariance(self) -> np.ndarray | None:
+    def _covariance_since_restart(self) -> np.ndarray | None:
         """Covariance (``[rot, trans]``, right perturbation) of the motion from the frame of the
-        previous call to the latest frame, and restart from the latest frame. None when the
-        covariance is off or a frame had no normals to evaluate it."""
-        complete, self._cov_complete = self._cov_complete, True
-        if self.config.covariance_points == 0 or self._keyframe is None:
+        latest :meth:`restart_covariance` to the latest frame. None when the covariance is off
+        or a frame had no normals to evaluate it."""
+        if self.config.covariance_points == 0 or not self._cov_complete:
             return None
         T_key_cur = np.linalg.inv(self._T_W_key) @ self._T_W_prev
         Ad = adjoint(np.linalg.inv(T_key_cur))
         covariance = Ad @ self._cov_chain @ Ad.T + self._cov_key_cur
+        return 0.5 * (covariance + covariance.T)
+
+    def restart_covariance(self) -> None:
+        self._cov_complete = True
+        if self.config.covariance_points == 0 or self._keyframe is None:
+            return
         # The latest frame becomes the origin. The next motion starts with the way back from it
         # to its keyframe: the covariance of inv(T_key_cur) is Ad(T_key_cur) cov Ad(T_key_cur)^T.
-        Ad_back = adjoint(T_key_cur)
+        Ad_back = adjoint(np.linalg.inv(self._T_W_key) @ self._T_W_prev)
         self._cov_chain = Ad_back @ self._cov_key_cur @ Ad_back.T
-        return 0.5 * (covariance + covariance.T) if complete else None

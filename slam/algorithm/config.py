@@ -397,3 +397,21 @@ class RemapConfig(Strict):
     rotation_threshold_deg: float = Field(
         0.25, ge=0, description="remap a submap whose anchor turned more than this"
     )
+
+
+class PipelineConfig(Strict):
+    """What :class:`~slam.algorithm.pipeline.SlamPipeline` runs with (the application's run
+    configuration holds the same sections at its top level)."""
+
+    submaps: SubmapConfig = Field(default_factory=SubmapConfig, description="keyframing")
+    loop_closure: LoopClosureConfig = Field(
+        default_factory=LoopClosureConfig, description="loop detection and verification"
+    )
+    pose_graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig, description="pose graph")
+    remap: RemapConfig = Field(default_factory=RemapConfig, description="remapping")
+    map_worker: bool = Field(
+        True,
+        description="run encoding, fusion and remapping on a worker thread while the caller "
+        "runs odometry, keyframing and loop detection; results do not depend on it (the worker "
+        "applies map work in submap order)",
+    )

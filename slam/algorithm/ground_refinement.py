@@ -37,12 +37,14 @@ loop-closed one from 0.19 to 0.70 m (BENCHMARKS.md, LiDAR throughput).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
 from frontends.frame import Frame
-from frontends.odometry.base import Odometry
+from frontends.odometry.base import Odometry, OdometryResult
 
 _ROW = 1 << 32
 
@@ -198,7 +200,8 @@ def refine_vertical(
 class GroundRefinedOdometry(Odometry):
     """A LiDAR odometry whose scans' height, roll and pitch are refined against the ground map.
 
-    ``inner`` provides the motion between scans (and :meth:`map_points`, the scan it registered);
+    ``inner`` provides the motion between scans (and the scan it registered, the result's
+    ``points``, and its covariance);
     the poses returned are the refined chain: each scan's pose is the previous refined pose
     composed with the inner odometry's motion, then its height, roll and pitch are fitted to the
     ground map (its heading and x, y only move to first order in those corrections).
@@ -213,22 +216,20 @@ class GroundRefinedOdometry(Odometry):
         self._travelled_m = 0.0
         self.last_matched = 0
 
-    def map_points(self, frame: Frame) -> np.ndarray:
-        return self.inner.map_points(frame)
+    def restart_covariance(self) -> None:
+        self.inner.restart_covariance()
 
-    def take_covariance(self) -> np.ndarray | None:
-        return self.inner.take_covariance()
-
-    def _ground_points(self, frame: Frame) -> np.ndarray:
-        points = np.asarray(self.inner.map_points(frame), dtype=np.float64)
+    def _ground_points(self, scan: np.ndarray) -> np.ndarray:
+        points = np.asarray(scan, dtype=np.float64)
         r = np.linalg.norm(points[:, :2], axis=1)
         keep = (r > self.cfg.min_range_m) & (r < self.cfg.max_range_m)
         keep &= points[:, 2] < self.cfg.max_height_m
         return points[keep]
 
-    def register(self, frame: Frame) -> np.ndarray:
-        T_inner = np.asarray(self.inner.register(frame), dtype=np.float64)
-        points = self._ground_points(frame)
+    def register(self, frame: Frame) -> OdometryResult:
+        inner = self.inner.register(frame)
+        T_inner = np.asarray(inner.T_W_S, dtype=np.float64)
+        points = self._ground_points(inner.map_points(frame))
         if self._pose is None:
             pose = T_inner.copy()
         else:
@@ -243,4 +244,4 @@ class GroundRefinedOdometry(Odometry):
         self.ground.add_flat_cells(
             points @ pose[:3, :3].T + pose[:3, 3], self.cfg.flatness_m, self._travelled_m
         )
-        return pose.copy()
+        return replace(inner, T_W_S=pose.copy())

@@ -38,7 +38,7 @@ from common.geometry import orthonormalize, transform_points
 from common.voxel_keys import point_voxel_keys
 from frontends.odometry.point_to_plane import point_to_plane_hessian
 from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig
-from slam.algorithm.loops import LoopCandidate, LoopDetector, relative_motion
+from slam.algorithm.loops import LoopCandidate, LoopDetector, Verification, relative_motion
 from slam.algorithm.normals import estimate_normals
 from slam.algorithm.submaps import SubmapRecord
 
@@ -76,7 +76,6 @@ class IcpVerifier:
 
     def __init__(self, cfg: LidarLoopConfig) -> None:
         self.cfg = cfg
-        self.last_covariance: np.ndarray | None = None
 
     def align(
         self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
@@ -118,29 +117,27 @@ class IcpVerifier:
         query: np.ndarray,
         T_ref_query_guess: np.ndarray,
         limit_correction: bool = True,
-    ) -> tuple[bool, str, np.ndarray, dict[str, float]]:
-        """ICP plus the acceptance tests: ``(accepted, reason, T_ref_query, scores)``.
+    ) -> Verification:
+        """ICP plus the acceptance tests; an accepted edge carries its ICP covariance.
 
         ``limit_correction``: reject a large ICP correction (for guesses that are independent
-        of the drift, such as map_closures' 2D matches). After an accepted verification,
-        :attr:`last_covariance` holds the edge's covariance.
+        of the drift, such as map_closures' 2D matches).
         """
         c = self.cfg
-        self.last_covariance = None
         reference = np.asarray(reference, dtype=np.float64)
         query = np.asarray(query, dtype=np.float64)
         T = self.align(reference, query, T_ref_query_guess)
         correction_m, correction_deg = relative_motion(T_ref_query_guess, T)
         scores = {"icp_correction_m": correction_m, "icp_correction_deg": correction_deg}
         if not np.all(np.isfinite(T)):
-            return False, "icp diverged", T_ref_query_guess, scores
+            return Verification(False, "icp diverged", T_ref_query_guess, scores)
         full_reference, full_query = reference, query
         if c.ground_clearance_m > 0:
             reference = reference[above_ground(reference, c.ground_cell_m, c.ground_clearance_m)]
             query = query[above_ground(query, c.ground_cell_m, c.ground_clearance_m)]
         scores["structure_points"] = float(min(len(reference), len(query)))
         if min(len(reference), len(query)) < c.min_structure_points:
-            return False, "too little structure above the ground", T, scores
+            return Verification(False, "too little structure above the ground", T, scores)
         query_in_ref = transform_points(T, query)
         distances, _ = cKDTree(reference).query(query_in_ref, k=1)
         inlier_ratio = float(np.mean(distances < c.inlier_distance_m))
@@ -153,26 +150,19 @@ class IcpVerifier:
         if limit_correction and (
             correction_m > c.max_icp_correction_m or correction_deg > c.max_icp_correction_deg
         ):
-            return (
-                False,
-                f"icp correction {correction_m:.2f} m / {correction_deg:.1f} deg too large",
-                T,
-                scores,
-            )
+            reason = f"icp correction {correction_m:.2f} m / {correction_deg:.1f} deg too large"
+            return Verification(False, reason, T, scores)
         if inlier_ratio < c.min_inlier_ratio:
-            return False, f"inlier ratio {inlier_ratio:.2f} < {c.min_inlier_ratio:.2f}", T, scores
+            reason = f"inlier ratio {inlier_ratio:.2f} < {c.min_inlier_ratio:.2f}"
+            return Verification(False, reason, T, scores)
         if overlap < c.min_overlap:
-            return False, f"overlap {overlap:.2f} < {c.min_overlap:.2f}", T, scores
+            return Verification(False, f"overlap {overlap:.2f} < {c.min_overlap:.2f}", T, scores)
         if eigenvalue < c.min_hessian_eigenvalue:
-            return (
-                False,
-                f"degenerate icp cost: min eigenvalue {eigenvalue:.4f} "
-                f"< {c.min_hessian_eigenvalue}",
-                T,
-                scores,
+            reason = (
+                f"degenerate icp cost: min eigenvalue {eigenvalue:.4f} < {c.min_hessian_eigenvalue}"
             )
-        self.last_covariance = cost.covariance(c.covariance_factor)
-        return True, "accepted", T, scores
+            return Verification(False, reason, T, scores)
+        return Verification(True, "accepted", T, scores, cost.covariance(c.covariance_factor))
 
     def _cost(self, reference: np.ndarray, query: np.ndarray, T: np.ndarray):
         """Point-to-plane cost at ``T`` (normals by PCA on the reference cloud)."""
@@ -261,12 +251,12 @@ class LidarLoopDetector(LoopDetector):
         candidates = []
         for i, (detector, guess, detection_scores) in guesses.items():
             reference = np.asarray(self._clouds[i], dtype=np.float64)
-            accepted, reason, T_Ai_Aj, scores = self._verifier.verify(
+            verification = self._verifier.verify(
                 reference, cloud, guess, limit_correction=detector != "proximity"
             )
-            scores.update(detection_scores)
-            logger.debug("loop %d-%d (%s): %s %s", i, j, detector, reason, scores)
-            candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, detector)
-            candidate.covariance = self._verifier.last_covariance if accepted else None
-            candidates.append(candidate)
+            verification.scores.update(detection_scores)
+            logger.debug(
+                "loop %d-%d (%s): %s %s", i, j, detector, verification.reason, verification.scores
+            )
+            candidates.append(verification.candidate(i, j, detector))
         return candidates

@@ -42,105 +42,34 @@ Rejection reasons start with the stage that rejected: ``matches``, ``pnp``, ``3d
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from common.geometry import transform_points
 from frontends.depth import depth_to_points
 from frontends.frame import Frame, Intrinsics
 from frontends.odometry.point_to_plane import IcpResult, point_to_plane_icp
 from slam.algorithm.config import LoopClosureConfig, RgbdLoopConfig
-from slam.algorithm.loops import LoopCandidate, LoopDetector, relative_motion
-from slam.algorithm.submaps import SubmapRecord, voxel_downsample
+from slam.algorithm.loop_keyframes import (
+    KeyframeFeatures,
+    depth_agreement,
+    lift_pixels,
+    to_gray,
+)
+from slam.algorithm.loop_refine import RefineCloud, refine_scores
+from slam.algorithm.loops import LoopCandidate, LoopDetector, Verification, relative_motion
+from slam.algorithm.submaps import SubmapRecord
+
+__all__ = [
+    "KeyframeFeatures",
+    "RefineCloud",
+    "RgbdLoopDetector",
+    "RgbdVerifier",
+    "depth_agreement",
+    "refine_scores",
+]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class RefineCloud:
-    """A thinned cloud with unit normals in the keyframe (anchor) frame, and its k-d tree."""
-
-    points: np.ndarray
-    normals: np.ndarray
-    tree: cKDTree
-    radius_m: float
-    spacing_m: float = 0.0
-
-    @classmethod
-    def build(
-        cls, points: np.ndarray, normals: np.ndarray | None, voxel_m: float, max_points: int
-    ) -> RefineCloud | None:
-        if normals is None or len(points) == 0:
-            return None
-        points = np.asarray(points, dtype=np.float64)
-        normals = np.asarray(normals, dtype=np.float64)
-        good = np.isfinite(points).all(axis=1) & (np.linalg.norm(normals, axis=1) > 0.5)
-        points, normals = voxel_downsample(voxel_m, points[good], normals[good])
-        length = np.linalg.norm(normals, axis=1)
-        keep = length > 0.5
-        points, normals = points[keep], normals[keep] / length[keep, None]
-        if len(points) > max_points:
-            pick = np.random.default_rng(0).choice(len(points), max_points, replace=False)
-            points, normals = points[np.sort(pick)], normals[np.sort(pick)]
-        if len(points) < 100:
-            return None
-        radius = float(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))))
-        tree = cKDTree(points)
-        spacing = float(np.median(tree.query(points, k=2)[0][:, 1]))
-        return cls(points, normals, tree, radius, spacing)
-
-
-@dataclass
-class KeyframeFeatures:
-    """ORB features of a keyframe with their back-projected 3D points.
-
-    Attributes:
-        pixels: (N, 2) float32 keypoint positions (x, y).
-        descriptors: (N, 32) uint8 ORB descriptors.
-        points_S: (N, 3) keypoints lifted with the depth image (NaN where depth is invalid).
-        gray: (H, W) uint8 image.
-        depth: (H, W) float32 depth in metres (0 = invalid).
-        K: 3x3 camera matrix.
-        cloud: the submap cloud for the dense refinement (None: no refinement possible).
-    """
-
-    pixels: np.ndarray
-    descriptors: np.ndarray
-    points_S: np.ndarray
-    gray: np.ndarray
-    depth: np.ndarray
-    K: np.ndarray
-    cloud: RefineCloud | None = None
-
-
-def to_gray(rgb: np.ndarray | None, depth: np.ndarray) -> np.ndarray:
-    """A uint8 grey image (a depth rendering when there is no colour image)."""
-    import cv2
-
-    if rgb is None:
-        scaled = np.clip(depth / max(float(np.nanmax(depth)), 1e-6) * 255.0, 0, 255)
-        return np.nan_to_num(scaled).astype(np.uint8)
-    if rgb.ndim == 2:
-        return np.ascontiguousarray(rgb, dtype=np.uint8)
-    return cv2.cvtColor(np.ascontiguousarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
-
-
-def lift_pixels(
-    pixels: np.ndarray, depth: np.ndarray, K: np.ndarray, min_depth_m: float, max_depth_m: float
-) -> np.ndarray:
-    """Back-project pixel positions with the nearest depth value (NaN where invalid)."""
-    h, w = depth.shape
-    cols = np.clip(np.round(pixels[:, 0]).astype(int), 0, w - 1)
-    rows = np.clip(np.round(pixels[:, 1]).astype(int), 0, h - 1)
-    z = depth[rows, cols].astype(np.float64)
-    valid = np.isfinite(z) & (z >= min_depth_m) & (z <= max_depth_m)
-    points = np.full((len(pixels), 3), np.nan)
-    points[valid, 0] = (pixels[valid, 0] - K[0, 2]) * z[valid] / K[0, 0]
-    points[valid, 1] = (pixels[valid, 1] - K[1, 2]) * z[valid] / K[1, 1]
-    points[valid, 2] = z[valid]
-    return points
 
 
 class RgbdVerifier:
@@ -151,7 +80,6 @@ class RgbdVerifier:
 
         self.cfg = cfg
         self._orb = cv2.ORB.create(nfeatures=cfg.orb_features)
-        self.last_covariance: np.ndarray | None = None
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
 
     def features(
@@ -200,15 +128,11 @@ class RgbdVerifier:
 
     def verify(
         self, reference: KeyframeFeatures, query: KeyframeFeatures, matches: np.ndarray
-    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
-        """``(accepted, reason, T_Si_Sj, scores)`` of a keyframe pair with its ORB matches.
-
-        After an accepted verification with refinement, :attr:`last_covariance` holds the
-        edge's covariance (else None).
-        """
+    ) -> Verification:
+        """The verification of a keyframe pair with its ORB matches (``T_ref_query`` is
+        ``T_Si_Sj``); an accepted edge carries its covariance when it was refined."""
         import cv2
 
-        self.last_covariance = None
         c = self.cfg
         scores: dict[str, float] = {"orb_matches": float(len(matches))}
         object_points = reference.points_S[matches[:, 0]]
@@ -218,7 +142,7 @@ class RgbdVerifier:
         scores["matches_with_depth"] = float(len(matches))
         if len(matches) < c.min_pnp_inliers:
             reason = f"matches: {len(matches)} with depth < {c.min_pnp_inliers}"
-            return False, reason, None, scores
+            return Verification(False, reason, None, scores)
         image_points = query.pixels[matches[:, 1]].astype(np.float64)
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(
             object_points,
@@ -234,10 +158,12 @@ class RgbdVerifier:
         ratio = num_inliers / len(matches)
         scores["pnp_inlier_ratio"] = ratio
         if not ok or num_inliers < c.min_pnp_inliers:
-            return False, f"pnp: inliers {num_inliers} < {c.min_pnp_inliers}", None, scores
+            return Verification(
+                False, f"pnp: inliers {num_inliers} < {c.min_pnp_inliers}", None, scores
+            )
         if ratio < c.min_inlier_ratio:
             reason = f"pnp: inlier ratio {ratio:.2f} < {c.min_inlier_ratio:.2f}"
-            return False, reason, None, scores
+            return Verification(False, reason, None, scores)
         T_Sj_Si = np.eye(4)
         T_Sj_Si[:3, :3] = cv2.Rodrigues(rvec)[0]
         T_Sj_Si[:3, 3] = tvec.ravel()
@@ -245,14 +171,10 @@ class RgbdVerifier:
         residual = self._residual_3d(reference, query, inlier_matches, T_Sj_Si)
         scores["residual_3d_m"] = residual
         if not np.isfinite(residual):
-            return False, "3d: no pnp inlier has depth in both frames", None, scores
+            return Verification(False, "3d: no pnp inlier has depth in both frames", None, scores)
         if residual > c.max_3d_residual_m:
-            return (
-                False,
-                f"3d: residual {residual:.3f} m > {c.max_3d_residual_m:.3f} m",
-                np.linalg.inv(T_Sj_Si),
-                scores,
-            )
+            reason = f"3d: residual {residual:.3f} m > {c.max_3d_residual_m:.3f} m"
+            return Verification(False, reason, np.linalg.inv(T_Sj_Si), scores)
         refined, odometry_reason = self._odometry_stage(reference, query, T_Sj_Si, scores)
         if odometry_reason is None:
             T_Si_Sj = np.linalg.inv(refined)
@@ -262,9 +184,9 @@ class RgbdVerifier:
             scores["odometry_rejected"] = 1.0
             T_Si_Sj = np.linalg.inv(T_Sj_Si)
         else:
-            return False, odometry_reason, np.linalg.inv(T_Sj_Si), scores
+            return Verification(False, odometry_reason, np.linalg.inv(T_Sj_Si), scores)
         if not c.refine:
-            return True, "accepted", T_Si_Sj, scores
+            return Verification(True, "accepted", T_Si_Sj, scores)
         return self.verify_dense(reference, query, T_Si_Sj, scores)
 
     def verify_dense(
@@ -273,23 +195,24 @@ class RgbdVerifier:
         query: KeyframeFeatures,
         T_Si_Sj_guess: np.ndarray,
         scores: dict[str, float] | None = None,
-    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
+    ) -> Verification:
         """Dense refinement from a guess and its checks (ICP quality, keyframe depth agreement).
 
         With ``keyframe_refine`` the submap ICP's result is the start of the keyframe stage, and
-        the depth agreement judges that stage's result. Sets :attr:`last_covariance` when
-        accepted.
+        the depth agreement judges that stage's result. An accepted edge carries its ICP
+        covariance.
         """
         c = self.cfg
-        self.last_covariance = None
         scores = {} if scores is None else scores
         T_Si_Sj = T_Si_Sj_guess
         if reference.cloud is None or query.cloud is None:
-            return False, "refine: no cloud with normals to refine on", T_Si_Sj, scores
+            return Verification(
+                False, "refine: no cloud with normals to refine on", T_Si_Sj, scores
+            )
         accepted, reason, T_dense, result = self.refine(reference.cloud, query.cloud, T_Si_Sj)
         scores.update(refine_scores(result, T_Si_Sj, reference.cloud.radius_m))
         if not accepted:
-            return False, reason, T_dense, scores
+            return Verification(False, reason, T_dense, scores)
         if c.keyframe_refine:
             return self._verify_keyframes(reference, query, T_dense, scores)
         return self._judge_edge(
@@ -304,9 +227,9 @@ class RgbdVerifier:
         result: IcpResult,
         scores: dict[str, float],
         failure: str,
-    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
+    ) -> Verification:
         """The final check of a registered edge, the keyframes' depth agreement; an edge that
-        passes gets its ICP covariance (:attr:`last_covariance`)."""
+        passes carries its ICP covariance."""
         c = self.cfg
         fraction, median = depth_agreement(
             reference, query, np.linalg.inv(T_edge), c.depth_inlier_distance_m
@@ -314,9 +237,12 @@ class RgbdVerifier:
         scores["final_depth_agreement"] = fraction
         scores["final_depth_residual_m"] = median
         if not (fraction >= c.min_depth_agreement and median <= c.max_depth_residual_m):
-            return False, f"{failure} {fraction:.2f}, residual {median:.3f} m", T_edge, scores
-        self.last_covariance = result.covariance(c.covariance_factor)
-        return True, "accepted", T_edge, scores
+            return Verification(
+                False, f"{failure} {fraction:.2f}, residual {median:.3f} m", T_edge, scores
+            )
+        return Verification(
+            True, "accepted", T_edge, scores, result.covariance(c.covariance_factor)
+        )
 
     def keyframe_cloud(self, features: KeyframeFeatures) -> RefineCloud | None:
         """The keyframe's own depth image as a refinement cloud (None: too few points)."""
@@ -342,12 +268,12 @@ class RgbdVerifier:
         query: KeyframeFeatures,
         T_submaps: np.ndarray,
         scores: dict[str, float],
-    ) -> tuple[bool, str, np.ndarray | None, dict[str, float]]:
-        """Keyframe-to-keyframe ICP from the submap ICP's edge, its checks; sets the covariance."""
+    ) -> Verification:
+        """Keyframe-to-keyframe ICP from the submap ICP's edge and its checks."""
         reference_cloud = self.keyframe_cloud(reference)
         query_cloud = self.keyframe_cloud(query)
         if reference_cloud is None or query_cloud is None:
-            return False, "keyframe: too few depth points", T_submaps, scores
+            return Verification(False, "keyframe: too few depth points", T_submaps, scores)
         accepted, reason, T_edge, result = self.refine(reference_cloud, query_cloud, T_submaps)
         scores.update(
             {
@@ -356,7 +282,9 @@ class RgbdVerifier:
             }
         )
         if not accepted:
-            return False, "keyframe: " + reason.removeprefix("refine: "), T_edge, scores
+            return Verification(
+                False, "keyframe: " + reason.removeprefix("refine: "), T_edge, scores
+            )
         failure = "keyframe: depth agreement"
         return self._judge_edge(reference, query, T_edge, result, scores, failure)
 
@@ -475,54 +403,6 @@ class RgbdVerifier:
         return delta @ T_Sj_Si, delta
 
 
-def refine_scores(result: IcpResult, T_guess: np.ndarray, radius_m: float) -> dict[str, float]:
-    """Diagnostics of a dense refinement for the loop candidate's scores."""
-    correction_m, correction_deg = relative_motion(T_guess, result.T_ref_query)
-    return {
-        "dense_inlier_fraction": result.inlier_fraction,
-        "dense_rmse_m": result.rmse_m,
-        "dense_residual_sigma_m": result.robust_sigma_m,
-        "dense_correction_m": correction_m,
-        "dense_correction_deg": correction_deg,
-        "dense_min_eigenvalue": result.normalized_min_eigenvalue(radius_m),
-        "dense_iterations": float(result.iterations),
-    }
-
-
-def depth_agreement(
-    reference: KeyframeFeatures, query: KeyframeFeatures, T_Sj_Si: np.ndarray, inlier_m: float
-) -> tuple[float, float]:
-    """How well the reference depth, moved into the query view by ``T_Sj_Si``, agrees.
-
-    Every 4th reference depth pixel is lifted, moved and projected into the query image; among
-    those that land on a valid query depth, returns the fraction whose depth differs by less than
-    ``inlier_m`` and the median absolute difference (``(0, inf)`` without overlap).
-    """
-    depth = reference.depth[::4, ::4]
-    rows, cols = np.nonzero(depth > 0)
-    if len(rows) == 0:
-        return 0.0, float("inf")
-    z = depth[rows, cols].astype(np.float64)
-    K = reference.K
-    u, v = cols * 4.0, rows * 4.0
-    points = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
-    moved = transform_points(T_Sj_Si, points)
-    front = moved[:, 2] > 1e-3
-    moved = moved[front]
-    Kq = query.K
-    uq = np.round(Kq[0, 0] * moved[:, 0] / moved[:, 2] + Kq[0, 2]).astype(int)
-    vq = np.round(Kq[1, 1] * moved[:, 1] / moved[:, 2] + Kq[1, 2]).astype(int)
-    h, w = query.depth.shape
-    inside = (uq >= 0) & (uq < w) & (vq >= 0) & (vq < h)
-    observed = np.zeros(len(moved))
-    observed[inside] = query.depth[vq[inside], uq[inside]]
-    overlap = observed > 0
-    if overlap.sum() < 50:
-        return 0.0, float("inf")
-    difference = np.abs(observed[overlap] - moved[overlap, 2])
-    return float(np.mean(difference < inlier_m)), float(np.median(difference))
-
-
 class RgbdLoopDetector(LoopDetector):
     """Pose-proximity + ORB candidates between keyframes, verified by :class:`RgbdVerifier`.
 
@@ -568,13 +448,9 @@ class RgbdLoopDetector(LoopDetector):
         ranked.sort(key=lambda item: -item[0])
         candidates = []
         for _, i, matches in ranked[: c.rgbd.max_candidates]:
-            accepted, reason, T_Ai_Aj, scores = self._verifier.verify(
-                self._features[i], query, matches
-            )
-            logger.debug("loop %d-%d: %s %s", i, j, reason, scores)
-            candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "orb")
-            candidate.covariance = self._verifier.last_covariance if accepted else None
-            candidates.append(candidate)
+            verification = self._verifier.verify(self._features[i], query, matches)
+            logger.debug("loop %d-%d: %s %s", i, j, verification.reason, verification.scores)
+            candidates.append(verification.candidate(i, j, "orb"))
         candidates += self._proximity(j, query, submap, T_W_A_estimates, candidates)
         self._features[j] = query
         self._travelled[j] = submap.travelled_m
@@ -610,11 +486,9 @@ class RgbdLoopDetector(LoopDetector):
         near.sort(key=lambda item: item[0])
         candidates = []
         for _, i, guess in near[: c.rgbd.proximity_candidates]:
-            accepted, reason, T_Ai_Aj, scores = self._verifier.verify_dense(
-                self._features[i], query, guess
+            verification = self._verifier.verify_dense(self._features[i], query, guess)
+            logger.debug(
+                "loop %d-%d (proximity): %s %s", i, j, verification.reason, verification.scores
             )
-            logger.debug("loop %d-%d (proximity): %s %s", i, j, reason, scores)
-            candidate = LoopCandidate(i, j, accepted, reason, T_Ai_Aj, scores, "proximity")
-            candidate.covariance = self._verifier.last_covariance if accepted else None
-            candidates.append(candidate)
+            candidates.append(verification.candidate(i, j, "proximity"))
         return candidates

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -35,6 +36,40 @@ class LoopCandidate:
     detector: str = ""
     graph_inlier: bool | None = None
     covariance: np.ndarray | None = None
+
+
+class Verification(NamedTuple):
+    """What a loop verifier concludes about one pair: ``(accepted, reason, T_ref_query, scores,
+    covariance)``.
+
+    Attributes:
+        accepted: passed every check.
+        reason: ``accepted`` or why it was rejected.
+        T_ref_query: the registered relative pose (or the last estimate before rejection), or
+            None when no stage produced one.
+        scores: diagnostics of the checks.
+        covariance: 6x6 covariance of ``T_ref_query`` from the registration (``[rot, trans]``)
+            when accepted and the registration gives one, else None.
+    """
+
+    accepted: bool
+    reason: str
+    T_ref_query: np.ndarray | None
+    scores: dict[str, float]
+    covariance: np.ndarray | None = None
+
+    def candidate(self, reference_id: int, query_id: int, detector: str) -> LoopCandidate:
+        """The loop candidate between two submaps whose anchors this pair is."""
+        return LoopCandidate(
+            reference_id,
+            query_id,
+            self.accepted,
+            self.reason,
+            self.T_ref_query,
+            self.scores,
+            detector,
+            covariance=self.covariance if self.accepted else None,
+        )
 
 
 class LoopDetector(ABC):

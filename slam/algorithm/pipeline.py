@@ -6,17 +6,13 @@ optimised anchor pose -> submaps whose anchors moved are remapped. A frame's pos
 anchor's current estimate composed with the frame's odometry pose relative to that anchor, so the
 whole trajectory follows every optimisation. The world frame is the first anchor (frame 0).
 
-Everything is reported to a :class:`~slam.algorithm.viz.Logger`, unconditionally; what is recorded
-depends
-only on which logger the runner built. What only a recording needs (voxel centres, meshes, the
-error so far) is handed over as a callable that the null logger never calls, and per-frame
-logging is O(1): trajectories grow by one position, and the optimised one is recomputed only
-when a loop moved the graph.
+The pipeline neither logs nor scores: each :meth:`SlamPipeline.process` returns a
+:class:`FrameResult` (what happened at that frame), :meth:`SlamPipeline.map_snapshot` gives what a
+viewer shows of the map, and :meth:`SlamPipeline.report` what metrics need at the end.
 
 Map work (encode, fuse, remap) runs on a :class:`~slam.algorithm.map_worker.MapWorker` (a worker
-thread when
-``cfg.map_worker``), in submission order with pose snapshots taken here, so results do not
-depend on timing.
+thread when ``cfg.map_worker``), in submission order with pose snapshots taken here, so results do
+not depend on timing.
 """
 
 from __future__ import annotations
@@ -28,47 +24,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.geometry import transform_points
 from frontends.frame import Frame
-from frontends.odometry.base import Odometry
+from frontends.odometry.base import Odometry, OdometryResult
+from slam.algorithm.config import LoopClosureConfig, PipelineConfig
 from slam.algorithm.loops import LoopCandidate, LoopDetector
 from slam.algorithm.map_worker import MapWorker
 from slam.algorithm.memory import release_freed_memory
 from slam.algorithm.pose_graph import PoseGraph
 from slam.algorithm.remap import RemapEvent, Remapper
+from slam.algorithm.report import PipelineReport
 from slam.algorithm.submaps import Keyframer, SubmapRecord
-from slam.algorithm.viz import Logger
-from slam.app.config import RunConfig
 
 logger = logging.getLogger(__name__)
-
-SCAN_LOG_MAX_POINTS = 30_000
 
 
 def _clock() -> tuple[float, float]:
     """(wall, CPU time of the calling thread) in seconds."""
     return time.perf_counter(), time.thread_time()
-
-
-class _Track:
-    """A growing (N, 3) array with amortised O(1) append; :meth:`view` shares memory."""
-
-    def __init__(self) -> None:
-        self._data = np.zeros((256, 3))
-        self._size = 0
-
-    def append(self, position: np.ndarray) -> None:
-        if self._size == len(self._data):
-            self._data = np.concatenate([self._data, np.zeros_like(self._data)])
-        self._data[self._size] = position
-        self._size += 1
-
-    def replace(self, positions: np.ndarray) -> None:
-        self._data = np.array(positions, dtype=np.float64).reshape(-1, 3)
-        self._size = len(self._data)
-
-    def view(self) -> np.ndarray:
-        return self._data[: self._size]
 
 
 @dataclass
@@ -84,6 +56,10 @@ class FrameResult:
         loops: loop candidates examined at this frame.
         remap: the remapping pass run at this frame, or None (also None while the map worker
             has not run it yet: see :attr:`SlamPipeline.remapper` for every pass).
+        loop_added: an accepted loop went into the pose graph at this frame (every anchor, so
+            every frame's estimate, may have moved).
+        frame_s: wall seconds the pipeline spent on this frame.
+        odometry_s: of which the odometry's.
     """
 
     index: int
@@ -93,11 +69,13 @@ class FrameResult:
     closed_submap_id: int | None = None
     loops: list[LoopCandidate] = field(default_factory=list)
     remap: RemapEvent | None = None
+    loop_added: bool = False
+    frame_s: float = 0.0
+    odometry_s: float = 0.0
 
 
-def make_loop_detector(cfg: RunConfig, sensor: str) -> LoopDetector | None:
+def make_loop_detector(lc: LoopClosureConfig, sensor: str) -> LoopDetector | None:
     """The loop detector for a sensor (None when loop closure is off)."""
-    lc = cfg.loop_closure
     if not lc.enabled:
         return None
     method = sensor if lc.method == "auto" else lc.method
@@ -115,22 +93,22 @@ class SlamPipeline:
 
     def __init__(
         self,
-        cfg: RunConfig,
+        cfg: PipelineConfig,
         sensor: str,
         odometry: Odometry,
         neural_map,
-        viz: Logger,
         loop_detector: LoopDetector | None = None,
     ) -> None:
         self.cfg = cfg
         self.sensor = sensor
         self.odometry = odometry
         self.map = neural_map
-        self.viz = viz
         self.keyframer = Keyframer(cfg.submaps)
         self.graph = PoseGraph(cfg.pose_graph)
         self.loop_detector = (
-            loop_detector if loop_detector is not None else make_loop_detector(cfg, sensor)
+            loop_detector
+            if loop_detector is not None
+            else make_loop_detector(cfg.loop_closure, sensor)
         )
         self.remapper = Remapper(cfg.remap, neural_map)
         self.submaps: dict[int, object] = {}
@@ -143,7 +121,6 @@ class SlamPipeline:
         for stage in ("mapping", "remap", "map_logging", "map_worker_wait"):  # worker writes too
             self.timings_s[stage] = []
         self.worker = MapWorker(threaded=cfg.map_worker)
-        self._tracks = {"odometry": _Track(), "optimized": _Track(), "gt": _Track()}
         self._num_accepted = 0
         self._last_remap_moved = False
         self._frame_submap: list[int] = []
@@ -152,7 +129,6 @@ class SlamPipeline:
         self._odometry_poses: list[np.ndarray] = []
         self._timestamps: list[float] = []
         self._gt: list[np.ndarray | None] = []
-        self._T_W_Wgt: np.ndarray | None = None
         self._closed_count = 0
         self._finished = False
 
@@ -166,12 +142,13 @@ class SlamPipeline:
         self.stage_cpu_s[name] += now[1] - start[1]
         return now
 
-    def _map_frame(self, frame: Frame) -> Frame:
-        """The frame whose points go into the map: the odometry's :meth:`Odometry.map_points`
-        (e.g. KISS-ICP's deskewed scan) for frames without normals of their own."""
-        if frame.normals is not None:
+    @staticmethod
+    def _map_frame(frame: Frame, odometry: OdometryResult) -> Frame:
+        """The frame whose points go into the map: the odometry's corrected points (e.g.
+        KISS-ICP's deskewed scan) for frames without normals of their own."""
+        if frame.normals is not None or odometry.points is None:
             return frame
-        points = self.odometry.map_points(frame)
+        points = odometry.points
         if points is frame.points:
             return frame
         return Frame(
@@ -186,13 +163,16 @@ class SlamPipeline:
         if self._finished:
             raise RuntimeError("process() after finish()")
         start = _clock()
-        T_W_S_odometry = np.asarray(self.odometry.register(frame), dtype=np.float64)
+        odometry = self.odometry.register(frame)
+        T_W_S_odometry = np.asarray(odometry.T_W_S, dtype=np.float64)
         t = self._timed("odometry", start)
 
-        closed, current, T_A_S = self.keyframer.add(self._map_frame(frame), T_W_S_odometry)
+        closed, current, T_A_S = self.keyframer.add(
+            self._map_frame(frame, odometry), T_W_S_odometry
+        )
         if current.submap_id not in self.graph:
-            covariance = self.odometry.take_covariance()
-            self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, covariance)
+            self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, odometry.covariance)
+            self.odometry.restart_covariance()
         self._timed("keyframing", t)
 
         self._frame_submap.append(current.submap_id)
@@ -210,24 +190,24 @@ class SlamPipeline:
         )
         if closed is not None:
             result.closed_submap_id = closed.submap_id
-            result.loops, result.remap = self._on_submap_closed(closed, frame.index)
+            result.loops, result.remap, result.loop_added = self._on_submap_closed(
+                closed, frame.index
+            )
             result.T_W_S = self.graph.pose(current.submap_id) @ T_A_S
-        self._track_frame(result, graph_moved=any(c.accepted for c in result.loops))
-        self.timings_s["frame"].append(time.perf_counter() - start[0])
-        self._log_frame(frame, result)
+        result.odometry_s = self.timings_s["odometry"][-1]
+        result.frame_s = time.perf_counter() - start[0]
+        self.timings_s["frame"].append(result.frame_s)
         return result
 
     def _record_gt(self, frame: Frame) -> None:
         gt = None if frame.T_W_S_gt is None else np.asarray(frame.T_W_S_gt, dtype=np.float64)
-        if gt is not None and self._T_W_Wgt is None and not self._gt:
-            self._T_W_Wgt = np.linalg.inv(gt)
         self._gt.append(gt)
 
     # --- submap boundaries --------------------------------------------------------------------
 
     def _on_submap_closed(
         self, record: SubmapRecord, frame_index: int
-    ) -> tuple[list[LoopCandidate], RemapEvent | None]:
+    ) -> tuple[list[LoopCandidate], RemapEvent | None, bool]:
         self._closed_count += 1
         start = _clock()
         candidates: list[LoopCandidate] = []
@@ -262,11 +242,7 @@ class SlamPipeline:
             if not self.worker.threaded:
                 remap = self.remapper.events[-1] if self._last_remap_moved else None
             self._refresh_graph_inliers()
-            self._log_loops()
-        periodic = self._closed_count % self.cfg.viz.mesh_every_submaps == 0
-        self.viz.log_map_from(lambda: self._map_snapshot(periodic, added))
-        self.viz.log_metrics_from(self._errors_so_far)
-        return candidates, remap
+        return candidates, remap, added
 
     def _map_job(
         self,
@@ -334,11 +310,6 @@ class SlamPipeline:
         self._timed("remap", t)
         self._refresh_graph_inliers()
         self._finished = True
-        self._log_loops()
-        self._tracks["optimized"].replace(self.slam_poses()[:, :3, 3])
-        self._log_trajectories()
-        self.viz.log_map_from(lambda: self._map_snapshot(True, False))
-        self.viz.log_metrics_from(self._errors_so_far)
         return remap
 
     # --- results ------------------------------------------------------------------------------
@@ -389,80 +360,49 @@ class SlamPipeline:
     def accepted_loops(self) -> list[LoopCandidate]:
         return [c for c in self.loop_candidates if c.accepted]
 
-    # --- logging ------------------------------------------------------------------------------
+    @property
+    def num_closed_submaps(self) -> int:
+        """Submaps closed so far (encoded or queued for the map worker)."""
+        return self._closed_count
 
-    def _track_frame(self, result: FrameResult, graph_moved: bool) -> None:
-        self._tracks["odometry"].append(result.T_W_S_odometry[:3, 3])
-        if graph_moved:  # a loop moved the anchors: every frame's estimate changed
-            self._tracks["optimized"].replace(self.slam_poses()[:, :3, 3])
-        else:
-            self._tracks["optimized"].append(result.T_W_S[:3, 3])
-        gt = self._gt[-1]
-        if gt is not None and self._T_W_Wgt is not None:
-            self._tracks["gt"].append((self._T_W_Wgt @ gt)[:3, 3])
+    @property
+    def num_accepted_loops(self) -> int:
+        """Loop edges added to the pose graph so far."""
+        return self._num_accepted
 
-    def _log_frame(self, frame: Frame, result: FrameResult) -> None:
-        viz = self.viz
-        viz.set_time(frame.index, float(frame.timestamp))
-        if frame.index % self.cfg.viz.scan_every == 0:
-            points = np.asarray(frame.points)
-            colors = frame.colors
-            step = max(1, len(points) // SCAN_LOG_MAX_POINTS)
-            points = points[::step]
-            colors = None if colors is None else np.asarray(colors)[::step]
-            viz.log_scan(transform_points(result.T_W_S, points), colors)
-            viz.log_sensor(result.T_W_S, frame.intrinsics, frame.rgb, frame.depth)
-        self._log_trajectories()
-        viz.log_metrics(
-            frame_ms=1e3 * self.timings_s["frame"][-1],
-            odometry_ms=1e3 * self.timings_s["odometry"][-1],
-            submaps=float(self._closed_count),
-            loops_accepted=float(self._num_accepted),
-            loop_candidates=float(len(self.loop_candidates)),
-        )
+    def anchor_poses(self) -> dict[int, np.ndarray]:
+        """Current estimate of every submap anchor, ``{submap_id: T_W_A}``."""
+        return self.graph.poses()
 
-    def _log_trajectories(self) -> None:
-        for name in ("odometry", "optimized"):
-            self.viz.log_trajectory(name, self._tracks[name].view())
-        gt = self._tracks["gt"].view()
-        if len(gt) == self.num_frames and len(gt) > 0:
-            self.viz.log_trajectory("gt", gt)
+    @property
+    def last_remap_moved(self) -> bool:
+        """The latest map job's remap moved a submap (up to date after :meth:`drain`)."""
+        return self._last_remap_moved
 
-    def _log_loops(self) -> None:
-        anchors = self.graph.poses()
-
-        def segment(c: LoopCandidate) -> tuple[np.ndarray, np.ndarray] | None:
-            if c.reference_id not in anchors or c.query_id not in anchors:
-                return None
-            return anchors[c.reference_id][:3, 3], anchors[c.query_id][:3, 3]
-
-        accepted = [segment(c) for c in self.loop_candidates if c.accepted and c.graph_inlier]
-        rejected = [segment(c) for c in self.loop_candidates if not (c.accepted and c.graph_inlier)]
-        self.viz.log_loop_closures(
-            [s for s in accepted if s is not None], [s for s in rejected if s is not None]
-        )
-
-    def _map_snapshot(self, periodic: bool, loop_added: bool):
-        """What a recording shows of the map now (waits for the map worker); see
-        :meth:`slam.algorithm.viz.Logger.log_map_from`."""
+    def map_snapshot(self, with_mesh: bool) -> tuple[np.ndarray, np.ndarray, object | None]:
+        """What a viewer shows of the map now: voxel centres, their weights and, when asked,
+        a mesh (waits for the map worker; booked as the ``map_logging`` stage)."""
         self.worker.drain()
         start = _clock()
         centers, weights = self.map.voxel_centers()
-        remapped = loop_added and self._last_remap_moved and self.cfg.viz.mesh_after_remap
-        mesh = self.map.extract_mesh() if periodic or remapped else None
+        mesh = self.map.extract_mesh() if with_mesh else None
         self._timed("map_logging", start)
         return np.asarray(centers), np.asarray(weights, dtype=np.float64), mesh
 
-    def _errors_so_far(self) -> dict[str, float]:
-        """Map size and, with ground truth, the ATE of both trajectories so far (waits for the
-        map worker)."""
-        self.worker.drain()
-        scalars = {"map_voxels": float(self.map.num_voxels)}
-        gt = self.gt_poses()
-        if gt is None or len(gt) < 3:
-            return scalars
-        from slam.evaluation.metrics.trajectory import ate_rmse
-
-        scalars["ate_odometry_m"] = ate_rmse(self.odometry_poses(), gt)
-        scalars["ate_slam_m"] = ate_rmse(self.slam_poses(), gt)
-        return scalars
+    def report(self) -> PipelineReport:
+        """The results and statistics metrics need (after :meth:`finish`)."""
+        known = self.gt_poses_where_known()
+        return PipelineReport(
+            num_frames=self.num_frames,
+            odometry_poses=self.odometry_poses(),
+            slam_poses=self.slam_poses(),
+            gt_poses=None if known is None else known[0],
+            timestamps=self.timestamps(),
+            loop_candidates=list(self.loop_candidates),
+            remap_events=list(self.remapper.events),
+            submap_frame_counts={i: len(frames) for i, frames in self._frames_of.items()},
+            neural_map=self.map,
+            submaps=list(self.submaps.values()),
+            timings_s={name: list(values) for name, values in self.timings_s.items()},
+            stage_cpu_s=dict(self.stage_cpu_s),
+        )

@@ -307,11 +307,3 @@ class PoseGraph:
     def poses(self) -> dict[int, np.ndarray]:
         """Current estimate of every anchor, ``{node_id: T_W_A}``."""
         return {n: self._estimate.atPose3(n).matrix() for n in self._node_ids}
-
-    def odometry_pose(self, node_id: int) -> np.ndarray:
-        """The odometry pose the anchor was added with."""
-        return self._odometry_anchor[node_id]
-
-    def loop_weights(self) -> list[float]:
-        """Weight in [0, 1] of every loop edge at the latest solve (1 = fully trusted)."""
-        return [edge.weight for edge in self.loops]

@@ -89,7 +89,3 @@ class Remapper:
     @property
     def total_moved(self) -> int:
         return sum(e.num_moved for e in self.events)
-
-    @property
-    def total_seconds(self) -> float:
-        return sum(e.seconds for e in self.events)

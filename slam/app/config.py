@@ -18,6 +18,7 @@ from frontends.sources._io import DepthOptions
 from mapping.config import MapConfig
 from slam.algorithm.config import (
     LoopClosureConfig,
+    PipelineConfig,
     PoseGraphConfig,
     RemapConfig,
     Strict,
@@ -266,6 +267,16 @@ class RunConfig(_Strict):
         "the main thread runs odometry, keyframing and loop detection; results do not depend on "
         "it (the worker applies map work in submap order)",
     )
+
+    def pipeline_config(self) -> PipelineConfig:
+        """The algorithm's part of this configuration (the same section objects, not copies)."""
+        return PipelineConfig(
+            submaps=self.submaps,
+            loop_closure=self.loop_closure,
+            pose_graph=self.pose_graph,
+            remap=self.remap,
+            map_worker=self.map_worker,
+        )
 
 
 class UsageError(ValueError):

@@ -109,10 +109,6 @@ class RunOutputs:
     def recording_path(self) -> Path:
         return self.path("recording.rrd")
 
-    @property
-    def log_path(self) -> Path:
-        return self.path("run.log")
-
     def write_config(self, cfg: RunConfig) -> None:
         write_text_atomic(self.path("config.yaml"), dump_run_config(cfg))
 

@@ -65,6 +65,7 @@ def execute(
     from slam.algorithm.pipeline import SlamPipeline
     from slam.app.builders import build_logger, build_map, build_odometry, build_source
     from slam.app.outputs import RunOutputs
+    from slam.app.recorder import make_recorder
     from slam.app.threads import apply_thread_budget
     from slam.evaluation.run_metrics import collect_metrics
 
@@ -90,7 +91,8 @@ def execute(
     viewer_url = viz.viewer_url
     if viewer_url:
         say(f"viewer: {viewer_url}")
-    pipeline = SlamPipeline(cfg, sensor, odometry, neural_map, viz)
+    pipeline = SlamPipeline(cfg.pipeline_config(), sensor, odometry, neural_map)
+    recorder = make_recorder(pipeline, viz, cfg.viz)
     logger.info("%s: %d frames, sensor %s", source.name, len(source), sensor)
 
     def write_poses() -> None:
@@ -110,6 +112,7 @@ def execute(
     try:
         for frame in source.read_ahead():
             result = pipeline.process(frame)
+            recorder.frame(frame, result)
             if intrinsics is None and frame.intrinsics is not None:
                 intrinsics = frame.intrinsics
             if result.closed_submap_id is not None:
@@ -125,6 +128,7 @@ def execute(
         if bar is not None:
             bar.set_postfix_str("final optimisation and mesh")
         pipeline.finish()
+        recorder.finish()
     except BaseException:
         viz.close()  # keep what was recorded
         raise
@@ -141,7 +145,7 @@ def execute(
         outputs.write_map(neural_map, list(pipeline.submaps.values()))
     wall_s = time.perf_counter() - start
     metrics = collect_metrics(
-        pipeline,
+        pipeline.report(),
         wall_s=wall_s,
         pipeline_s=pipeline_s,
         setup_s=loop_start - start,

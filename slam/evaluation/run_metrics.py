@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from slam.algorithm.pipeline import SlamPipeline
+from slam.algorithm.report import PipelineReport
 
 logger = logging.getLogger(__name__)
 
@@ -37,9 +37,9 @@ def peak_rss_mb() -> float:
     return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
 
 
-def loop_summary(pipeline: SlamPipeline) -> dict[str, Any]:
+def loop_summary(report: PipelineReport) -> dict[str, Any]:
     """Counts of loop candidates by outcome (reasons are grouped by their first word)."""
-    candidates = pipeline.loop_candidates
+    candidates = report.loop_candidates
     verified = [c for c in candidates if c.accepted]
     reasons = Counter(c.reason.split(" ")[0] for c in candidates if not c.accepted)
     return {
@@ -52,9 +52,9 @@ def loop_summary(pipeline: SlamPipeline) -> dict[str, Any]:
     }
 
 
-def remap_summary(pipeline: SlamPipeline) -> dict[str, Any]:
+def remap_summary(report: PipelineReport) -> dict[str, Any]:
     """Remapping passes, submaps moved and their throughput."""
-    events = pipeline.remapper.events
+    events = report.remap_events
     moved = sum(e.num_moved for e in events)
     seconds = sum(e.seconds for e in events)
     return {
@@ -63,12 +63,14 @@ def remap_summary(pipeline: SlamPipeline) -> dict[str, Any]:
         "seconds_total": seconds,
         "seconds_per_event_max": max((e.seconds for e in events), default=0.0),
         "submaps_per_s": moved / seconds if seconds > 0 else None,
-        "frames_moved": sum(len(pipeline.submap_frames(i)) for e in events for i in e.moved_ids),
+        "frames_moved": sum(
+            report.submap_frame_counts.get(i, 0) for e in events for i in e.moved_ids
+        ),
     }
 
 
 def timing_summary(
-    pipeline: SlamPipeline,
+    report: PipelineReport,
     wall_s: float,
     pipeline_s: float | None = None,
     setup_s: float | None = None,
@@ -88,16 +90,16 @@ def timing_summary(
             "calls": len(values),
             "mean_ms": 1e3 * float(np.mean(values)),
             "total_s": sum(values),
-            "cpu_s": pipeline.stage_cpu_s.get(name),
+            "cpu_s": report.stage_cpu_s.get(name),
         }
-        for name, values in pipeline.timings_s.items()
+        for name, values in report.timings_s.items()
         if values
     }
     return {
         "wall_s": wall_s,
         "setup_s": setup_s,
         "pipeline_s": pipeline_s,
-        "frames_per_s": pipeline.num_frames / pipeline_s if pipeline_s > 0 else None,
+        "frames_per_s": report.num_frames / pipeline_s if pipeline_s > 0 else None,
         "stages": stages,
     }
 
@@ -341,7 +343,7 @@ def trajectory_section(
 
 
 def collect_metrics(
-    pipeline: SlamPipeline,
+    report: PipelineReport,
     *,
     wall_s: float,
     mesh: trimesh.Trimesh | None,
@@ -358,24 +360,23 @@ def collect_metrics(
 
     slam_peak_rss_mb = peak_rss_mb()  # before scoring, which loads and samples ground truth
     metrics: dict[str, Any] = dict(extra or {})
-    metrics["num_frames"] = pipeline.num_frames
-    metrics["num_submaps"] = len(pipeline.submaps)
-    metrics["loops"] = loop_summary(pipeline)
-    metrics["remap"] = remap_summary(pipeline)
-    submaps = list(pipeline.submaps.values())
-    stored_voxels = sum(s.original.num_voxels for s in submaps)
+    metrics["num_frames"] = report.num_frames
+    metrics["num_submaps"] = len(report.submaps)
+    metrics["loops"] = loop_summary(report)
+    metrics["remap"] = remap_summary(report)
+    neural_map = report.neural_map
+    stored_voxels = sum(s.original.num_voxels for s in report.submaps)
     metrics["map"] = {
-        "voxels": int(pipeline.map.num_voxels),
-        "memory_bytes": int(pipeline.map.memory_bytes()),
+        "voxels": int(neural_map.num_voxels),
+        "memory_bytes": int(neural_map.memory_bytes()),
         "submap_voxels": int(stored_voxels),
-        "submap_bytes": int(sum(s.nbytes() for s in submaps)),
+        "submap_bytes": int(sum(s.nbytes() for s in report.submaps)),
         # how many times each global voxel is stored among the submaps (submap overlap)
-        "overlap": stored_voxels / max(pipeline.map.num_voxels, 1),
+        "overlap": stored_voxels / max(neural_map.num_voxels, 1),
     }
-    known = pipeline.gt_poses_where_known()
-    gt = None if known is None else known[0]
-    slam = pipeline.slam_poses()
-    section = None if gt is None else trajectory_section(pipeline.odometry_poses(), slam, gt)
+    gt = report.gt_poses
+    slam = report.slam_poses
+    section = None if gt is None else trajectory_section(report.odometry_poses, slam, gt)
     if section is not None:
         metrics["trajectory"] = section
     if mesh is not None and gt_mesh_path is not None and section is not None:
@@ -384,7 +385,7 @@ def collect_metrics(
         cameras = None
         if intrinsics is not None:
             cameras = (intrinsics.K, intrinsics.width, intrinsics.height)
-        centers, weights = pipeline.map.voxel_centers()
+        centers, weights = neural_map.voxel_centers()
         observed = np.asarray(centers)[np.asarray(weights) > 0]
         try:
             sections = mesh_sections(
@@ -394,14 +395,14 @@ def collect_metrics(
                 num_mesh_samples,
                 gt_scored,
                 observed_points_W=observed,
-                cull_distance_m=cull_distance(cameras is not None, pipeline.map.voxel_size_m),
+                cull_distance_m=cull_distance(cameras is not None, neural_map.voxel_size_m),
                 cameras=cameras,
                 lidar_range_m=None if cameras is not None else lidar_range_m,
             )
             metrics.update({name: public(value) for name, value in sections.items()})
         except ValueError as exc:
             logger.warning("mesh metrics skipped: %s", exc)
-    metrics["timing"] = timing_summary(pipeline, wall_s, pipeline_s, setup_s)
+    metrics["timing"] = timing_summary(report, wall_s, pipeline_s, setup_s)
     metrics["memory"] = {
         "peak_rss_mb": peak_rss_mb(),
         "peak_rss_before_scoring_mb": slam_peak_rss_mb,

@@ -1,0 +1,161 @@
+"""What a run shows in the viewer: the pipeline's results handed to a
+:class:`~slam.algorithm.viz.Logger`.
+
+The runner calls :meth:`RunRecorder.frame` with every frame and its
+:class:`~slam.algorithm.pipeline.FrameResult` and :meth:`RunRecorder.finish` after the pipeline's
+:meth:`~slam.algorithm.pipeline.SlamPipeline.finish`. Per frame the cost is O(1): trajectories
+grow by one position, and the optimised one is recomputed only when a loop moved the graph. What
+only a recording needs (voxel centres, meshes, the error so far) is handed to the logger as a
+callable that the null logger never calls, and :func:`make_recorder` gives a recorder that does
+nothing at all for the null logger.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.geometry import transform_points
+from frontends.frame import Frame
+from slam.algorithm.pipeline import FrameResult, SlamPipeline
+from slam.algorithm.viz import Logger, NullLogger
+from slam.app.config import VizConfig
+
+SCAN_LOG_MAX_POINTS = 30_000
+
+
+class _Track:
+    """A growing (N, 3) array with amortised O(1) append; :meth:`view` shares memory."""
+
+    def __init__(self) -> None:
+        self._data = np.zeros((256, 3))
+        self._size = 0
+
+    def append(self, position: np.ndarray) -> None:
+        if self._size == len(self._data):
+            self._data = np.concatenate([self._data, np.zeros_like(self._data)])
+        self._data[self._size] = position
+        self._size += 1
+
+    def replace(self, positions: np.ndarray) -> None:
+        self._data = np.array(positions, dtype=np.float64).reshape(-1, 3)
+        self._size = len(self._data)
+
+    def view(self) -> np.ndarray:
+        return self._data[: self._size]
+
+
+class Recorder:
+    """Does nothing: the recorder of a run whose logger records nothing."""
+
+    def frame(self, frame: Frame, result: FrameResult) -> None:
+        """Report one processed frame."""
+
+    def finish(self) -> None:
+        """Report the end of the run (after the pipeline's final optimisation)."""
+
+
+class RunRecorder(Recorder):
+    """Trajectories, scans, loop edges, map snapshots and live metrics of a run."""
+
+    def __init__(self, pipeline: SlamPipeline, viz: Logger, cfg: VizConfig) -> None:
+        self.pipeline = pipeline
+        self.viz = viz
+        self.cfg = cfg
+        self._tracks = {"odometry": _Track(), "optimized": _Track(), "gt": _Track()}
+        self._T_W_Wgt: np.ndarray | None = None
+        self._num_frames = 0
+
+    def frame(self, frame: Frame, result: FrameResult) -> None:
+        viz = self.viz
+        viz.set_time(frame.index, float(frame.timestamp))
+        if result.closed_submap_id is not None:
+            if result.loop_added:
+                self._log_loops()
+            periodic = self.pipeline.num_closed_submaps % self.cfg.mesh_every_submaps == 0
+            added = result.loop_added
+            viz.log_map_from(lambda: self._map_snapshot(periodic, added))
+            viz.log_metrics_from(self._errors_so_far)
+        self._track(frame, result)
+        if frame.index % self.cfg.scan_every == 0:
+            points = np.asarray(frame.points)
+            colors = frame.colors
+            step = max(1, len(points) // SCAN_LOG_MAX_POINTS)
+            points = points[::step]
+            colors = None if colors is None else np.asarray(colors)[::step]
+            viz.log_scan(transform_points(result.T_W_S, points), colors)
+            viz.log_sensor(result.T_W_S, frame.intrinsics, frame.rgb, frame.depth)
+        self._log_trajectories()
+        viz.log_metrics(
+            frame_ms=1e3 * result.frame_s,
+            odometry_ms=1e3 * result.odometry_s,
+            submaps=float(self.pipeline.num_closed_submaps),
+            loops_accepted=float(self.pipeline.num_accepted_loops),
+            loop_candidates=float(len(self.pipeline.loop_candidates)),
+        )
+
+    def finish(self) -> None:
+        self._log_loops()
+        self._tracks["optimized"].replace(self.pipeline.slam_poses()[:, :3, 3])
+        self._log_trajectories()
+        self.viz.log_map_from(lambda: self._map_snapshot(True, False))
+        self.viz.log_metrics_from(self._errors_so_far)
+
+    def _track(self, frame: Frame, result: FrameResult) -> None:
+        self._tracks["odometry"].append(result.T_W_S_odometry[:3, 3])
+        if result.loop_added:  # a loop moved the anchors: every frame's estimate changed
+            self._tracks["optimized"].replace(self.pipeline.slam_poses()[:, :3, 3])
+        else:
+            self._tracks["optimized"].append(result.T_W_S[:3, 3])
+        if frame.T_W_S_gt is not None:
+            gt = np.asarray(frame.T_W_S_gt, dtype=np.float64)
+            if self._num_frames == 0:  # the ground truth's world, moved onto W = the first frame
+                self._T_W_Wgt = np.linalg.inv(gt)
+            if self._T_W_Wgt is not None:
+                self._tracks["gt"].append((self._T_W_Wgt @ gt)[:3, 3])
+        self._num_frames += 1
+
+    def _log_trajectories(self) -> None:
+        for name in ("odometry", "optimized"):
+            self.viz.log_trajectory(name, self._tracks[name].view())
+        gt = self._tracks["gt"].view()
+        if len(gt) == self._num_frames and len(gt) > 0:
+            self.viz.log_trajectory("gt", gt)
+
+    def _log_loops(self) -> None:
+        anchors = self.pipeline.anchor_poses()
+        accepted, rejected = [], []
+        for c in self.pipeline.loop_candidates:
+            if c.reference_id not in anchors or c.query_id not in anchors:
+                continue
+            segment = anchors[c.reference_id][:3, 3], anchors[c.query_id][:3, 3]
+            (accepted if c.accepted and c.graph_inlier else rejected).append(segment)
+        self.viz.log_loop_closures(accepted, rejected)
+
+    def _map_snapshot(self, periodic: bool, loop_added: bool):
+        """What the recording shows of the map now (waits for the map worker); a mesh every
+        ``mesh_every_submaps`` closed submaps, and after a loop's remap moved a submap when
+        ``mesh_after_remap``."""
+        self.pipeline.drain()
+        remapped = loop_added and self.pipeline.last_remap_moved and self.cfg.mesh_after_remap
+        return self.pipeline.map_snapshot(with_mesh=periodic or remapped)
+
+    def _errors_so_far(self) -> dict[str, float]:
+        """Map size and, with ground truth, the ATE of both trajectories so far (waits for the
+        map worker)."""
+        from slam.evaluation.metrics.trajectory import ate_rmse
+
+        self.pipeline.drain()
+        scalars = {"map_voxels": float(self.pipeline.map.num_voxels)}
+        gt = self.pipeline.gt_poses()
+        if gt is None or len(gt) < 3:
+            return scalars
+        scalars["ate_odometry_m"] = ate_rmse(self.pipeline.odometry_poses(), gt)
+        scalars["ate_slam_m"] = ate_rmse(self.pipeline.slam_poses(), gt)
+        return scalars
+
+
+def make_recorder(pipeline: SlamPipeline, viz: Logger, cfg: VizConfig) -> Recorder:
+    """A :class:`RunRecorder`, or a recorder that does nothing for the :class:`NullLogger`."""
+    if isinstance(viz, NullLogger):
+        return Recorder()
+    return RunRecorder(pipeline, viz, cfg)

@@ -1,0 +1,121 @@
+"""The app's recorder: what a run hands to the viewer, at O(1) per frame, and nothing at all for
+the null logger.
+
+A short stretch of the generated room runs through the real pipeline (drifting ground-truth
+odometry, real keyframing, map and RGB-D loop detector) with one extra accepted loop edge, so
+that the optimised trajectory must be recomputed once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from frontends.sources import make_source
+from slam.algorithm.pipeline import SlamPipeline, make_loop_detector
+from slam.algorithm.viz import Logger, NullLogger
+from slam.app.builders import build_map
+from slam.app.recorder import RunRecorder, make_recorder
+from tests.test_pipeline import ROOM, FalseLoopInjector, room_config, room_odometry
+
+
+class CapturingLogger(Logger):
+    """Keeps a copy of everything it is given (a recording, in memory)."""
+
+    def __init__(self) -> None:
+        self.trajectories: dict[str, list[np.ndarray]] = {}
+        self.loops: list[tuple[list, list]] = []
+        self.maps: list[tuple[np.ndarray, np.ndarray, object]] = []
+        self.metrics: list[dict[str, float]] = []
+
+    def set_time(self, frame_index, timestamp_s):
+        pass
+
+    def log_scan(self, points_W, colors=None):
+        pass
+
+    def log_sensor(self, T_W_S, intrinsics=None, rgb=None, depth_m=None):
+        pass
+
+    def log_trajectory(self, name, positions_W):
+        self.trajectories.setdefault(name, []).append(np.array(positions_W))
+
+    def log_loop_closures(self, accepted, rejected=()):
+        self.loops.append((list(accepted), list(rejected)))
+
+    def log_map(self, voxel_centers_W, voxel_values, mesh=None):
+        self.maps.append((voxel_centers_W, voxel_values, mesh))
+
+    def log_metrics(self, **scalars):
+        self.metrics.append(scalars)
+
+
+@pytest.fixture(scope="module")
+def stretch():
+    """30 frames (every second one) of the room lap."""
+    return make_source(
+        "generated",
+        **ROOM,
+        frames=slice(0, 60, 2),
+        loader_options={"depth_options": {"stride": 2}},
+    )
+
+
+def _pipeline() -> tuple[SlamPipeline, object]:
+    cfg = room_config(max_frames=5)
+    detector = FalseLoopInjector(
+        make_loop_detector(cfg.loop_closure, "rgbd"), at_submap=4, wrong_by_m=0.05
+    )
+    pipeline = SlamPipeline(
+        cfg.pipeline_config(), "rgbd", room_odometry(), build_map(cfg), loop_detector=detector
+    )
+    return pipeline, cfg
+
+
+def test_recorder_grows_trajectories_by_one_and_recomputes_them_after_a_loop(stretch):
+    pipeline, cfg = _pipeline()
+    viz = CapturingLogger()
+    recorder = make_recorder(pipeline, viz, cfg.viz.model_copy(update={"mesh_every_submaps": 2}))
+    assert isinstance(recorder, RunRecorder)
+    loop_frames = 0
+    for n, frame in enumerate(stretch, start=1):
+        result = pipeline.process(frame)
+        recorder.frame(frame, result)
+        odometry = viz.trajectories["odometry"][-1]
+        optimized = viz.trajectories["optimized"][-1]
+        assert len(odometry) == len(optimized) == len(viz.trajectories["gt"][-1]) == n
+        np.testing.assert_array_equal(odometry[-1], result.T_W_S_odometry[:3, 3])
+        if result.loop_added:
+            loop_frames += 1
+            # every frame's estimate moved: the whole track is the graph's current one
+            np.testing.assert_allclose(optimized, pipeline.slam_poses()[:, :3, 3], atol=1e-12)
+            assert np.abs(optimized[:-1] - viz.trajectories["optimized"][-2]).max() > 1e-4
+        else:
+            np.testing.assert_array_equal(optimized[-1], result.T_W_S[:3, 3])
+    assert loop_frames == 1
+    pipeline.finish()
+    recorder.finish()
+    np.testing.assert_allclose(
+        viz.trajectories["optimized"][-1], pipeline.slam_poses()[:, :3, 3], atol=1e-12
+    )
+    accepted, _ = viz.loops[-1]
+    assert len(accepted) + len(viz.loops[-1][1]) == len(pipeline.loop_candidates) >= 1
+    # a mesh every second closed submap and at the end; voxel centres at every close
+    assert [m[2] is not None for m in viz.maps][:3] == [False, True, False]
+    assert viz.maps[-1][2] is not None and len(viz.maps[-1][0]) == pipeline.map.num_voxels
+    final = viz.metrics[-1]
+    assert final["map_voxels"] == pipeline.map.num_voxels
+    assert final["ate_slam_m"] > 0 and final["ate_odometry_m"] > 0
+    assert len(pipeline.timings_s["map_logging"]) == len(viz.maps)
+
+
+def test_null_logger_gets_a_recorder_that_computes_nothing(stretch):
+    pipeline, cfg = _pipeline()
+    recorder = make_recorder(pipeline, NullLogger(), cfg.viz)
+    assert not isinstance(recorder, RunRecorder)
+    for frame in list(stretch)[:12]:
+        recorder.frame(frame, pipeline.process(frame))
+    pipeline.finish()
+    recorder.finish()
+    assert pipeline.num_closed_submaps >= 2
+    assert pipeline.timings_s["map_logging"] == []  # no snapshot, so no mesh, was taken
