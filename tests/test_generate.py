@@ -335,7 +335,7 @@ def _kiss_icp_path_lengths(root: Path, num_scans: int) -> tuple[float, float]:
 
     source = make_source("kitti", root=root, sequence="00")
     # Generated scans are taken at one instant: nothing to deskew.
-    odometry = make_odometry("kiss-icp", deskew=False)
+    odometry = make_odometry("kiss-icp", data={"deskew": False})
     est = np.stack([odometry.register(source[i]).T_W_S for i in range(num_scans + 1)])
     gt = source.gt_poses[: num_scans + 1]
 
