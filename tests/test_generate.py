@@ -23,7 +23,7 @@ from frontends.generate.__main__ import main as cli_main
 from frontends.generate.camera import kinect_depth_sigma
 from frontends.generate.lidar import simulate_scan
 from frontends.generate.raycast import Raycaster
-from frontends.generate.scene import street_scene
+from frontends.generate.street import street_scene
 from frontends.generate.trajectories import (
     kitti_lidar_trajectory,
     loop_lidar_trajectory,

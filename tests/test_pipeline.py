@@ -60,8 +60,8 @@ class FalseLoopInjector(LoopDetector):
         self.at_submap = at_submap
         self.wrong_by_m = wrong_by_m
 
-    def process(self, submap: SubmapRecord, T_W_A_estimates):
-        candidates = self.inner.process(submap, T_W_A_estimates)
+    def process(self, submap: SubmapRecord, T_W_A_estimates, relative_covariance=None):
+        candidates = self.inner.process(submap, T_W_A_estimates, relative_covariance)
         j = submap.submap_id
         if j == self.at_submap:
             T = np.linalg.inv(T_W_A_estimates[j - 4]) @ T_W_A_estimates[j]

@@ -25,7 +25,8 @@ from frontends.generate import writers
 from frontends.generate.camera import RgbdCameraConfig, render_rgbd, unit_pixel_rays
 from frontends.generate.lidar import LidarConfig, beam_directions, simulate_scan
 from frontends.generate.raycast import Raycaster
-from frontends.generate.scene import Scene, room_scene, street_scene
+from frontends.generate.scene import Scene, room_scene
+from frontends.generate.street import StreetStyle, street_scene
 from frontends.generate.texture import face_table
 from frontends.generate.trajectories import (
     kitti_lidar_trajectory,
@@ -146,6 +147,7 @@ def generate_lidar_sequence(
     azimuth_steps: int = 2048,
     lidar: LidarConfig | None = None,
     terrain_relief_m: float = 0.0,
+    street_style: StreetStyle = "standard",
     overwrite: bool = False,
     workers: int | None = None,
 ) -> Path:
@@ -171,6 +173,8 @@ def generate_lidar_sequence(
         terrain_relief_m: height of the hills that rise away from the road (0: the ground beside
             the road continues the road's height; the road itself always follows the
             trajectory's elevation, e.g. the real KITTI profile).
+        street_style: layout of the street (``standard``, ``sparse`` or ``periodic``; see
+            :func:`frontends.generate.street.street_scene`).
         overwrite: replace an existing sequence of the same name.
         workers: processes rendering frames (default: up to 2, one per CPU); the output does
             not depend on it.
@@ -204,7 +208,7 @@ def generate_lidar_sequence(
     path_xyz = T_scene_S[:, :3, 3]
     if closed:
         path_xyz = np.vstack([path_xyz, path_xyz[:1]])
-    scene = street_scene(path_xyz, seed=seed, relief_m=terrain_relief_m)
+    scene = street_scene(path_xyz, seed=seed, relief_m=terrain_relief_m, style=street_style)
     T_W_scene = np.linalg.inv(T_scene_S[0])
     T_W_S = T_W_scene @ T_scene_S
     T_W_S[0] = np.eye(4)

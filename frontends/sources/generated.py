@@ -61,6 +61,11 @@ class GeneratedSource(Source):
         azimuth_steps: LiDAR firings per revolution (2048 ~ HDL-64E; lower for speed).
         terrain_relief_m: LiDAR only: height of hills beside the road (0: none; the key is then
             left out of the cache key, so sequences generated before the option are reused).
+        street_style: LiDAR only: ``standard``, ``sparse`` or ``periodic`` street
+            (:func:`frontends.generate.street.street_scene`).
+        range_noise_m, dropout: LiDAR only: std-dev of the range noise and the probability
+            that a return is lost. Like ``terrain_relief_m``, each of these three is in the cache
+            key only when it differs from its default.
         width, height: RGB-D image size.
         workers: generation processes (None: up to 2).
         loader_options: extra keyword arguments for the wrapped KITTI/TUM loader.
@@ -92,6 +97,9 @@ class GeneratedSource(Source):
         step: int = 1,
         azimuth_steps: int = 2048,
         terrain_relief_m: float = 0.0,
+        street_style: str = "standard",
+        range_noise_m: float = 0.02,
+        dropout: float = 0.02,
         width: int = 640,
         height: int = 480,
         workers: int | None = None,
@@ -111,6 +119,12 @@ class GeneratedSource(Source):
             }
             if terrain_relief_m != 0.0:
                 params["terrain_relief_m"] = float(terrain_relief_m)
+            if street_style != "standard":
+                params["street_style"] = street_style
+            if range_noise_m != 0.02:
+                params["range_noise_m"] = float(range_noise_m)
+            if dropout != 0.02:
+                params["dropout"] = float(dropout)
             if trajectory == "kitti":
                 if kitti_poses is None or kitti_calib is None:
                     raise DatasetError(
@@ -146,8 +160,14 @@ class GeneratedSource(Source):
 
     def _generate(self, workers: int | None) -> None:
         from frontends.generate import generate_lidar_sequence
+        from frontends.generate.lidar import LidarConfig
 
         p = self._params
+        lidar = LidarConfig(
+            azimuth_steps=p["azimuth_steps"],
+            range_noise_m=p.get("range_noise_m", 0.02),
+            dropout=p.get("dropout", 0.02),
+        )
         generate_lidar_sequence(
             self.cache_dir,
             sequence=LIDAR_SEQUENCE,
@@ -158,8 +178,9 @@ class GeneratedSource(Source):
             start=p.get("start", 0),
             step=p.get("step", 1),
             seed=p["seed"],
-            azimuth_steps=p["azimuth_steps"],
+            lidar=lidar,
             terrain_relief_m=p.get("terrain_relief_m", 0.0),
+            street_style=p.get("street_style", "standard"),
             workers=workers,
         )
 

@@ -160,6 +160,44 @@ class LidarLoopConfig(Strict):
         description="the loop covariance is this factor times sigma^2 H^-1 of that Hessian "
         "(sigma: point-to-plane RMSE of the inliers)",
     )
+    ambiguity_check: bool = Field(
+        True,
+        description="re-register from the best other peaks of the inlier score along the street "
+        "and along the weakest Hessian direction; reject when one converges elsewhere and scores "
+        "about as well (slam/algorithm/loop_ambiguity.py)",
+    )
+    ambiguity_step_m: float = Field(
+        0.5, gt=0, description="grid step of the inlier-score profile along each direction"
+    )
+    ambiguity_max_offset_m: float = Field(
+        25.0,
+        gt=0,
+        description="the profile reaches this far, or the RMS radius of the reference structure "
+        "when that is smaller (beyond it the clouds barely overlap)",
+    )
+    ambiguity_min_separation_m: float = Field(
+        1.0, gt=0, description="an alternative solution lies at least this far from the chosen one"
+    )
+    ambiguity_min_separation_deg: float = Field(
+        2.0, gt=0, description="... or is rotated at least this much from it"
+    )
+    ambiguity_max_realignments: int = Field(
+        2, ge=1, description="profile peaks re-registered per accepted candidate (ICP runs)"
+    )
+    ambiguity_score_ratio: float = Field(
+        0.9,
+        gt=0,
+        description="ambiguous when an alternative's inlier score is at least this fraction of "
+        "the chosen solution's (periodic street: true 0.99, one period off 0.73-0.79)",
+    )
+    graph_consistency_probability: float = Field(
+        0.9999,
+        ge=0,
+        lt=1,
+        description="reject when the registered relative pose lies outside this chi-square "
+        "quantile (6 dof) of the pose graph's marginal covariance of that relative pose plus "
+        "the registration's own; 0: off",
+    )
 
 
 class RgbdLoopConfig(Strict):

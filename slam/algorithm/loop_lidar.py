@@ -25,6 +25,10 @@ map of the reference cloud, coarse then fine) and accepted only when
 
 The same Hessian and the inlier residual give the edge's covariance
 (:meth:`frontends.odometry.point_to_plane.IcpResult.covariance`).
+
+A candidate that passes these is then checked against the pose graph (a Mahalanobis gate on the
+graph's accumulated uncertainty between the two anchors) and for ambiguity (re-registration from
+the other peaks of the score along the street); see :mod:`slam.algorithm.loop_ambiguity`.
 """
 
 from __future__ import annotations
@@ -33,12 +37,20 @@ import logging
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from common.geometry import orthonormalize, transform_points
 from common.voxel_keys import point_voxel_keys
 from frontends.odometry.point_to_plane import point_to_plane_hessian
 from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig
-from slam.algorithm.loops import LoopCandidate, LoopDetector, Verification, relative_motion
+from slam.algorithm.loop_ambiguity import find_ambiguity, mahalanobis_distance2
+from slam.algorithm.loops import (
+    LoopCandidate,
+    LoopDetector,
+    RelativeCovariance,
+    Verification,
+    relative_motion,
+)
 from slam.algorithm.normals import estimate_normals
 from slam.algorithm.submaps import SubmapRecord
 
@@ -78,11 +90,16 @@ class IcpVerifier:
         self.cfg = cfg
 
     def align(
-        self, reference: np.ndarray, query: np.ndarray, T_ref_query_guess: np.ndarray
+        self,
+        reference: np.ndarray,
+        query: np.ndarray,
+        T_ref_query_guess: np.ndarray,
+        scales: list[float] | None = None,
     ) -> np.ndarray:
         """Refine ``T_ref_query`` with KISS-ICP's robust point-to-point registration, coarse to
-        fine: one pass per ``icp_scales`` entry, each scaling the correspondence distance and the
-        kernel (a guess off by a couple of degrees needs the wide first passes)."""
+        fine: one pass per ``scales`` entry (default ``icp_scales``), each scaling the
+        correspondence distance and the kernel (a guess off by a couple of degrees needs the
+        wide first passes)."""
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
 
@@ -98,7 +115,7 @@ class IcpVerifier:
         )
         points = np.asarray(query, dtype=np.float64)
         T = orthonormalize(T_ref_query_guess)
-        for scale in c.icp_scales:
+        for scale in c.icp_scales if scales is None else scales:
             T = np.asarray(
                 registration.align_points_to_map(
                     points=points,
@@ -117,11 +134,13 @@ class IcpVerifier:
         query: np.ndarray,
         T_ref_query_guess: np.ndarray,
         limit_correction: bool = True,
+        check_ambiguity: bool = True,
     ) -> Verification:
         """ICP plus the acceptance tests; an accepted edge carries its ICP covariance.
 
         ``limit_correction``: reject a large ICP correction (for guesses that are independent
-        of the drift, such as map_closures' 2D matches).
+        of the drift, such as map_closures' 2D matches). ``check_ambiguity``: finish with
+        :meth:`check_ambiguity` (when ``cfg.ambiguity_check``).
         """
         c = self.cfg
         reference = np.asarray(reference, dtype=np.float64)
@@ -162,7 +181,57 @@ class IcpVerifier:
                 f"degenerate icp cost: min eigenvalue {eigenvalue:.4f} < {c.min_hessian_eigenvalue}"
             )
             return Verification(False, reason, T, scores)
-        return Verification(True, "accepted", T, scores, cost.covariance(c.covariance_factor))
+        accepted = Verification(True, "accepted", T, scores, cost.covariance(c.covariance_factor))
+        if check_ambiguity:
+            return self.check_ambiguity(full_reference, full_query, accepted)
+        return accepted
+
+    def _structure(self, points: np.ndarray) -> np.ndarray:
+        c = self.cfg
+        if c.ground_clearance_m <= 0:
+            return points
+        return points[above_ground(points, c.ground_cell_m, c.ground_clearance_m)]
+
+    def check_ambiguity(
+        self, reference: np.ndarray, query: np.ndarray, verification: Verification
+    ) -> Verification:
+        """Reject an accepted ``verification`` when another registration scores about as well
+        (:func:`slam.algorithm.loop_ambiguity.find_ambiguity`), on the structure above the
+        ground; the profile reaches the reference structure's RMS radius at most."""
+        c = self.cfg
+        if not (c.ambiguity_check and verification.accepted):
+            return verification
+        reference = np.asarray(reference, dtype=np.float64)
+        query = np.asarray(query, dtype=np.float64)
+        ref_structure, query_structure = self._structure(reference), self._structure(query)
+        score, alternative = find_ambiguity(
+            ref_structure,
+            query_structure,
+            verification.T_ref_query,
+            verification.covariance,
+            lambda guess: self.align(reference, query, guess, scales=c.icp_scales[-2:]),
+            inlier_distance_m=c.inlier_distance_m,
+            step_m=c.ambiguity_step_m,
+            max_offset_m=min(c.ambiguity_max_offset_m, _rms_radius(ref_structure)),
+            min_separation_m=c.ambiguity_min_separation_m,
+            min_separation_deg=c.ambiguity_min_separation_deg,
+            max_realignments=c.ambiguity_max_realignments,
+        )
+        scores = dict(verification.scores)
+        scores["ambiguity_score"] = score
+        if alternative is None:
+            scores["ambiguity_alternative_score"] = 0.0
+            return verification._replace(scores=scores)
+        scores["ambiguity_alternative_score"] = alternative.score
+        scores["ambiguity_separation_m"] = alternative.separation_m
+        if alternative.score >= c.ambiguity_score_ratio * score:
+            reason = (
+                f"ambiguous: a solution {alternative.separation_m:.2f} m / "
+                f"{alternative.separation_deg:.1f} deg away scores {alternative.score:.2f} vs "
+                f"{score:.2f}"
+            )
+            return Verification(False, reason, verification.T_ref_query, scores)
+        return verification._replace(scores=scores)
 
     def _cost(self, reference: np.ndarray, query: np.ndarray, T: np.ndarray):
         """Point-to-plane cost at ``T`` (normals by PCA on the reference cloud)."""
@@ -236,8 +305,41 @@ class LidarLoopDetector(LoopDetector):
                 guesses[i] = ("proximity", guess, {"anchor_distance_m": distance})
         return guesses
 
+    def _check_graph(
+        self,
+        i: int,
+        j: int,
+        verification: Verification,
+        T_W_A: dict[int, np.ndarray],
+        relative_covariance: RelativeCovariance | None,
+    ) -> Verification:
+        """Reject an accepted edge far outside the graph's uncertainty of ``T_Ai_Aj`` (a chi-square
+        gate, ``graph_consistency_probability``)."""
+        probability = self.cfg.lidar.graph_consistency_probability
+        if (
+            not verification.accepted
+            or probability <= 0
+            or relative_covariance is None
+            or i not in T_W_A
+            or j not in T_W_A
+        ):
+            return verification
+        T_graph = np.linalg.inv(T_W_A[i]) @ T_W_A[j]
+        distance2 = mahalanobis_distance2(
+            T_graph, relative_covariance(i, j), verification.T_ref_query, verification.covariance
+        )
+        scores = dict(verification.scores, graph_mahalanobis2=distance2)
+        limit = float(chi2.ppf(probability, 6))
+        if distance2 > limit:
+            reason = f"inconsistent with the graph: mahalanobis^2 {distance2:.1f} > {limit:.1f}"
+            return Verification(False, reason, verification.T_ref_query, scores)
+        return verification._replace(scores=scores)
+
     def process(
-        self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
+        self,
+        submap: SubmapRecord,
+        T_W_A_estimates: dict[int, np.ndarray],
+        relative_covariance: RelativeCovariance | None = None,
     ) -> list[LoopCandidate]:
         cloud = np.asarray(submap.loop_points_A, dtype=np.float64)
         j = submap.submap_id
@@ -252,8 +354,16 @@ class LidarLoopDetector(LoopDetector):
         for i, (detector, guess, detection_scores) in guesses.items():
             reference = np.asarray(self._clouds[i], dtype=np.float64)
             verification = self._verifier.verify(
-                reference, cloud, guess, limit_correction=detector != "proximity"
+                reference,
+                cloud,
+                guess,
+                limit_correction=detector != "proximity",
+                check_ambiguity=False,
             )
+            verification = self._check_graph(
+                i, j, verification, T_W_A_estimates, relative_covariance
+            )
+            verification = self._verifier.check_ambiguity(reference, cloud, verification)
             verification.scores.update(detection_scores)
             logger.debug(
                 "loop %d-%d (%s): %s %s", i, j, detector, verification.reason, verification.scores

@@ -421,7 +421,10 @@ class RgbdLoopDetector(LoopDetector):
         self._travelled: dict[int, float] = {}
 
     def process(
-        self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
+        self,
+        submap: SubmapRecord,
+        T_W_A_estimates: dict[int, np.ndarray],
+        relative_covariance: object = None,  # RGB-D edges are not gated on the graph
     ) -> list[LoopCandidate]:
         if submap.keyframe is None:
             return []

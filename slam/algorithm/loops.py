@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -10,6 +11,10 @@ import numpy as np
 
 from common.geometry import rotation_angle_rad
 from slam.algorithm.submaps import SubmapRecord
+
+RelativeCovariance = Callable[[int, int], np.ndarray]
+"""``(i, j) ->`` the pose graph's 6x6 covariance of ``T_Ai_Aj``
+(:meth:`slam.algorithm.pose_graph.PoseGraph.relative_covariance`)."""
 
 
 @dataclass
@@ -77,11 +82,16 @@ class LoopDetector(ABC):
 
     @abstractmethod
     def process(
-        self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
+        self,
+        submap: SubmapRecord,
+        T_W_A_estimates: dict[int, np.ndarray],
+        relative_covariance: RelativeCovariance | None = None,
     ) -> list[LoopCandidate]:
         """Add ``submap`` to the database and return its verified and rejected candidates.
 
-        ``T_W_A_estimates`` holds the current estimate of every anchor in the pose graph.
+        ``T_W_A_estimates`` holds the current estimate of every anchor in the pose graph;
+        ``relative_covariance`` gives the graph's uncertainty of the relative pose of two
+        anchors, for detectors that check an edge against it (None: no such check).
         """
 
 

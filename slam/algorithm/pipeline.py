@@ -212,7 +212,9 @@ class SlamPipeline:
         start = _clock()
         candidates: list[LoopCandidate] = []
         if self.loop_detector is not None:
-            candidates = self.loop_detector.process(record, self.graph.poses())
+            candidates = self.loop_detector.process(
+                record, self.graph.poses(), self.graph.relative_covariance
+            )
         t = self._timed("loop_detection", start)
         added = False
         for candidate in candidates:

@@ -300,6 +300,16 @@ class PoseGraph:
 
     # --- reading the estimate -----------------------------------------------------------------
 
+    def relative_covariance(self, i: int, j: int) -> np.ndarray:
+        """6x6 marginal covariance (``[rot, trans]``) of ``T_Ai_Aj`` at the current estimate,
+        from the chain and the inlier loops: the odometry's accumulated uncertainty between
+        the two anchors where no loop ties them yet."""
+        from slam.algorithm.loop_ambiguity import relative_pose_covariance
+
+        marginals = gtsam.Marginals(self._inlier_graph(), self._estimate)
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector([i, j])).fullMatrix()
+        return relative_pose_covariance(joint, self.pose(i), self.pose(j))
+
     def pose(self, node_id: int) -> np.ndarray:
         """Current estimate of ``T_W_A`` of one anchor."""
         return self._estimate.atPose3(node_id).matrix()

@@ -42,6 +42,9 @@ def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
                 step=g.step,
                 azimuth_steps=g.azimuth_steps,
                 terrain_relief_m=g.terrain_relief_m,
+                street_style=g.street_style,
+                range_noise_m=g.range_noise_m,
+                dropout=g.dropout,
                 loader_options={"max_range_m": src.kitti.max_range_m},
             )
         else:

@@ -163,6 +163,18 @@ class GeneratedConfig(_Strict):
             "with the road"
         ),
     )
+    street_style: Literal["standard", "sparse", "periodic"] = Field(
+        "standard",
+        description="LiDAR street layout: 'standard' (irregular buildings, cars, poles, trees), "
+        "'sparse' (long blank walls far apart, a rare building, few cars) or 'periodic' (one "
+        "identical building and tree every 16 m, the aliasing of a regular avenue)",
+    )
+    range_noise_m: float = Field(
+        0.02, ge=0, description="LiDAR: std-dev of the gaussian range noise (m)"
+    )
+    dropout: float = Field(
+        0.02, ge=0, lt=1, description="LiDAR: probability that a valid return is lost"
+    )
     width: int = Field(640, ge=32, description="RGB-D image width")
     height: int = Field(480, ge=32, description="RGB-D image height")
 

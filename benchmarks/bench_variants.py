@@ -1,0 +1,251 @@
+"""LiDAR accuracy on data variants that no single generator setting defines (issue 23, item 1).
+
+    python -m benchmarks.bench_variants [--quick] [--variants NAME ...] [--set KEY=VALUE ...]
+
+Each variant is a generated street along the real KITTI 00 trajectory (and its elevations): the
+standard street with seeds 0, 1 and 2, a sparse street (long blank walls far apart), a periodic
+street (one identical building every 16 m), 1,024 vs 2,048 firings, and range noise 5 cm with
+2 % dropouts (the default is 2 cm). configs/kitti.yaml with KISS-ICP odometry; the odometry
+columns are KISS-ICP alone on the same scans. KISS-SLAM runs too when the env var
+KISS_SLAM_PYTHON names a Python with kiss_slam installed (skipped with the reason otherwise).
+Default: the full 4,541 scans; ``--quick``: every 3rd of frames 0-1647 (550 scans, the window
+of benchmarks.bench_slam, which includes the first revisit). ``--set`` overrides the run config
+(e.g. ``loop_closure.lidar.ambiguity_check=false`` for the "before" table). One table with
+per-axis ATE, loops kept, the worst kept loop vs the truth, and the worst variant per column.
+Writes benchmarks/results/variants.md (and .json) unless ``--out`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import datetime as dt
+import json
+import logging
+import multiprocessing
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+KITTI_POSES = DATA / "kitti" / "poses" / "00.txt"
+KITTI_CALIB = DATA / "kitti" / "sequences" / "00" / "calib.txt"
+FULL_FRAMES = 4541
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "standard, seed 0": {},
+    "standard, seed 1": {"seed": 1},
+    "standard, seed 2": {"seed": 2},
+    "sparse": {"street_style": "sparse"},
+    "periodic": {"street_style": "periodic"},
+    "1024 firings": {"azimuth_steps": 1024},
+    "2048 firings": {"azimuth_steps": 2048},
+    "noise 5 cm + 2 % dropout": {"range_noise_m": 0.05, "dropout": 0.02},
+}
+"""Generated-source keyword arguments per variant, on top of :func:`window`."""
+
+log = logging.getLogger("benchmarks.bench_variants")
+
+
+def window(quick: bool) -> dict[str, int]:
+    if quick:
+        return {"num_frames": 550, "step": 3, "azimuth_steps": 1024}
+    return {"num_frames": FULL_FRAMES, "step": 1, "azimuth_steps": 2048}
+
+
+def _source(quick: bool, variant: dict[str, Any]):
+    from frontends.sources import make_source
+
+    kwargs = {**window(quick), **variant}
+    return make_source(
+        "generated",
+        kind="lidar",
+        trajectory="kitti",
+        kitti_poses=KITTI_POSES,
+        kitti_calib=KITTI_CALIB,
+        start=0,
+        **kwargs,
+    )
+
+
+def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float, bool]]:
+    """(translation m, rotation deg, kept by the graph) of every verified loop vs the truth."""
+    from slam.algorithm.loops import relative_motion
+
+    errors = []
+    for c in pipeline.accepted_loops():
+        a = pipeline.submap_frames(c.reference_id)[0]
+        b = pipeline.submap_frames(c.query_id)[0]
+        m, d = relative_motion(np.linalg.inv(gt[a]) @ gt[b], c.T_Ai_Aj)
+        errors.append((m, d, bool(c.graph_inlier)))
+    return errors
+
+
+def run_ours(quick: bool, name: str, sets: list[str]) -> dict:
+    """configs/kitti.yaml on one variant (in a child process: one thread, no viewer)."""
+    import torch
+
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING)
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.app.builders import build_map, build_odometry
+    from slam.app.config import (
+        default_config_path,
+        load_run_config,
+        merge_overrides,
+        set_overrides,
+    )
+    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
+
+    source = _source(quick, VARIANTS[name])
+    overrides = {
+        "source": {"dataset": "generated"},
+        "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
+        "mapping": {"device": "cpu"},
+    }
+    overrides = merge_overrides(overrides, set_overrides(sets))
+    cfg = load_run_config(default_config_path("kitti"), overrides)
+    pipeline = SlamPipeline(
+        cfg.pipeline_config(), source.sensor, build_odometry(cfg, "lidar"), build_map(cfg)
+    )
+    start = time.perf_counter()
+    for frame in source.read_ahead():
+        pipeline.process(frame)
+    pipeline.finish()
+    wall = time.perf_counter() - start
+    gt = source.gt_poses
+    loops = _loop_errors(pipeline, gt)
+    kept = [(m, d) for m, d, k in loops if k]
+    reasons: dict[str, int] = {}
+    for c in pipeline.loop_candidates:
+        if not c.accepted:
+            key = c.reason.split(":")[0].split(" ")[0] if c.reason else "?"
+            reasons[key] = reasons.get(key, 0) + 1
+    return {
+        "frames": pipeline.num_frames,
+        "kiss_icp_xyz_m": ate_per_axis_rmse(pipeline.odometry_poses(), gt).tolist(),
+        "kiss_icp_ate_m": ate_rmse(pipeline.odometry_poses(), gt),
+        "slam_xyz_m": ate_per_axis_rmse(pipeline.slam_poses(), gt).tolist(),
+        "slam_ate_m": ate_rmse(pipeline.slam_poses(), gt),
+        "verified": len(loops),
+        "kept": len(kept),
+        "kept_loop_errors": kept,
+        "worst_kept_m": max((m for m, _ in kept), default=0.0),
+        "worst_kept_deg": max((d for _, d in kept), default=0.0),
+        "rejections": reasons,
+        "wall_s": wall,
+    }
+
+
+def run_kiss_slam(quick: bool, name: str) -> dict:
+    """KISS-SLAM on the same scans, when KISS_SLAM_PYTHON names a Python with kiss_slam."""
+    python = os.environ.get("KISS_SLAM_PYTHON")
+    if not python or not Path(python).is_file():
+        return {"skipped": "KISS_SLAM_PYTHON is not set to a Python with kiss_slam installed"}
+    return {"skipped": "KISS-SLAM runner not wired in this script yet"}
+
+
+def _fmt_xyz(v: list[float]) -> str:
+    return " / ".join(f"{x:.2f}" for x in v)
+
+
+def _row(name: str, r: dict) -> str:
+    return (
+        f"| {name} | {r['frames']} | {r['kiss_icp_ate_m']:.2f} | {_fmt_xyz(r['kiss_icp_xyz_m'])} "
+        f"| {r['slam_ate_m']:.2f} | {_fmt_xyz(r['slam_xyz_m'])} | {r['verified']} | {r['kept']} "
+        f"| {r['worst_kept_m']:.2f} / {r['worst_kept_deg']:.2f} "
+        f"| {r['slam_xyz_m'][2] / max(r['kiss_icp_xyz_m'][2], 1e-9):.2f} | {r['wall_s']:.0f} |"
+    )
+
+
+def write_report(path: Path, results: dict) -> None:
+    w = window(results["quick"])
+    runs = results["runs"]
+    lines = [
+        "## LiDAR accuracy on data variants (issue 23)",
+        "",
+        f"- Command: `{results['command']}`",
+        f"- Date: {results['date']}",
+        f"- Machine: {results['machine']}",
+        f"- KISS-SLAM: {results['kiss_slam']}",
+        "",
+        f"Generated 64-beam scans along KITTI 00 frames 0-{(w['num_frames'] - 1) * w['step']}, "
+        f"every {w['step']}. ({w['num_frames']} scans, {w['azimuth_steps']} firings unless the "
+        "variant says otherwise), configs/kitti.yaml. ATE after SE(3) alignment; x / y / z: RMSE "
+        "per world axis (z up). 'worst kept loop': the largest translation / rotation error vs "
+        "the truth of the loops the pose graph kept. 'z ratio': SLAM z RMSE / KISS-ICP z RMSE "
+        "(target <= 0.5).",
+        "",
+        "| variant | scans | KISS-ICP ATE [m] | KISS-ICP x / y / z [m] | SLAM ATE [m] "
+        "| SLAM x / y / z [m] | verified | kept | worst kept loop [m / deg] | z ratio | wall [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [_row(name, r) for name, r in runs.items()]
+    if runs:
+        lines += ["", "Worst variant per column:", ""]
+        columns = {
+            "SLAM ATE": lambda r: r["slam_ate_m"],
+            "SLAM z RMSE": lambda r: r["slam_xyz_m"][2],
+            "SLAM horizontal (x, y) RMSE": lambda r: float(np.hypot(*r["slam_xyz_m"][:2])),
+            "z ratio": lambda r: r["slam_xyz_m"][2] / max(r["kiss_icp_xyz_m"][2], 1e-9),
+            "worst kept loop [m]": lambda r: r["worst_kept_m"],
+            "worst kept loop [deg]": lambda r: r["worst_kept_deg"],
+            "fewest loops kept": lambda r: -r["kept"],
+        }
+        for label, key in columns.items():
+            name = max(runs, key=lambda n, k=key: k(runs[n]))
+            lines.append(f"- {label}: {name} ({abs(key(runs[name])):.2f})")
+        lines += ["", "Rejected candidates by reason (first word):", ""]
+        lines += [f"- {name}: {json.dumps(r['rejections'])}" for name, r in runs.items()]
+    lines.append("")
+    path.write_text("\n".join(lines))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="550 scans (every 3rd), 1024 firings")
+    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
+    parser.add_argument(
+        "--set", dest="sets", action="append", default=[], help="run config override KEY=VALUE"
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="variants run at a time")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "variants.md")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if not KITTI_POSES.is_file():
+        print(f"{KITTI_POSES}: missing; the variants follow KITTI 00's poses", file=sys.stderr)
+        return 2
+    command = "python -m benchmarks.bench_variants" + (" --quick" if args.quick else "")
+    command += "".join(f" --set {s}" for s in args.sets)
+    if args.variants != list(VARIANTS):
+        command += " --variants " + " ".join(f"'{v}'" for v in args.variants)
+    load = os.getloadavg()[0]
+    results: dict = {
+        "machine": f"{platform.platform()}, {os.cpu_count()} CPUs, 1-min load {load:.1f}",
+        "date": dt.datetime.now().isoformat(timespec="seconds"),
+        "quick": args.quick,
+        "command": command,
+        "kiss_slam": run_kiss_slam(args.quick, args.variants[0]).get("skipped", "ran"),
+        "runs": {},
+    }
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
+        futures = {v: pool.submit(run_ours, args.quick, v, args.sets) for v in args.variants}
+        for name, future in futures.items():
+            results["runs"][name] = future.result()
+            log.info("%s", _row(name, results["runs"][name]))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps(results, indent=2, default=str))
+    write_report(args.out, results)
+    log.info("wrote %s", args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,118 @@
+"""Loop verification that aliasing cannot fool: a street whose facades repeat every 16 m.
+
+Two submap clouds of the same stretch of a generated periodic street (real ray casting, real
+KISS-ICP registration): a candidate whose ICP converges one period off passes every score gate
+but is rejected as ambiguous, the true loop on the same street is accepted, and the pose graph's
+chi-square gate rejects a correction far outside the odometry's accumulated uncertainty.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from kiss_icp.voxelization import voxel_down_sample
+from scipy.stats import chi2
+
+from common.geometry import transform_points
+from frontends.generate.lidar import LidarConfig, beam_directions, simulate_scan
+from frontends.generate.raycast import Raycaster
+from frontends.generate.street import PERIOD_M, street_scene
+from slam.algorithm.config import LidarLoopConfig, PoseGraphConfig
+from slam.algorithm.loop_ambiguity import mahalanobis_distance2
+from slam.algorithm.loop_lidar import IcpVerifier
+from slam.algorithm.loops import relative_motion
+from slam.algorithm.pose_graph import PoseGraph
+
+LOOP_CONFIG = {"icp_max_correspondence_m": 1.5}  # configs/kitti.yaml
+
+
+def _pose(x: float, y: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [x, y, 0.0]
+    return T
+
+
+@pytest.fixture(scope="module")
+def periodic_pair():
+    """Reference and query submap clouds (15 scans 2 m apart, 3-30 m, 0.5 m voxels) of the same
+    stretch of a straight periodic street, the query 0.7 m ahead and 0.5 m to the side."""
+    path = np.stack([np.linspace(-100, 300, 401), np.zeros(401), np.zeros(401)], axis=1)
+    scene = street_scene(path, seed=0, style="periodic")
+    raycaster = Raycaster(scene.mesh)
+    lidar = LidarConfig(azimuth_steps=1024)
+    directions = beam_directions(lidar)
+
+    def submap(x0: float, y: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        rng = np.random.default_rng(seed)
+        T_W_A = _pose(x0, y)
+        parts = []
+        for k in range(15):
+            T_W_S = _pose(x0 + 2.0 * k, y)
+            points, _ = simulate_scan(raycaster, scene, T_W_S, lidar, rng, directions)
+            r = np.linalg.norm(points, axis=1)
+            points = points[(r > 3.0) & (r < 30.0)]
+            parts.append(transform_points(np.linalg.inv(T_W_A) @ T_W_S, points))
+        return T_W_A, voxel_down_sample(np.concatenate(parts), 0.5)
+
+    T_W_Ai, reference = submap(100.0, 0.0, seed=1)
+    T_W_Aj, query = submap(100.7, 0.5, seed=2)
+    return reference, query, np.linalg.inv(T_W_Ai) @ T_W_Aj
+
+
+def _guess(T_true: np.ndarray, along_m: float) -> np.ndarray:
+    guess = T_true.copy()
+    guess[0, 3] += along_m
+    return guess
+
+
+def test_one_period_off_passes_the_score_gates_but_is_rejected_as_ambiguous(periodic_pair):
+    reference, query, T_true = periodic_pair
+    guess = _guess(T_true, PERIOD_M - 1.0)  # e.g. a drifted proximity guess
+    unchecked = IcpVerifier(LidarLoopConfig(**LOOP_CONFIG, ambiguity_check=False))
+    aliased = unchecked.verify(reference, query, guess, limit_correction=False)
+    error_m, _ = relative_motion(T_true, aliased.T_ref_query)
+    assert abs(error_m - PERIOD_M) < 1.0, "ICP should converge one period off"
+    assert aliased.accepted, f"the score gates alone accept the aliased solution: {aliased.reason}"
+
+    checked = IcpVerifier(LidarLoopConfig(**LOOP_CONFIG))
+    result = checked.verify(reference, query, guess, limit_correction=False)
+    assert not result.accepted
+    assert result.reason.startswith("ambiguous"), result.reason
+    assert result.scores["ambiguity_alternative_score"] > result.scores["ambiguity_score"]
+
+
+def test_true_loop_on_the_periodic_street_is_accepted(periodic_pair):
+    reference, query, T_true = periodic_pair
+    verifier = IcpVerifier(LidarLoopConfig(**LOOP_CONFIG))
+    result = verifier.verify(reference, query, _guess(T_true, 1.0), limit_correction=False)
+    assert result.accepted, result.reason
+    error_m, error_deg = relative_motion(T_true, result.T_ref_query)
+    assert error_m < 0.5 and error_deg < 0.5, result.scores
+    # the aliased solutions exist (found one period away) but score clearly worse
+    assert result.scores["ambiguity_separation_m"] > PERIOD_M - 2.0
+    ratio = LidarLoopConfig().ambiguity_score_ratio
+    assert result.scores["ambiguity_alternative_score"] < ratio * result.scores["ambiguity_score"]
+
+
+def test_graph_gate_rejects_a_correction_outside_the_odometry_uncertainty():
+    """A 300 m chain of 30 m odometry edges (configs/kitti.yaml sigmas): the true relative pose
+    plus a realistic drift passes the chi-square gate, one period (16 m) along the street not."""
+    cfg = PoseGraphConfig(
+        odometry_translation_sigma_m=0.05,
+        odometry_translation_sigma_per_m=0.01,
+        odometry_rotation_sigma_rad=0.002,
+        odometry_rotation_sigma_rad_per_m=0.0003,
+    )
+    graph = PoseGraph(cfg)
+    for k in range(11):
+        graph.add_anchor(k, _pose(30.0 * k))
+    covariance = graph.relative_covariance(0, 10)
+    assert covariance.shape == (6, 6)
+    assert np.all(np.linalg.eigvalsh(covariance) > 0)
+    T_graph = np.linalg.inv(graph.pose(0)) @ graph.pose(10)
+    loop_covariance = np.diag([1e-4] * 3 + [0.01] * 3)
+    limit = chi2.ppf(LidarLoopConfig().graph_consistency_probability, 6)
+    drifted = T_graph @ _pose(0.8, 0.5)
+    assert mahalanobis_distance2(T_graph, covariance, drifted, loop_covariance) < limit
+    aliased = T_graph @ _pose(PERIOD_M)
+    assert mahalanobis_distance2(T_graph, covariance, aliased, loop_covariance) > limit
