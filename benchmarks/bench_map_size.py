@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from slam.app.atomic_io import write_text_atomic
+from common.atomic_io import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"

@@ -26,13 +26,13 @@ import logging
 import os
 import platform
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from common.atomic_io import write_text_atomic
 from frontends.odometry import make_odometry
 from frontends.sources import make_source
 from slam.evaluation.metrics import (
@@ -267,14 +267,6 @@ def table(rows: list[Row]) -> list[str]:
     return lines
 
 
-def write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer frames, no variants")
@@ -322,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         "~320 px wide (downscale=2 at 640x480).",
         "",
     ]
-    write_atomic(RESULTS, "\n".join(lines))
+    write_text_atomic(RESULTS, "\n".join(lines))
     log.info("wrote %s", RESULTS)
     print("\n".join(lines))
     return 0

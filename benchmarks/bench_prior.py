@@ -30,7 +30,6 @@ import os
 import platform
 import shlex
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common.atomic_io import write_text_atomic
 from common.geometry import orthonormalize
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.training.patches import PatchConfig, generate_patches_with_scenes
@@ -496,12 +496,7 @@ def main(argv: list[str] | None = None) -> None:
             scene_models = scene_models[:1]
         scenes_section(scene_models, args.quick, lines)
     text = "\n".join(lines) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=args.out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, args.out)
+    write_text_atomic(args.out, text)
     print(text)
 
 

@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from common.atomic_io import write_text_atomic
 from frontends.odometry.base import Odometry, OdometryResult
-from slam.app.atomic_io import write_text_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"

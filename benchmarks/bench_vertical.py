@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 from benchmarks.bench_slam import REPO, lidar_window, machine_line, scenario_lidar
-from slam.app.atomic_io import write_text_atomic
+from common.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.bench_vertical")
 

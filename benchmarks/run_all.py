@@ -29,7 +29,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from slam.app.atomic_io import write_text_atomic
+from common.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.run_all")
 

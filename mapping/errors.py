@@ -6,3 +6,10 @@ class MapFileError(ValueError):
 
     The message is one line naming the file and how to fix the problem.
     """
+
+
+class WeightsFileError(ValueError):
+    """A prior weights file is missing pieces, truncated, foreign or holds more than tensors.
+
+    The message is one line naming the file and how to fix the problem.
+    """

@@ -25,15 +25,15 @@ Files are written to a temporary file in the target folder and moved into place.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import zipfile
+import zlib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from common.atomic_io import atomic_path
 from mapping.compact_block import CompactBlock, storage_dtype
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
@@ -130,15 +130,8 @@ def save_map(neural_map: NeuralMap, path: str | Path, submaps: list[Submap]) -> 
         "num_submaps": len(submaps),
     }
     arrays["header"] = np.array(json.dumps(header))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
@@ -147,7 +140,7 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as npz:
             return {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
         raise MapFileError(
             f"{path}: not a readable neural map file (truncated or foreign: "
             f"{exc.__class__.__name__}); re-save the map with NeuralMap.save"

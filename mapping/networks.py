@@ -22,6 +22,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from common.atomic_io import write_bytes_atomic
+from mapping.errors import WeightsFileError
+
 _EPS = 1e-6
 
 
@@ -202,10 +205,7 @@ class PriorModel(nn.Module):
         }
         buffer = io.BytesIO()
         torch.save(payload, buffer)
-        path = Path(path)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_bytes(buffer.getvalue())
-        tmp.replace(path)
+        write_bytes_atomic(Path(path), buffer.getvalue())
 
     @classmethod
     def load(cls, path: str | Path) -> PriorModel:
@@ -222,13 +222,23 @@ class PriorModel(nn.Module):
             model = cls(ModelConfig(**payload["config"]))
             model.load_state_dict(payload["state_dict"])
         except Exception as exc:  # any corruption surfaces as one clear line
-            raise ValueError(
-                f"{path}: not a valid prior weights file ({exc.__class__.__name__}: "
-                f"{str(exc).splitlines()[0] if str(exc) else ''}); re-create it with "
-                "`python -m mapping.training.train`"
-            ) from exc
+            raise WeightsFileError(
+                f"{path}: not a valid prior weights file ({_weights_problem(exc)}); re-create it "
+                "with `python -m mapping.training.train` or set mapping.weights_path"
+            ) from None
         model.metadata = payload.get("metadata", {})
         return model
+
+
+def _weights_problem(exc: Exception) -> str:
+    """What is wrong with a weights file, without torch's advice to load it unsafely."""
+    import pickle
+
+    text = str(exc)
+    if isinstance(exc, pickle.UnpicklingError) or "weights_only" in text:
+        return "it holds objects other than tensors, refused because loading them could run code"
+    first = text.splitlines()[0] if text else ""
+    return f"{exc.__class__.__name__}: {first[:120]}" if first else exc.__class__.__name__
 
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "prior.pt"

@@ -130,6 +130,8 @@ def read_intrinsics(path: Path) -> tuple[Intrinsics, float]:
         fx, fy, cx, cy, w, h, scale = (float(v) for v in rows[0])
     except ValueError:
         raise DatasetError(f"{path}: malformed intrinsics; {fix}") from None
+    if not (scale > 0 and fx > 0 and fy != 0 and w >= 1 and h >= 1):
+        raise DatasetError(f"{path}: depth_scale, fx, width and height must be positive; {fix}")
     return Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=int(w), height=int(h)), scale
 
 

@@ -46,7 +46,14 @@ class OdometryResult:
 
 
 class Odometry(ABC):
-    """Estimates the pose of each new frame relative to the first one (``T_W_S`` with W = S_0)."""
+    """Estimates the pose of each new frame relative to the first one (``T_W_S`` with W = S_0).
+
+    Attributes:
+        num_failures: frames whose registration failed and whose pose was extrapolated instead,
+            or None for an odometry that cannot tell (KISS-ICP always returns a pose).
+    """
+
+    num_failures: int | None = None
 
     @abstractmethod
     def register(self, frame: Frame) -> OdometryResult:

@@ -21,6 +21,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from common.atomic_io import write_text_atomic
 from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.sources.base import SensorKind, Source, register_source
@@ -195,9 +196,7 @@ class GeneratedSource(Source):
             if not self.sequence_dir.is_dir():  # not a concurrent generation that finished first
                 raise
         params_file = self.cache_dir / "params.json"
-        tmp = params_file.with_suffix(f".tmp{os.getpid()}")
-        tmp.write_text(json.dumps(self._params, indent=2, sort_keys=True) + "\n")
-        os.replace(tmp, params_file)
+        write_text_atomic(params_file, json.dumps(self._params, indent=2, sort_keys=True) + "\n")
 
     def _open_loader(self, options: dict[str, Any]) -> Source:
         from frontends.sources.kitti import KittiSource

@@ -41,6 +41,7 @@ with ``F`` to compare with the ICL-NUIM surface model).
 from __future__ import annotations
 
 import logging
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,12 +101,28 @@ class _Pairing:
     depth: list[Path]
 
 
-def read_tum_pairs(folder: Path, max_difference: float) -> _Pairing:
+def _inside(folder: Path, list_file: Path, name: str, allow_outside: bool) -> Path:
+    """``folder / name``, refused when a list file's entry leads out of the dataset folder
+    (``../`` or an absolute path; links inside the folder are the user's choice) unless
+    ``allow_outside``."""
+    path = folder / name
+    inside = os.path.normpath(path).startswith(os.path.normpath(folder) + os.sep)
+    if allow_outside or inside:
+        return path
+    raise fail(
+        list_file,
+        f"entry '{name}' leaves the dataset folder {folder}",
+        "fix the list, or set source.tum.allow_outside_paths: true if you trust it",
+    )
+
+
+def read_tum_pairs(folder: Path, max_difference: float, allow_outside: bool = False) -> _Pairing:
     """Colour/depth pairs of a TUM-layout folder (associations.txt, else rgb.txt + depth.txt,
-    else rgb/ and depth/ images whose numeric names are their timestamps)."""
+    else rgb/ and depth/ images whose numeric names are their timestamps). Entries that leave
+    ``folder`` are refused unless ``allow_outside``."""
     assoc = folder / "associations.txt"
     if assoc.is_file():
-        return _read_associations(assoc)
+        return _read_associations(assoc, allow_outside)
     rgb_list, depth_list = folder / "rgb.txt", folder / "depth.txt"
     if rgb_list.is_file() or depth_list.is_file():
         rgb_stamps, rgb_names = read_stamped_paths(require_file(rgb_list, "TUM rgb.txt"))
@@ -120,14 +137,26 @@ def read_tum_pairs(folder: Path, max_difference: float) -> _Pairing:
             f"no colour image has a depth image within {max_difference} s",
             "check rgb.txt/depth.txt or raise max_difference",
         )
+    dropped = max(len(rgb_stamps), len(depth_stamps)) - len(matches)
+    if dropped:
+        log.warning(
+            "%s: %d colour and %d depth images make %d pairs; %d frames dropped (no partner "
+            "within %g s)",
+            folder,
+            len(rgb_stamps),
+            len(depth_stamps),
+            len(matches),
+            dropped,
+            max_difference,
+        )
     return _Pairing(
         stamps=np.asarray([rgb_stamps[i] for i, _ in matches]),
-        rgb=[folder / rgb_names[i] for i, _ in matches],
-        depth=[folder / depth_names[j] for _, j in matches],
+        rgb=[_inside(folder, rgb_list, rgb_names[i], allow_outside) for i, _ in matches],
+        depth=[_inside(folder, depth_list, depth_names[j], allow_outside) for _, j in matches],
     )
 
 
-def _read_associations(path: Path) -> _Pairing:
+def _read_associations(path: Path, allow_outside: bool = False) -> _Pairing:
     stamps: list[float] = []
     rgb: list[Path] = []
     depth: list[Path] = []
@@ -145,8 +174,8 @@ def _read_associations(path: Path) -> _Pairing:
         if "depth" in p1 and "depth" not in p2:  # ICL-NUIM writes depth first
             t1, p1, t2, p2 = t2, p2, t1, p1
         stamps.append(t1)
-        rgb.append(path.parent / p1)
-        depth.append(path.parent / p2)
+        rgb.append(_inside(path.parent, path, p1, allow_outside))
+        depth.append(_inside(path.parent, path, p2, allow_outside))
     if not stamps:
         raise fail(path, "associations file is empty", "regenerate associations.txt")
     return _Pairing(np.asarray(stamps), rgb, depth)
@@ -279,6 +308,7 @@ class TumSource(_PairedSource):
         depth_scale: float | None = None,
         max_difference: float = 0.02,
         depth_options: DepthOptions | dict | None = None,
+        allow_outside_paths: bool = False,
     ) -> None:
         root = Path(root).expanduser()
         folder = _find_sequence_folder(
@@ -287,6 +317,16 @@ class TumSource(_PairedSource):
         stored = _folder_intrinsics(folder)
         if depth_scale is None:
             depth_scale = stored[1] if stored is not None else 5000.0
+        if not depth_scale > 0:
+            where = folder / "intrinsics.txt" if stored is not None else folder
+            raise fail(where, f"depth scale {depth_scale} is not positive", "pass units per metre")
+        if intrinsics is None and stored is None and not _TUM_CAMERA.search(folder.name.lower()):
+            log.warning(
+                "%s: no intrinsics.txt and the folder name names no TUM camera (freiburg1/2/3); "
+                "assuming TUM's 640x480 default fx=fy=525: add intrinsics.txt ('fx fy cx cy "
+                "width height depth_scale') or set source.tum.intrinsics",
+                folder,
+            )
         if intrinsics is None:
             intrinsics = stored[0] if stored is not None else tum_intrinsics_for(folder.name)
         elif isinstance(intrinsics, dict):
@@ -301,7 +341,7 @@ class TumSource(_PairedSource):
         self._set_pairs(
             *pair_with_ground_truth(
                 self.name,
-                read_tum_pairs(folder, max_difference),
+                read_tum_pairs(folder, max_difference, allow_outside_paths),
                 gt_file if gt_file.is_file() else None,
                 max_difference,
             )

@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from common.atomic_io import write_bytes_atomic
 from mapping.networks import ModelConfig, PriorModel
 from mapping.training.patches import PatchBatch, PatchConfig, generate_patches
 
@@ -181,9 +182,7 @@ def learning_rate(cfg: TrainConfig, step: int) -> float:
 def _atomic_torch_save(payload: dict, path: Path) -> None:
     buffer = io.BytesIO()
     torch.save(payload, buffer)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_bytes(buffer.getvalue())
-    os.replace(tmp, path)
+    write_bytes_atomic(path, buffer.getvalue())
 
 
 def _resumable(config: dict) -> dict:
@@ -358,10 +357,7 @@ def main(argv: list[str] | None = None) -> None:
     command = "python -m mapping.training.train " + " ".join(arguments)
     _, metadata = train(cfg, args.out, device, args.resume, not args.no_progress, command.strip())
     if args.export is not None:
-        args.export.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.export.with_suffix(args.export.suffix + ".tmp")
-        tmp.write_bytes((args.out / "prior.pt").read_bytes())
-        os.replace(tmp, args.export)
+        write_bytes_atomic(args.export, (args.out / "prior.pt").read_bytes())
     log.info(
         "wrote %s (steps %d, %.0f s, held-out mae near surface %.4f vu)",
         args.out / "prior.pt",

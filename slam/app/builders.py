@@ -76,6 +76,7 @@ def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
             kwargs.update(
                 intrinsics=None if intrinsics is None else intrinsics.model_dump(),
                 depth_scale=src.tum.depth_scale,
+                allow_outside_paths=src.tum.allow_outside_paths,
             )
     else:
         kwargs["depth_options"] = depth

@@ -22,8 +22,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import logging
+import signal
 import sys
+import tempfile
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -31,7 +34,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from frontends.errors import DatasetError
-from mapping.errors import MapFileError
+from mapping.errors import MapFileError, WeightsFileError
 from slam.app.config import (
     ConfigError,
     RunConfig,
@@ -40,9 +43,12 @@ from slam.app.config import (
     describe_validation_error,
     load_run_config,
     set_nested,
+    set_origins,
     set_overrides,
 )
 from slam.app.datasets import DATASETS, DatasetEntry
+from slam.app.outputs import RUN_STATUS_FILE
+from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
 from slam.app.summary import summary_lines
 
 
@@ -185,7 +191,7 @@ def resolve_config(args: argparse.Namespace) -> tuple[DatasetEntry, RunConfig]:
     if entry.needs_root and args.root is None and args.config is None:
         raise UsageError(f"{args.dataset} needs --root DIR, the folder holding the dataset")
     path = args.config if args.config is not None else default_config_path(entry.config)
-    cfg = load_run_config(path, cli_overrides(args, entry))
+    cfg = load_run_config(path, cli_overrides(args, entry), set_origins(args.set))
     if entry.path_argument and not Path(cfg.source.root).expanduser().exists():
         raise FileNotFoundError(f"{cfg.source.root} does not exist; pass the recording's path")
     if entry.needs_root:
@@ -215,9 +221,39 @@ def run_folder(cfg: RunConfig, args: argparse.Namespace) -> tuple[Path, bool]:
                     f"--out {folder}: folder is not empty; pass a new or empty folder (a run never "
                     "mixes its files with others)"
                 )
+            _require_writable(folder)
             return folder, False
-        folder.mkdir(parents=True)
+        try:
+            folder.mkdir(parents=True)
+        except OSError as exc:
+            raise UsageError(
+                f"--out {folder}: cannot create the folder ({exc.strerror or exc}); pass a "
+                "writable folder"
+            ) from None
         return folder, True
+    try:
+        return _new_run_folder(cfg, args)
+    except OSError as exc:
+        raise UsageError(
+            f"output.root {cfg.output.root}: cannot create a run folder in it "
+            f"({exc.strerror or exc}); set output.root to a writable folder or pass --out DIR"
+        ) from None
+
+
+def _require_writable(folder: Path) -> None:
+    """A probe file, not ``os.access``: root passes access checks on a read-only mount."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise UsageError(
+            f"--out {folder}: cannot write in this folder ({exc.strerror or exc}); pass a "
+            "writable folder"
+        ) from None
+
+
+def _new_run_folder(cfg: RunConfig, args: argparse.Namespace) -> tuple[Path, bool]:
+    """A new time-stamped folder in ``output.root``."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     parts = (args.dataset, args.sequence)
     if DATASETS.get(args.dataset, DATASETS["demo"]).path_argument and args.sequence:
@@ -256,21 +292,48 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
     ConfigError,
     DatasetError,
     MapFileError,
-    FileNotFoundError,
-    NotADirectoryError,
-    PermissionError,
+    WeightsFileError,
+    OSError,
     ValidationError,
 )
-"""Errors caused by the user's input: reported in one line, without a traceback."""
+"""Errors caused by the user's input or environment (a missing or unwritable file, a full disk):
+reported in one line, without a traceback."""
+
+_OS_HINTS = {
+    errno.ENOSPC: "free some space or pass --out on another disk",
+    errno.EDQUOT: "free some space or pass --out on another disk",
+    errno.EROFS: "the file system is read-only; pass --out on a writable one",
+    errno.EACCES: "check the permissions or pass another --out",
+    errno.EPERM: "check the permissions or pass another --out",
+}
 
 
-def _one_line(exc: BaseException) -> str:
+def _one_line(exc: BaseException, folder: Path | None = None) -> str:
     if isinstance(exc, ValidationError):
         return describe_validation_error(exc, "config")
+    if isinstance(exc, OSError) and exc.strerror and exc.errno in _OS_HINTS:
+        location = exc.filename or folder
+        where = f"{location}: " if location else ""
+        return f"{where}{exc.strerror}; {_OS_HINTS[exc.errno]}"
     text = " ".join(str(exc).split())
-    if isinstance(exc, FileNotFoundError) and exc.filename and str(exc.filename) not in text:
+    if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in text:
         text = f"{exc.filename}: {text}"
     return text or type(exc).__name__
+
+
+def normalize_argv(argv: list[str]) -> list[str]:
+    """``--frames -5:10`` as ``--frames=-5:10``: argparse would take ``-5:10`` for an option
+    and answer "expected one argument" instead of explaining the range."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] == "--frames" and i + 1 < len(argv) and argv[i + 1].startswith("-"):
+            out.append(f"--frames={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
 
 
 def _discard_empty_run(folder: Path | None, created: bool) -> None:
@@ -278,9 +341,10 @@ def _discard_empty_run(folder: Path | None, created: bool) -> None:
     (the run never started). A folder the run did not create is never removed."""
     if folder is None or not created or not folder.is_dir():
         return
-    if {p.name for p in folder.iterdir()} <= {"run.log", "config.yaml"}:
+    started = ("run.log", "config.yaml", RUN_STATUS_FILE)
+    if {p.name for p in folder.iterdir()} <= set(started):
         logging.shutdown()
-        for name in ("run.log", "config.yaml"):
+        for name in started:
             (folder / name).unlink(missing_ok=True)
         with contextlib.suppress(OSError):
             folder.rmdir()
@@ -288,7 +352,16 @@ def _discard_empty_run(folder: Path | None, created: bool) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
-    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    argv = normalize_argv(list(argv if argv is not None else sys.argv[1:]))
+    debug = "--debug" in argv
+    previous_sigterm = handle_sigterm()
+    try:
+        return _main(argv, debug)
+    finally:
+        restore_sigterm(previous_sigterm)
+
+
+def _main(argv: list[str], debug: bool) -> int:
     folder: Path | None = None
     created = False
     try:
@@ -305,15 +378,19 @@ def main(argv: list[str] | None = None) -> int:
             progress=not args.no_progress,
             announce=lambda line: print(line, file=sys.stderr, flush=True),
         )
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        _discard_empty_run(folder, created)
+        where = f"; partial outputs in {folder}" if folder is not None and folder.is_dir() else ""
+        cause = "terminated (SIGTERM)" if terminated else "interrupted"
+        print(f"error: {cause}{where}", file=sys.stderr)
+        return 128 + signal.SIGTERM if terminated else 130
     except USER_ERRORS as exc:
         if debug:
             raise
         _discard_empty_run(folder, created)
         status = 2 if isinstance(exc, UsageError) else 1
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        print(f"error: {_one_line(exc, folder)}", file=sys.stderr)
         return status
     if not metrics.get("summary_announced"):
         for line in summary_lines(metrics):

@@ -7,6 +7,7 @@ errors into a one-line :class:`ConfigError`.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -72,6 +73,11 @@ class TumOptions(_Strict):
     depth_scale: float | None = Field(
         None, gt=0, description="TUM: depth PNG units per metre (None: intrinsics.txt, else 5000)"
     )
+    allow_outside_paths: bool = Field(
+        False,
+        description="TUM: accept rgb.txt/depth.txt/associations.txt entries that leave the "
+        "sequence folder ('../', absolute paths); refused by default",
+    )
 
 
 class LidarOptions(_Strict):
@@ -121,6 +127,12 @@ class SourceConfig(_Strict):
     )
     frames: str | None = Field(
         None, description="frame range 'A:B[:STEP]' (Python slice syntax; empty parts allowed)"
+    )
+    min_points: int = Field(
+        50,
+        ge=0,
+        description="a frame with fewer points (an empty, truncated or broken scan or depth "
+        "image) is skipped with a warning and listed in metrics.json's input.skipped_frames",
     )
     depth: DepthOptions = Field(
         default_factory=DepthOptions, description="how RGB-D depth images are lifted to points"
@@ -315,12 +327,28 @@ def set_overrides(items: list[str]) -> dict[str, Any]:
         key, sep, raw = item.partition("=")
         if not sep or not key.strip():
             raise UsageError(f"--set '{item}': expected KEY=VALUE, e.g. submaps.max_frames=20")
-        try:
-            value = yaml.safe_load(raw) if raw.strip() else None
-        except yaml.YAMLError:
-            value = raw
+        if _RANGE.fullmatch(raw):  # YAML 1.1 would read "10:5" as the base-60 number 605
+            value: Any = raw.strip()
+        else:
+            try:
+                value = yaml.safe_load(raw) if raw.strip() else None
+            except yaml.YAMLError:
+                value = raw
         set_nested(overrides, key.strip(), value)
     return overrides
+
+
+_RANGE = re.compile(r"\s*[-+\d\s]*:[-+\d\s:]*")
+"""A frame range ``A:B[:STEP]`` (parts may be empty), kept as text by :func:`set_overrides`."""
+
+
+def set_origins(items: list[str]) -> dict[str, str]:
+    """Dotted key of each ``--set`` argument -> the argument, to name it in errors."""
+    origins = {}
+    for item in items:
+        key, _, _ = item.partition("=")
+        origins[key.strip()] = f"--set {item}"
+    return origins
 
 
 def _location(loc: tuple[Any, ...]) -> str:
@@ -373,25 +401,41 @@ def read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
-def build_run_config(data: dict[str, Any], origin: str) -> RunConfig:
-    """Validate a nested mapping into a :class:`RunConfig` (one-line :class:`ConfigError`)."""
+def build_run_config(
+    data: dict[str, Any], origin: str, override_origins: dict[str, str] | None = None
+) -> RunConfig:
+    """Validate a nested mapping into a :class:`RunConfig` (one-line :class:`ConfigError`).
+
+    ``override_origins`` maps dotted keys to where they were set (``--set KEY=VALUE``): an error
+    at or below such a key names that argument instead of ``origin``.
+    """
     try:
         return RunConfig.model_validate(data)
     except ValidationError as exc:
+        key = _location(exc.errors()[0]["loc"])
+        for dotted, argument in (override_origins or {}).items():
+            if key == dotted or key.startswith(dotted + "."):
+                origin = argument
+                break
         raise ConfigError(describe_validation_error(exc, origin)) from None
 
 
-def load_run_config(path: Path | None = None, overrides: dict[str, Any] | None = None) -> RunConfig:
+def load_run_config(
+    path: Path | None = None,
+    overrides: dict[str, Any] | None = None,
+    override_origins: dict[str, str] | None = None,
+) -> RunConfig:
     """Read ``path`` (YAML), apply nested ``overrides`` on top, validate.
 
     Raises:
-        ConfigError: one line naming the file and the offending key.
+        ConfigError: one line naming the file (or the ``--set`` argument, see
+            :func:`build_run_config`) and the offending key.
     """
     data = read_yaml(path) if path is not None else {}
     origin = str(path) if path is not None else "config"
     if overrides:
         data = merge_overrides(data, overrides)
-    return build_run_config(data, origin)
+    return build_run_config(data, origin, override_origins)
 
 
 def default_config_path(name: str) -> Path:

@@ -21,8 +21,6 @@ import io
 import json
 import logging
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,8 +28,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from common.atomic_io import atomic_path, write_text_atomic
 from slam.algorithm.loops import LoopCandidate
-from slam.app.atomic_io import FILE_MODE, write_text_atomic
 from slam.app.config import RunConfig, dump_run_config
 from slam.app.trajectory_io import write_kitti, write_tum
 
@@ -95,6 +93,23 @@ def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
     return buffer.getvalue()
 
 
+RUN_STATUS_FILE = "run_status.json"
+"""Whether the run finished: ``state`` (running, finished, interrupted, terminated, failed),
+``frames_done``, ``frames_total`` and, when it stopped early, ``reason``."""
+
+
+def read_run_status(folder: Path) -> dict[str, Any] | None:
+    """The run's status file, or None when the folder has none (written before it existed)."""
+    path = Path(folder) / RUN_STATUS_FILE
+    if not path.is_file():
+        return None
+    try:
+        status = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return {"state": "unknown", "reason": f"{RUN_STATUS_FILE} is not valid JSON"}
+    return status if isinstance(status, dict) else {"state": "unknown"}
+
+
 class RunOutputs:
     """Writes the files of one run folder."""
 
@@ -126,15 +141,8 @@ class RunOutputs:
 
     def write_mesh(self, mesh: trimesh.Trimesh) -> Path:
         path = self.path("mesh.ply")
-        fd, tmp = tempfile.mkstemp(prefix=".mesh.", suffix=".ply", dir=self.folder)
-        os.close(fd)
-        try:
+        with atomic_path(path) as tmp:
             mesh.export(tmp, file_type="ply")
-            os.chmod(tmp, FILE_MODE)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
         return path
 
     def write_map(self, neural_map, submaps: Sequence) -> Path:
@@ -142,6 +150,15 @@ class RunOutputs:
         path = self.path("map.npz")
         neural_map.save(path, list(submaps))
         return path
+
+    def write_status(
+        self, state: str, frames_done: int, frames_total: int, reason: str = ""
+    ) -> None:
+        """The run's state (see :data:`RUN_STATUS_FILE`)."""
+        status = {"state": state, "frames_done": frames_done, "frames_total": frames_total}
+        if reason:
+            status["reason"] = reason
+        write_text_atomic(self.path(RUN_STATUS_FILE), json.dumps(status) + "\n")
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         text = json.dumps(_json_safe(metrics), indent=2, sort_keys=False) + "\n"

@@ -31,18 +31,21 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from common.voxel_keys import KEY_LIMIT, pack_keys
 from frontends.frame import Intrinsics
 from slam.algorithm.viz import Logger
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
+from slam.app.mesh_decimation import decimate_mesh
+from slam.app.recording_summary import summarize_recording
+from slam.app.web_viewer import WebViewerServer, viewer_executable
 
 log = logging.getLogger(__name__)
+
+__all__ = ["RerunLogger", "decimate_mesh", "metric_entity", "summarize_recording"]
 
 TRAJECTORY_COLORS = {
     "gt": (150, 150, 150),
@@ -172,7 +175,7 @@ class RerunLogger(Logger):
         if spawn:
             port = 9876
             rr.spawn(
-                port=port, connect=False, recording=self.rec, executable_path=_viewer_executable()
+                port=port, connect=False, recording=self.rec, executable_path=viewer_executable()
             )
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
         if connect_url is not None:
@@ -183,11 +186,10 @@ class RerunLogger(Logger):
             server = rr.GrpcServerSink(bind_ip=serve_bind_ip, port=int(serve_port))
             sinks.append(server)
         self.rec.set_sinks(*sinks, default_blueprint=default_blueprint(self._camera_view))
-        if server is not None:
-            from urllib.parse import quote
-
-            rr.serve_web_viewer(web_port=int(web_port), open_browser=False, connect_to=server.uri)
-            self.viewer_url = f"http://{serve_bind_ip}:{web_port}/?url={quote(server.uri, safe='')}"
+        self._web_viewer: WebViewerServer | None = None
+        if server is not None:  # not rr.serve_web_viewer: it listens on every interface
+            self._web_viewer = WebViewerServer(serve_bind_ip, int(web_port), server.uri)
+            self.viewer_url = self._web_viewer.url
 
         view = {
             "+z": rr.ViewCoordinates.RIGHT_HAND_Z_UP,
@@ -403,8 +405,12 @@ class RerunLogger(Logger):
         self._closed = True
         for name, positions in list(self._trajectory_pending.items()):
             self._log_trajectory_now(name, positions)
-        self.rec.flush()
-        self.rec.disconnect()
+        try:
+            self.rec.flush()
+            self.rec.disconnect()
+        finally:
+            if self._web_viewer is not None:
+                self._web_viewer.close()
 
     def __enter__(self) -> RerunLogger:
         return self
@@ -468,145 +474,9 @@ class RerunLogger(Logger):
         return rr.DepthImage(depth_m, meter=1.0)
 
 
-def decimate_mesh(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    max_faces: int,
-    vertex_colors: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Vertex-clustering decimation for display: vertices are merged per cell of a grid (cell
-    size from the mesh area, ``sqrt(2 area / max_faces)``, grown until the face budget holds),
-    collapsed and duplicate faces dropped. Meshes within budget are returned unchanged."""
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    if len(faces) <= max_faces:
-        return vertices, faces, vertex_colors
-    corners = vertices[faces]
-    area = (
-        0.5
-        * np.linalg.norm(
-            np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
-        ).sum()
-    )
-    cell = max(math.sqrt(1.2 * area / max(max_faces, 1)), 1e-9)
-    extent = float(np.ptp(vertices, axis=0).max())
-    cell = max(cell, extent / (KEY_LIMIT - 1))  # fewer than KEY_LIMIT cells per axis
-    while True:
-        grid = np.floor((vertices - vertices.min(axis=0)) / cell).astype(np.int64)
-        keys = pack_keys(grid)
-        _, cluster, counts = np.unique(keys, return_inverse=True, return_counts=True)
-        cluster = cluster.ravel()
-        new_faces = cluster[faces]
-        keep = (
-            (new_faces[:, 0] != new_faces[:, 1])
-            & (new_faces[:, 1] != new_faces[:, 2])
-            & (new_faces[:, 0] != new_faces[:, 2])
-        )
-        new_faces = new_faces[keep]
-        ordered = np.sort(new_faces, axis=1)
-        if len(counts) < KEY_LIMIT:  # vertex-index triples pack like voxel coordinates
-            ordered = pack_keys(ordered)
-        _, first = np.unique(ordered, axis=0 if ordered.ndim == 2 else None, return_index=True)
-        new_faces = new_faces[np.sort(first)]
-        if len(new_faces) <= max_faces:
-            break
-        cell *= 1.15
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, cluster, vertices)
-    new_vertices = sums / counts[:, None]
-    new_colors = None
-    if vertex_colors is not None:
-        color_sums = np.zeros((len(counts), 3))
-        np.add.at(color_sums, cluster, np.asarray(vertex_colors, dtype=np.float64)[:, :3])
-        new_colors = np.round(color_sums / counts[:, None]).astype(np.uint8)
-    used = np.unique(new_faces)
-    remap = np.full(len(counts), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    colors_out = None if new_colors is None else new_colors[used]
-    return new_vertices[used], remap[new_faces], colors_out
-
-
-def _viewer_executable() -> str | None:
-    """The ``rerun`` viewer next to this interpreter (a venv not on PATH), else PATH's."""
-    import shutil
-    import sys
-
-    beside = Path(sys.executable).parent / "rerun"
-    return str(beside) if beside.is_file() else shutil.which("rerun")
-
-
 def _colormap(name: str, values: np.ndarray) -> np.ndarray:
     """(N,) values in [0, 1] -> (N, 3) uint8 colours of a matplotlib colormap."""
     from matplotlib import colormaps
 
     rgba = colormaps[name](np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0), bytes=True)
     return np.asarray(rgba)[:, :3]
-
-
-@dataclass
-class EntityStats:
-    """What a recording holds at one entity path (``arrow_bytes``: uncompressed in memory)."""
-
-    rows: int = 0
-    static_rows: int = 0
-    max_instances: int = 0
-    arrow_bytes: int = 0
-    components: set[str] = field(default_factory=set)
-    timelines: set[str] = field(default_factory=set)
-
-
-@dataclass
-class RecordingSummary:
-    """Per-entity contents of an ``.rrd`` file, read back with Rerun's own reader."""
-
-    path: Path
-    size_bytes: int
-    application_id: str
-    num_blueprints: int
-    entities: dict[str, EntityStats]
-
-    def rows(self, entity: str) -> int:
-        """Number of temporal rows logged at ``entity`` (0 when absent)."""
-        stats = self.entities.get(entity)
-        return stats.rows if stats is not None else 0
-
-
-def summarize_recording(path: Path | str) -> RecordingSummary:
-    """Load ``path`` with :class:`rerun.chunk.RrdReader` and count rows per entity."""
-    import pyarrow.compute as pc
-    from rerun.chunk import RrdReader
-
-    path = Path(path)
-    reader = RrdReader(path)
-    recordings = reader.recordings()
-    if not recordings:
-        raise ValueError(f"{path}: no recording store in this .rrd file")
-    entities: dict[str, EntityStats] = {}
-    index_columns = {"rerun.controls.RowId"}
-    for chunk in reader.stream(store=recordings[0]):
-        entity = chunk.entity_path.lstrip("/")
-        stats = entities.setdefault(entity, EntityStats())
-        timelines = set(chunk.timeline_names)
-        stats.timelines |= timelines
-        if chunk.is_static:
-            stats.static_rows += chunk.num_rows
-        else:
-            stats.rows += chunk.num_rows
-        batch = chunk.to_record_batch()
-        stats.arrow_bytes += batch.nbytes
-        for name, column in zip(batch.schema.names, batch.columns, strict=True):
-            if name in index_columns or name in timelines:
-                continue
-            stats.components.add(name)
-            if len(column) and hasattr(column, "offsets"):
-                lengths = pc.list_value_length(column).to_numpy(zero_copy_only=False)
-                lengths = lengths[np.isfinite(lengths.astype(np.float64))]
-                if len(lengths):
-                    stats.max_instances = max(stats.max_instances, int(lengths.max()))
-    return RecordingSummary(
-        path=path,
-        size_bytes=path.stat().st_size,
-        application_id=str(recordings[0].application_id),
-        num_blueprints=len(reader.blueprints()),
-        entities=entities,
-    )

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from frontends.errors import DatasetError
 from slam.app.config import RunConfig
 from slam.app.datasets import DatasetEntry
+from slam.app.signals import Terminated
 from slam.app.summary import summary_lines
 
 logger = logging.getLogger("slam.run")
@@ -60,11 +62,61 @@ def execute(
 
     ``announce(line)`` receives what the user must see while the run goes on (the viewer URL of
     ``viz.mode: serve``, and the summary before serving on after the run).
+
+    ``run_status.json`` says whether the run finished (see :data:`RUN_STATUS_FILE`): it is
+    ``running`` until the end (so a killed run stays ``running``), and ``interrupted``,
+    ``terminated`` or ``failed`` when an exception ends it.
     """
 
-    from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_logger, build_map, build_odometry, build_source
+    from slam.app.builders import build_source
     from slam.app.outputs import RunOutputs
+
+    outputs = RunOutputs(folder)
+    outputs.write_config(cfg)
+    source = build_source(cfg)
+    _scale_lidar_config(cfg, source)
+    outputs.write_config(cfg)
+    state = _RunState(frames_total=len(source))
+    outputs.write_status("running", 0, state.frames_total)
+    try:
+        return _run(entry, cfg, folder, progress, announce, outputs, source, state)
+    except BaseException as exc:
+        _record_failure(outputs, state, exc)
+        if state.viz is not None:
+            try:  # keep what was recorded; never mask the error that ended the run
+                state.viz.close()
+            except Exception as close_exc:
+                logger.warning("closing the recording failed: %s", close_exc)
+        raise
+
+
+@dataclass
+class _RunState:
+    """How far a run got (for ``run_status.json``)."""
+
+    frames_total: int
+    frames_done: int = 0
+    viz: Any = None
+
+
+def _record_failure(outputs, state: _RunState, exc: BaseException) -> None:
+    """Write ``run_status.json`` for a run that an exception ended (best effort: the disk may
+    be full)."""
+    if isinstance(exc, Terminated):
+        status, reason = "terminated", "SIGTERM"
+    elif isinstance(exc, KeyboardInterrupt):
+        status, reason = "interrupted", "Ctrl-C"
+    else:
+        status, reason = "failed", " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+    try:
+        outputs.write_status(status, state.frames_done, state.frames_total, reason)
+    except OSError as write_exc:
+        logger.warning("could not write the run status: %s", write_exc)
+
+
+def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunState):
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.app.builders import build_logger, build_map, build_odometry
     from slam.app.recorder import make_recorder
     from slam.app.threads import apply_thread_budget
     from slam.evaluation.run_metrics import collect_metrics
@@ -78,16 +130,12 @@ def execute(
     if cfg.viz.mode == "none":  # nobody would see intermediate meshes
         cfg.viz.mesh_every_submaps = 10**9
         cfg.viz.mesh_after_remap = False
-    outputs = RunOutputs(folder)
-    outputs.write_config(cfg)
     start = time.perf_counter()
-    source = build_source(cfg)
-    _scale_lidar_config(cfg, source)
-    outputs.write_config(cfg)
     sensor = source.sensor
     odometry = build_odometry(cfg, sensor)
     neural_map = build_map(cfg)
     viz = build_logger(cfg, sensor, outputs.recording_path)
+    state.viz = viz
     viewer_url = viz.viewer_url
     if viewer_url:
         say(f"viewer: {viewer_url}")
@@ -108,9 +156,20 @@ def execute(
 
         bar = tqdm(total=len(source), unit="frame", desc=source.name, dynamic_ncols=True)
     intrinsics = None
+    skipped: list[int] = []
     loop_start = time.perf_counter()
     try:
         for frame in source.read_ahead():
+            state.frames_done += 1
+            if len(frame.points) < cfg.source.min_points:
+                skipped.append(frame.index)
+                logger.warning(
+                    "frame %d: %d points (< source.min_points %d); skipped",
+                    frame.index,
+                    len(frame.points),
+                    cfg.source.min_points,
+                )
+                continue
             result = pipeline.process(frame)
             recorder.frame(frame, result)
             if intrinsics is None and frame.intrinsics is not None:
@@ -118,6 +177,7 @@ def execute(
             if result.closed_submap_id is not None:
                 write_poses()
                 outputs.write_loops(pipeline.loop_candidates)
+                outputs.write_status("running", state.frames_done, state.frames_total)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(
@@ -125,13 +185,15 @@ def execute(
                     loops=len(pipeline.accepted_loops()),
                     refresh=False,
                 )
+        if len(skipped) == state.frames_total:
+            raise DatasetError(
+                f"{cfg.source.root}: no usable frame, all {len(skipped)} have fewer than "
+                f"{cfg.source.min_points} points (empty or truncated files?); check the recording"
+            )
         if bar is not None:
             bar.set_postfix_str("final optimisation and mesh")
         pipeline.finish()
         recorder.finish()
-    except BaseException:
-        viz.close()  # keep what was recorded
-        raise
     finally:
         if bar is not None:
             bar.close()
@@ -156,6 +218,15 @@ def execute(
         num_mesh_samples=cfg.output.mesh_samples,
         extra={"dataset": cfg.source.dataset, "sequence": cfg.source.sequence, "sensor": sensor},
     )
+    metrics["input"] = {
+        "frames_total": state.frames_total,
+        "frames_processed": state.frames_total - len(skipped),
+        "skipped_frames": skipped,
+        "tracking_failures": odometry.num_failures,
+    }
+    metrics["warnings"] = input_warnings(metrics, cfg.source.min_points)
+    for warning in metrics["warnings"]:
+        logger.warning("%s", warning)
     outputs.write_metrics(metrics)
     viz.log_metrics(**_final_scalars(metrics))
     metrics["run_folder"] = str(folder)
@@ -164,6 +235,7 @@ def execute(
         if cfg.viz.mode in ("rrd", "serve")
         else None
     )
+    outputs.write_status("finished", state.frames_done, state.frames_total)
     if viewer_url:
         for line in summary_lines(metrics):
             say(line)
@@ -171,6 +243,27 @@ def execute(
         _linger(cfg.viz.serve_linger_s, say)
     viz.close()
     return metrics
+
+
+def input_warnings(metrics: dict[str, Any], min_points: int) -> list[str]:
+    """What makes a finished run's result doubtful: skipped frames, tracking failures, an
+    empty map (each also in ``metrics.json``)."""
+    warnings = []
+    info = metrics["input"]
+    skipped = info["skipped_frames"]
+    if skipped:
+        shown = ", ".join(str(i) for i in skipped[:10]) + (", ..." if len(skipped) > 10 else "")
+        warnings.append(
+            f"{len(skipped)} of {info['frames_total']} frames skipped (fewer than {min_points} "
+            f"points): {shown}"
+        )
+    if info["tracking_failures"]:
+        warnings.append(
+            f"odometry failed on {info['tracking_failures']} frames (pose extrapolated)"
+        )
+    if not metrics.get("map", {}).get("voxels"):
+        warnings.append("the map is empty: no depth or points were fused")
+    return warnings
 
 
 def _final_scalars(metrics: dict[str, Any]) -> dict[str, float]:

@@ -64,6 +64,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
                 f"completion {_length(unculled['completion_m'])}, ratio "
                 f"{100 * unculled['completion_ratio']:.0f}%"
             )
+    for warning in metrics.get("warnings", []):
+        lines.append(f"WARNING: {warning}")
     if metrics.get("recording"):
         lines.append(f"replay: rerun {metrics['recording']}")
     return lines

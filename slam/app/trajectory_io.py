@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.atomic_io import write_text_atomic
 from frontends.errors import DatasetError
-from slam.app.atomic_io import write_text_atomic
 
 
 def _as_poses(poses: np.ndarray, what: str) -> np.ndarray:

@@ -7,13 +7,14 @@ temporary file first and renames it into place.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
+
+from common.atomic_io import atomic_path, write_bytes_atomic
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -36,10 +37,8 @@ def _new_figure(width_in: float = 7.0, height_in: float = 5.0) -> Figure:
 
 def _save(figure: Figure, path: Path) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    figure.savefig(tmp, format="png")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, format="png")
     return path
 
 
@@ -199,10 +198,7 @@ def write_error_colored_mesh(
         process=False,
     )
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(trimesh.exchange.ply.export_ply(colored, encoding="binary"))
-    os.replace(tmp, path)
+    write_bytes_atomic(path, trimesh.exchange.ply.export_ply(colored, encoding="binary"))
     return path
 
 
@@ -310,7 +306,6 @@ def _palette_png(path: Path, colors: int = 256) -> Path:
 
     with Image.open(path) as image:
         small = image.convert("RGB").quantize(colors=colors)
-    tmp = path.with_name(f".{path.name}.tmp")
-    small.save(tmp, format="PNG", optimize=True)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        small.save(tmp, format="PNG", optimize=True)
     return path

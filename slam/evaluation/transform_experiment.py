@@ -187,7 +187,7 @@ def write_outputs(
     out_dir: Path, rows: list[dict[str, Any]], variants: Sequence[str], command: str
 ) -> dict[str, Path]:
     """``results.json``, ``summary.md`` and ``transform_distributions.png`` in ``out_dir``."""
-    from slam.app.outputs import write_text_atomic
+    from common.atomic_io import write_text_atomic
     from slam.evaluation import plots
 
     out_dir = Path(out_dir)

@@ -1,0 +1,499 @@
+"""Issue 24's reliability cases, run as a user would, before and after the fixes.
+
+    python benchmarks/bench_reliability.py [--quick] [--before REV] [--out FILE]
+
+Each case is a command on generated data in a temporary folder (bad input, environment errors,
+signals, ``--serve``); the table records its exit code and the line that tells the user what
+happened (the ``error:`` line, else the first warning, else the last line of a traceback),
+plus what a probe saw (bound addresses, file modes, temporaries left). ``--before REV`` runs
+every case also against a ``git worktree`` checkout of REV (e.g. df1b174) with ``PYTHONPATH``
+pointing at it. ``--quick`` leaves out the cases that run the pipeline more than once.
+Writes ``benchmarks/results/reliability.md``. Self-contained: standard library, numpy and cv2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import stat
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+PY = sys.executable
+DEMO = ["demo", "--no-progress", "--set", "output.mesh_samples=1000"]
+
+
+@dataclass
+class Outcome:
+    status: int | None
+    message: str
+    probe: str = ""
+
+
+@dataclass
+class Case:
+    number: str
+    title: str
+    command: str
+    run: Callable[[Path, Path, Path], Outcome]  # (code root, work folder, base run) -> outcome
+    quick: bool = True
+    notes: list[str] = field(default_factory=list)
+
+
+_RUST_LOG = re.compile(r"^\d{4}-\d\d-\d\dT\S+ +(ERROR|WARN|INFO)")
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def message_of(stderr: str, stdout: str = "") -> str:
+    """The line that tells the user what happened (Rerun's own log lines left out)."""
+    lines = [_ANSI.sub("", line).strip() for line in stderr.splitlines()]
+    lines = [line for line in lines if line and not _RUST_LOG.match(line)]
+    for prefix in ("error:", "WARNING", "warning"):
+        for line in lines:
+            if line.startswith(prefix):
+                return line
+    if any(line.startswith("Traceback") for line in lines):
+        return f"traceback ({len(lines)} lines): {lines[-1]}"
+    if lines:
+        return lines[0]
+    out = [line for line in stdout.splitlines() if line.strip()]
+    return f"(stdout) {out[0]}" if out else "(no output)"
+
+
+def run(code: Path, args: list[str], timeout: float = 600, **kw) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(code)}
+    return subprocess.run(
+        args, cwd=code, env=env, capture_output=True, text=True, timeout=timeout, **kw
+    )
+
+
+def outcome(result: subprocess.CompletedProcess, probe: str = "") -> Outcome:
+    return Outcome(result.returncode, message_of(result.stderr, result.stdout), probe)
+
+
+def slam_run(code: Path, *args: str) -> subprocess.CompletedProcess:
+    return run(code, [PY, "-m", "slam.run", *args])
+
+
+def python_snippet(code: Path, snippet: str) -> subprocess.CompletedProcess:
+    return run(code, [PY, "-c", "import logging; logging.basicConfig()\n" + snippet])
+
+
+def written(path: Path) -> str:
+    return f"{path.name} {'written' if path.exists() else 'absent'}"
+
+
+def temporaries(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.rglob(".*") if p.is_file()) if folder.exists() else []
+
+
+# -- generated inputs --------------------------------------------------------------------------
+
+
+def write_tum(folder: Path, n_rgb: int, n_depth: int, size=(48, 64), intrinsics=True) -> None:
+    import cv2
+
+    for sub in ("rgb", "depth"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    rgb_lines, depth_lines = [], []
+    for i in range(max(n_rgb, n_depth)):
+        t = 100.0 + i / 30
+        if i < n_rgb:
+            cv2.imwrite(str(folder / "rgb" / f"{t:.6f}.png"), np.full((*size, 3), 128, np.uint8))
+            rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        if i < n_depth:
+            depth = np.full(size, 5000, np.uint16)
+            cv2.imwrite(str(folder / "depth" / f"{t:.6f}.png"), depth)
+            depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    if intrinsics:
+        h, w = size
+        (folder / "intrinsics.txt").write_text(f"50 50 {w / 2} {h / 2} {w} {h} 5000\n")
+
+
+def flip_member(path: Path, out: Path, member: str = "latent_coeffs.npy") -> None:
+    data = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo(member)
+    offset = info.header_offset
+    name_len, extra_len = struct.unpack("<HH", data[offset + 26 : offset + 30])
+    start = offset + 30 + name_len + extra_len + 2  # the deflate block header: zlib.error
+    for i in range(16):
+        data[start + i] ^= 0xFF
+    out.write_bytes(bytes(data))
+
+
+def mount_tmpfs(folder: Path, options: str) -> bool:
+    folder.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0:
+        return False
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)])
+    return done.returncode == 0
+
+
+def umount(folder: Path) -> None:
+    subprocess.run(["umount", str(folder)], capture_output=True)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def listen_addresses(port: int) -> set[str]:
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        if not Path(table).exists():
+            continue
+        for line in Path(table).read_text().splitlines()[1:]:
+            parts = line.split()
+            address, hex_port = parts[1].split(":")
+            if parts[3] == "0A" and int(hex_port, 16) == port:
+                if len(address) == 8:
+                    found.add(socket.inet_ntop(socket.AF_INET, bytes.fromhex(address)[::-1]))
+                else:
+                    raw = b"".join(bytes.fromhex(address[i : i + 8])[::-1] for i in (0, 8, 16, 24))
+                    found.add(socket.inet_ntop(socket.AF_INET6, raw))
+    return found
+
+
+# -- cases -------------------------------------------------------------------------------------
+
+
+def case_serve(code: Path, work: Path, base: Path) -> Outcome:
+    web, grpc = free_port(), free_port()
+    args = [PY, "-m", "slam.run", *DEMO, "--frames", "0:3", "--serve", "--set",
+            "viz.serve_linger_s=5", "--set", f"viz.serve_web_port={web}", "--set",
+            f"viz.serve_grpc_port={grpc}", "--out", str(work / "serve")]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(code)}
+    process = subprocess.Popen(
+        args, cwd=code, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    seen_web, seen_grpc = set(), set()
+    deadline = time.monotonic() + 300
+    while process.poll() is None and time.monotonic() < deadline:
+        seen_web |= listen_addresses(web)
+        seen_grpc |= listen_addresses(grpc)
+        time.sleep(0.1)
+    _, err = process.communicate(timeout=60)
+    lines = [line for line in err.splitlines() if line.startswith("viewer:")]
+    probe = f"web {sorted(seen_web) or '-'}, data {sorted(seen_grpc) or '-'}"
+    return Outcome(process.returncode, lines[0] if lines else message_of(err), probe)
+
+
+def case_corrupt_map(code: Path, work: Path, base: Path) -> Outcome:
+    bad = work / "bad.npz"
+    flip_member(base / "map.npz", bad)
+    snippet = f"from mapping.neural_map import NeuralMap\nNeuralMap.load({str(bad)!r})"
+    return outcome(run(code, [PY, "-c", snippet]))
+
+
+def case_corrupt_map_eval(code: Path, work: Path, base: Path) -> Outcome:
+    copy = work / "run"
+    shutil.copytree(base, copy)
+    flip_member(base / "map.npz", copy / "map.npz")
+    return outcome(run(code, [PY, "-m", "slam.eval", str(copy), "--no-plots"]))
+
+
+def case_truncated_ply(code: Path, work: Path, base: Path) -> Outcome:
+    scans = work / "scans"
+    scans.mkdir()
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\n"
+    header += "property float y\nproperty float z\nend_header\n"
+    for i in range(3):
+        (scans / f"{i:06d}.ply").write_bytes(header.encode() + b"\0" * 30)
+    out = work / "run"
+    result = slam_run(code, "lidar", str(scans), "--dataloader", "generic", "--no-viz",
+                      "--no-progress", "--out", str(out))  # fmt: skip
+    return outcome(
+        result, f"metrics.json {'written' if (out / 'metrics.json').exists() else 'absent'}"
+    )
+
+
+def case_disk_full(code: Path, work: Path, base: Path) -> Outcome:
+    folder = work / "full"
+    if not mount_tmpfs(folder, "size=160k"):
+        return Outcome(None, "skipped: needs root and tmpfs mounts")
+    try:
+        result = slam_run(code, *DEMO, "--frames", "0:6", "--rrd", str(folder / "o/recording.rrd"),
+                          "--out", str(folder / "o"))  # fmt: skip
+    finally:
+        umount(folder)
+    return outcome(result)
+
+
+def case_read_only_out(code: Path, work: Path, base: Path) -> Outcome:
+    folder = work / "ro"
+    if not mount_tmpfs(folder, "size=1m,ro"):
+        return Outcome(None, "skipped: needs root and tmpfs mounts")
+    try:
+        result = slam_run(code, *DEMO, "--no-viz", "--out", str(folder))
+    finally:
+        umount(folder)
+    return outcome(result)
+
+
+def case_root_is_file(code: Path, work: Path, base: Path) -> Outcome:
+    (work / "afile").write_text("")
+    return outcome(slam_run(code, *DEMO, "--no-viz", "--set", f"output.root={work / 'afile'}"))
+
+
+def case_bad_weights(code: Path, work: Path, base: Path) -> Outcome:
+    import pickle
+
+    weights = work / "foreign.pt"
+    with weights.open("wb") as f:
+        pickle.dump({"format": "neural-remap-slam/prior", "obj": Path("x")}, f)
+    out = work / "run"
+    result = slam_run(code, *DEMO, "--frames", "0:3", "--no-viz", "--set",
+                      f"mapping.weights_path={weights}", "--out", str(out))  # fmt: skip
+    hint = "offers weights_only=False" if "weights_only=False" in result.stderr else ""
+    left = "folder left" if out.exists() and any(out.iterdir()) else "no folder left"
+    return outcome(result, ", ".join(p for p in (hint, left) if p))
+
+
+def case_out_proc(code: Path, work: Path, base: Path) -> Outcome:
+    return outcome(slam_run(code, *DEMO, "--no-viz", "--out", "/proc/x"))
+
+
+def case_eval_interrupted(code: Path, work: Path, base: Path) -> Outcome:
+    copy = work / "run"
+    shutil.copytree(base, copy)
+    for name in ("metrics.json", "map.npz", "mesh.ply"):
+        (copy / name).unlink(missing_ok=True)
+    status = {"state": "interrupted", "frames_done": 5, "frames_total": 10, "reason": "Ctrl-C"}
+    (copy / "run_status.json").write_text(json.dumps(status))
+    result = run(code, [PY, "-m", "slam.eval", str(copy), "--no-plots"])
+    return outcome(
+        result, f"metrics.json {'written' if (copy / 'metrics.json').exists() else 'absent'}"
+    )
+
+
+def case_sigterm(code: Path, work: Path, base: Path) -> Outcome:
+    out = work / "run"
+    args = [PY, "-m", "slam.run", *DEMO, "--frames", "0:40", "--set", "submaps.max_frames=5",
+            "--rrd", str(out / "recording.rrd"), "--out", str(out)]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(code)}
+    process = subprocess.Popen(
+        args, cwd=code, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    deadline = time.monotonic() + 300
+    while not (out / "poses_slam.tum.txt").exists() and time.monotonic() < deadline:
+        if process.poll() is not None:
+            break
+        time.sleep(0.02)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    import rerun_cli
+
+    binary = Path(rerun_cli.__file__).parent / "rerun"
+    verify = subprocess.run([str(binary), "rrd", "verify", str(out / "recording.rrd")],
+                            capture_output=True, timeout=120)  # fmt: skip
+    probe = f"rrd verify {'ok' if verify.returncode == 0 else 'fails'}; "
+    probe += f"temporaries {temporaries(out) or 'none'}"
+    return Outcome(process.returncode, message_of(err), probe)
+
+
+def case_map_mode(code: Path, work: Path, base: Path) -> Outcome:
+    modes = {p.name: oct(stat.S_IMODE(p.stat().st_mode)) for p in base.iterdir() if p.is_file()}
+    odd = {k: v for k, v in modes.items() if v != "0o644"}
+    return Outcome(0, f"map.npz {modes.get('map.npz')}", f"not 0644: {odd or 'none'}")
+
+
+def _tum_snippet(root: Path, sequence: str) -> str:
+    return (
+        "from frontends.sources.base import make_source\n"
+        f"s = make_source('tum', root={str(root)!r}, sequence={sequence!r})\n"
+        "print(len(s), 'frames')"
+    )
+
+
+def case_count_mismatch(code: Path, work: Path, base: Path) -> Outcome:
+    write_tum(work / "seq", 40, 25)
+    return outcome(python_snippet(code, _tum_snippet(work, "seq")))
+
+
+def case_containment(code: Path, work: Path, base: Path) -> Outcome:
+    write_tum(work / "seq", 4, 4)
+    lines = (work / "seq" / "rgb.txt").read_text().splitlines()
+    lines[1] = lines[1].split()[0] + " /etc/passwd"
+    (work / "seq" / "rgb.txt").write_text("\n".join(lines) + "\n")
+    return outcome(python_snippet(code, _tum_snippet(work, "seq")))
+
+
+def case_set_names(code: Path, work: Path, base: Path) -> Outcome:
+    return outcome(slam_run(code, *DEMO, "--no-viz", "--set", "submaps.max_frames=abc"))
+
+
+def case_set_range(code: Path, work: Path, base: Path) -> Outcome:
+    return outcome(slam_run(code, *DEMO, "--no-viz", "--set", "source.frames=10:5"))
+
+
+def case_no_intrinsics(code: Path, work: Path, base: Path) -> Outcome:
+    write_tum(work / "my_camera", 3, 3, size=(480, 640), intrinsics=False)
+    return outcome(python_snippet(code, _tum_snippet(work, "my_camera")))
+
+
+def case_zero_depth_scale(code: Path, work: Path, base: Path) -> Outcome:
+    write_tum(work / "seq", 3, 3)
+    (work / "seq" / "intrinsics.txt").write_text("50 50 32 24 64 48 0\n")
+    snippet = _tum_snippet(work, "seq") + "\nprint(len(s[0].points), 'points')"
+    return outcome(python_snippet(code, snippet))
+
+
+def case_eval_bad_tum(code: Path, work: Path, base: Path) -> Outcome:
+    copy = work / "run"
+    shutil.copytree(base, copy)
+    (copy / "poses_slam.tum.txt").write_text("1.0 garbage\n")
+    return outcome(run(code, [PY, "-m", "slam.eval", str(copy), "--no-plots"]))
+
+
+def case_negative_frames(code: Path, work: Path, base: Path) -> Outcome:
+    return outcome(slam_run(code, *DEMO, "--no-viz", "--frames", "-5:10"))
+
+
+def case_fsync(code: Path, work: Path, base: Path) -> Outcome:
+    snippet = (
+        "import os\n"
+        "try:\n    from common.atomic_io import write_text_atomic\n"
+        "except ImportError:\n    from slam.app.atomic_io import write_text_atomic\n"
+        "calls = []\nreal = os.fsync\n"
+        "os.fsync = lambda fd: (calls.append(fd), real(fd))\n"
+        f"write_text_atomic({str(work / 'x.txt')!r}, 'x')\n"
+        "print(f'fsync calls: {len(calls)}')"
+    )
+    return outcome(python_snippet(code, snippet))
+
+
+CASES = [
+    Case("1", "--serve binds the web viewer", "slam.run demo --serve --set viz.serve_linger_s=5",
+         case_serve, quick=False),
+    Case("2", "corrupted map.npz (16 flipped bytes in a member)", "NeuralMap.load(bad.npz)",
+         case_corrupt_map),
+    Case("2", "corrupted map.npz in slam.eval", "slam.eval RUN", case_corrupt_map_eval),
+    Case("3", "generic folder of truncated PLY files",
+         "slam.run lidar scans/ --dataloader generic", case_truncated_ply),
+    Case("4", "disk full (160 kB tmpfs)", "slam.run demo --rrd FULL/o/recording.rrd --out FULL/o",
+         case_disk_full, quick=False),
+    Case("4", "read-only --out (ro tmpfs)", "slam.run demo --out RO", case_read_only_out),
+    Case("4", "output.root is a file", "slam.run demo --set output.root=afile", case_root_is_file),
+    Case("4", "foreign prior weights (pickled object)",
+         "slam.run demo --set mapping.weights_path=foreign.pt", case_bad_weights),
+    Case("4", "--out /proc/x", "slam.run demo --out /proc/x", case_out_proc),
+    Case("5", "slam.eval on an interrupted run", "slam.eval RUN (run_status: interrupted)",
+         case_eval_interrupted),
+    Case("6", "SIGTERM after the first submap", "kill -TERM during slam.run demo --rrd",
+         case_sigterm, quick=False),
+    Case("7", "file modes of a run folder", "stat RUN/*", case_map_mode),
+    Case("8", "40 RGB vs 25 depth images", "make_source('tum', ...)", case_count_mismatch),
+    Case("9", "rgb.txt entry /etc/passwd", "make_source('tum', ...)", case_containment),
+    Case("10", "--set validation error", "slam.run demo --set submaps.max_frames=abc",
+         case_set_names),
+    Case("11", "--set source.frames=10:5", "slam.run demo --set source.frames=10:5",
+         case_set_range),
+    Case("12", "RGB-D folder without intrinsics.txt", "make_source('tum', ..., 'my_camera')",
+         case_no_intrinsics),
+    Case("12", "depth_scale 0 in intrinsics.txt", "make_source('tum', ...)[0]",
+         case_zero_depth_scale),
+    Case("13", "slam.eval with a malformed poses_slam.tum.txt", "slam.eval RUN",
+         case_eval_bad_tum),
+    Case("14", "--frames -5:10", "slam.run demo --frames -5:10", case_negative_frames),
+    Case("14", "atomic writes fsync", "write_text_atomic(x.txt)", case_fsync),
+]  # fmt: skip
+
+
+def base_run(code: Path, work: Path) -> Path:
+    out = work / "base-run"
+    result = slam_run(code, *DEMO, "--frames", "0:10", "--no-viz", "--out", str(out))
+    if result.returncode != 0:
+        raise SystemExit(f"base run failed at {code}: {message_of(result.stderr)}")
+    return out
+
+
+def run_cases(code: Path, cases: list[Case], work: Path) -> list[Outcome]:
+    base = base_run(code, work)
+    outcomes = []
+    for i, case in enumerate(cases):
+        folder = work / f"case{i:02d}"
+        folder.mkdir()
+        try:
+            outcomes.append(case.run(code, folder, base))
+        except Exception as exc:  # a case that cannot run is reported, not fatal
+            outcomes.append(Outcome(None, f"case failed: {type(exc).__name__}: {exc}"))
+        print(f"  {case.number:>3} {case.title}: {outcomes[-1]}", file=sys.stderr)
+    return outcomes
+
+
+def cell(o: Outcome | None) -> str:
+    if o is None:
+        return "-"
+    text = f"**{o.status}** {o.message}" + (f" [{o.probe}]" if o.probe else "")
+    return text.replace("|", "\\|").replace("\n", " ")[:400]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="skip the multi-run cases")
+    parser.add_argument("--before", metavar="REV", help="also run every case at this revision")
+    parser.add_argument(
+        "--out", type=Path, default=REPO / "benchmarks" / "results" / "reliability.md"
+    )
+    args = parser.parse_args(argv)
+    cases = [c for c in CASES if c.quick or not args.quick]
+    with tempfile.TemporaryDirectory(prefix="bench-reliability-") as tmp:
+        tmp_path = Path(tmp)
+        before: list[Outcome | None] = [None] * len(cases)
+        if args.before:
+            checkout = tmp_path / "before"
+            subprocess.run(["git", "worktree", "add", "--detach", str(checkout), args.before],
+                           cwd=REPO, check=True, capture_output=True)  # fmt: skip
+            try:
+                print(f"before ({args.before}):", file=sys.stderr)
+                (tmp_path / "work-before").mkdir()
+                before = run_cases(checkout, cases, tmp_path / "work-before")
+            finally:
+                subprocess.run(["git", "worktree", "remove", "--force", str(checkout)], cwd=REPO)
+        print("after (this checkout):", file=sys.stderr)
+        (tmp_path / "work-after").mkdir()
+        after = run_cases(REPO, cases, tmp_path / "work-after")
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                          text=True).stdout.strip()  # fmt: skip
+    lines = [
+        "# Reliability cases of issue 24, before and after",
+        "",
+        f"`python benchmarks/bench_reliability.py{' --quick' if args.quick else ''}"
+        f"{f' --before {args.before}' if args.before else ''}` at {head} (plus uncommitted "
+        "changes, if any). Each cell: **exit code**, then the line that tells the user what "
+        "happened (`error:` line, else the first warning, else the traceback's last line) and "
+        "[what a probe saw]. Commands run on generated data in a temporary folder.",
+        "",
+        f"| # | case | command | before ({args.before or '-'}) | after |",
+        "|---|---|---|---|---|",
+    ]
+    for case, b, a in zip(cases, before, after, strict=True):
+        lines.append(f"| {case.number} | {case.title} | `{case.command}` | {cell(b)} | {cell(a)} |")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(lines) + "\n")
+    print(args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

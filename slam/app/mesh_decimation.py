@@ -1,0 +1,67 @@
+"""Mesh decimation for display (a viewer needs a bounded face count, not the full mesh)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from common.voxel_keys import KEY_LIMIT, pack_keys
+
+
+def decimate_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    max_faces: int,
+    vertex_colors: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Vertex-clustering decimation for display: vertices are merged per cell of a grid (cell
+    size from the mesh area, ``sqrt(2 area / max_faces)``, grown until the face budget holds),
+    collapsed and duplicate faces dropped. Meshes within budget are returned unchanged."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if len(faces) <= max_faces:
+        return vertices, faces, vertex_colors
+    corners = vertices[faces]
+    area = (
+        0.5
+        * np.linalg.norm(
+            np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
+        ).sum()
+    )
+    cell = max(math.sqrt(1.2 * area / max(max_faces, 1)), 1e-9)
+    extent = float(np.ptp(vertices, axis=0).max())
+    cell = max(cell, extent / (KEY_LIMIT - 1))  # fewer than KEY_LIMIT cells per axis
+    while True:
+        grid = np.floor((vertices - vertices.min(axis=0)) / cell).astype(np.int64)
+        keys = pack_keys(grid)
+        _, cluster, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        cluster = cluster.ravel()
+        new_faces = cluster[faces]
+        keep = (
+            (new_faces[:, 0] != new_faces[:, 1])
+            & (new_faces[:, 1] != new_faces[:, 2])
+            & (new_faces[:, 0] != new_faces[:, 2])
+        )
+        new_faces = new_faces[keep]
+        ordered = np.sort(new_faces, axis=1)
+        if len(counts) < KEY_LIMIT:  # vertex-index triples pack like voxel coordinates
+            ordered = pack_keys(ordered)
+        _, first = np.unique(ordered, axis=0 if ordered.ndim == 2 else None, return_index=True)
+        new_faces = new_faces[np.sort(first)]
+        if len(new_faces) <= max_faces:
+            break
+        cell *= 1.15
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, cluster, vertices)
+    new_vertices = sums / counts[:, None]
+    new_colors = None
+    if vertex_colors is not None:
+        color_sums = np.zeros((len(counts), 3))
+        np.add.at(color_sums, cluster, np.asarray(vertex_colors, dtype=np.float64)[:, :3])
+        new_colors = np.round(color_sums / counts[:, None]).astype(np.uint8)
+    used = np.unique(new_faces)
+    remap = np.full(len(counts), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    colors_out = None if new_colors is None else new_colors[used]
+    return new_vertices[used], remap[new_faces], colors_out

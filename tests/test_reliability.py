@@ -1,0 +1,391 @@
+"""Issue 24: every bad input, environment error and viewer setting that used to look valid or
+end in a traceback, reproduced on generated data in ``tmp_path`` (the fault-injection runs are
+in ``tests/test_faults.py``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import stat
+import struct
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from common.atomic_io import atomic_path, write_text_atomic
+from frontends.errors import DatasetError
+from frontends.sources.base import make_source
+from mapping.errors import MapFileError, WeightsFileError
+from mapping.networks import PriorModel
+from mapping.neural_map import NeuralMap
+from slam.app import cli
+from slam.app.config import set_overrides
+from slam.evaluation.cli import EvalError, evaluate_run
+from tests.test_map_io import _model, saved  # noqa: F401  (fixture)
+from tests.test_sources import make_tum, write_depth, write_rgb
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    status = cli.main(argv)
+    err = capsys.readouterr().err.strip()
+    return status, err
+
+
+def one_line(text: str) -> str:
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1, text
+    assert "Traceback" not in text
+    return lines[0]
+
+
+# -- atomic writes (defects 7, 14) --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_atomic_writes_respect_the_umask_like_open(tmp_path: Path, umask: int) -> None:
+    old = os.umask(umask)
+    try:
+        write_text_atomic(tmp_path / "a.txt", "x")
+        with atomic_path(tmp_path / "b.npz") as tmp:
+            np.savez_compressed(tmp, a=np.zeros(3))
+        (tmp_path / "c.txt").write_text("x")
+    finally:
+        os.umask(old)
+    expected = stat.S_IMODE((tmp_path / "c.txt").stat().st_mode)
+    assert expected == 0o666 & ~umask
+    for name in ("a.txt", "b.npz"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == expected, name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.npz", "c.txt"]
+
+
+def test_atomic_write_fsyncs_file_and_folder_before_it_is_visible(tmp_path: Path) -> None:
+    """strace-free check: os.fsync is called on the file, then on its folder."""
+    calls: list[str] = []
+    real_fsync = os.fsync
+
+    def spy(fd: int) -> None:
+        calls.append("dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "file")
+        real_fsync(fd)
+
+    os.fsync = spy
+    try:
+        write_text_atomic(tmp_path / "x.txt", "hello")
+    finally:
+        os.fsync = real_fsync
+    assert calls == ["file", "dir"]
+    assert (tmp_path / "x.txt").read_text() == "hello"
+
+
+def test_failed_atomic_write_leaves_no_temporary(tmp_path: Path) -> None:
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "x.bin") as tmp:
+        tmp.write_bytes(b"partial")
+        raise RuntimeError("writer failed")
+    assert list(tmp_path.iterdir()) == []
+
+
+# -- map and weights files (defects 2, 4) -------------------------------------------------------
+
+
+def _flip_inside_member(path: Path, out: Path, member: str) -> None:
+    """Flip 16 bytes at the start of a member's compressed data (the zip directory stays)."""
+    data = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo(member)
+    offset = info.header_offset
+    name_len, extra_len = struct.unpack("<HH", data[offset + 26 : offset + 30])
+    start = offset + 30 + name_len + extra_len + 2  # the deflate block header: zlib.error
+    for i in range(16):
+        data[start + i] ^= 0xFF
+    out.write_bytes(bytes(data))
+
+
+def test_corrupted_compressed_member_is_a_map_file_error(saved, tmp_path: Path) -> None:  # noqa: F811
+    _, _, path = saved
+    bad = tmp_path / "flipped.npz"
+    _flip_inside_member(path, bad, "latent_coeffs.npy")
+    with pytest.raises(MapFileError, match=r"flipped\.npz") as info:
+        NeuralMap.load(bad, _model())
+    assert "\n" not in str(info.value)
+
+
+def test_foreign_or_corrupt_weights_are_one_line_and_never_suggest_unsafe_loading(
+    tmp_path: Path,
+) -> None:
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(os.urandom(4096))
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"format": "neural-remap-slam/prior", "obj": Path("x")}, foreign)
+    for path in (garbage, foreign):
+        with pytest.raises(WeightsFileError) as info:
+            PriorModel.load(path)
+        text = str(info.value)
+        assert str(path) in text and "\n" not in text
+        assert "weights_only" not in text
+        assert info.value.__cause__ is None and info.value.__suppress_context__
+
+
+# -- command line (defects 4, 10, 11, 14) -------------------------------------------------------
+
+
+def test_negative_frame_range_is_explained(capsys) -> None:
+    status, err = run_cli(["demo", "--frames", "-5:10"], capsys)
+    assert status == 2
+    assert "must not be negative" in one_line(err)
+
+
+def test_set_frame_range_is_a_range_not_a_base_60_number(capsys) -> None:
+    assert set_overrides(["source.frames=10:5"]) == {"source": {"frames": "10:5"}}
+    assert set_overrides(["source.frames=0:20:2"]) == {"source": {"frames": "0:20:2"}}
+    status, err = run_cli(["demo", "--set", "source.frames=10:5"], capsys)
+    assert status == 2
+    assert "B must be greater than A" in one_line(err)
+
+
+def test_set_validation_error_names_the_set_argument(capsys) -> None:
+    status, err = run_cli(["demo", "--set", "submaps.max_frames=abc"], capsys)
+    assert status == 1
+    line = one_line(err)
+    assert "--set submaps.max_frames=abc" in line
+    assert "configs/" not in line
+
+
+def test_out_that_cannot_be_created_names_out(capsys) -> None:
+    status, err = run_cli(["demo", "--out", "/proc/x", "--no-viz"], capsys)
+    assert status == 2
+    assert one_line(err).startswith("error: --out /proc/x: cannot create")
+
+
+def test_output_root_pointing_at_a_file_names_output_root(tmp_path: Path, capsys) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    status, err = run_cli(["demo", "--no-viz", "--set", f"output.root={afile}"], capsys)
+    assert status == 2
+    assert f"output.root {afile}" in one_line(err)
+
+
+def _mount_tmpfs(folder: Path, size: str, read_only: bool = False) -> bool:
+    folder.mkdir(parents=True, exist_ok=True)
+    options = f"size={size}" + (",ro" if read_only else "")
+    if os.geteuid() != 0:
+        return False
+    result = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True
+    )
+    return result.returncode == 0
+
+
+def _umount(folder: Path) -> None:
+    subprocess.run(["umount", str(folder)], capture_output=True)
+
+
+def test_read_only_out_is_one_line(tmp_path: Path, capsys) -> None:
+    folder = tmp_path / "ro"
+    if not _mount_tmpfs(folder, "1m", read_only=True):
+        pytest.skip("needs root and tmpfs mounts to make a read-only folder (root ignores modes)")
+    try:
+        status, err = run_cli(["demo", "--no-viz", "--out", str(folder)], capsys)
+    finally:
+        _umount(folder)
+    assert status == 2
+    assert "cannot write in this folder" in one_line(err)
+
+
+def test_disk_full_during_a_run_is_one_line_naming_the_cause(tmp_path: Path) -> None:
+    folder = tmp_path / "full"
+    if not _mount_tmpfs(folder, "160k"):
+        pytest.skip("needs root and tmpfs mounts for a size-limited folder")
+    try:
+        result = subprocess.run(
+            [sys.executable, "-m", "slam.run", "demo",
+             "--frames", "0:6", "--no-progress", "--rrd", str(folder / "out" / "recording.rrd"),
+             "--set", "output.mesh_samples=1000",
+             "--out", str(folder / "out")],
+            capture_output=True, text=True, cwd=REPO_ROOT, timeout=600,
+        )  # fmt: skip
+    finally:
+        _umount(folder)
+    assert result.returncode == 1, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr  # Rerun's own log lines may precede ours
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1, result.stderr
+    assert str(folder / "out") in errors[0]
+    assert "No space left on device" in errors[0] and "free some space" in errors[0]
+
+
+# -- garbage input (defect 3) -------------------------------------------------------------------
+
+
+def test_folder_of_truncated_scans_fails_instead_of_an_empty_success(tmp_path: Path) -> None:
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex 1000\n"
+    header += "property float x\nproperty float y\nproperty float z\nend_header\n"
+    for i in range(3):
+        (scans / f"{i:06d}.ply").write_bytes(header.encode() + b"\0" * 30)  # 2.5 of 1000 points
+    out = tmp_path / "run"
+    result = subprocess.run(
+        [sys.executable, "-m", "slam.run", "lidar", str(scans), "--dataloader", "generic",
+         "--no-viz", "--no-progress", "--out", str(out)],
+        capture_output=True, text=True, cwd=REPO_ROOT, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 1, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+    assert not (out / "metrics.json").exists()
+
+
+# -- RGB-D folders (defects 8, 9, 12) -----------------------------------------------------------
+
+
+def test_rgb_and_depth_count_mismatch_warns(tmp_path: Path, caplog) -> None:
+    make_tum(tmp_path / "seq")  # 4 colour images, 5 depth images (one far in time)
+    with caplog.at_level("WARNING"):
+        source = make_source("tum", root=tmp_path, sequence="seq")
+    assert len(source) == 4
+    assert any("1 frames dropped" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("entry", ["../outside.png", "/etc/passwd"])
+def test_list_entries_leaving_the_folder_are_refused(tmp_path: Path, entry: str) -> None:
+    folder = tmp_path / "seq"
+    make_tum(folder)
+    write_rgb(tmp_path / "outside.png")
+    lines = (folder / "rgb.txt").read_text().splitlines()
+    lines[1] = f"{lines[1].split()[0]} {entry}"
+    (folder / "rgb.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError) as info:
+        make_source("tum", root=tmp_path, sequence="seq")
+    assert "leaves the dataset folder" in str(info.value) and "\n" not in str(info.value)
+    if entry.startswith(".."):
+        source = make_source("tum", root=tmp_path, sequence="seq", allow_outside_paths=True)
+        assert len(source) == 4
+
+
+def test_missing_intrinsics_warns_and_zero_depth_scale_is_refused(tmp_path: Path, caplog) -> None:
+    folder = tmp_path / "my_camera"
+    make_tum(folder)
+    with caplog.at_level("WARNING"):
+        make_source("tum", root=tmp_path, sequence="my_camera")
+    assert any("no intrinsics.txt" in r.getMessage() for r in caplog.records)
+    (folder / "intrinsics.txt").write_text("525 525 319.5 239.5 640 480 0\n")
+    with pytest.raises(DatasetError) as info:
+        make_source("tum", root=tmp_path, sequence="my_camera")
+    assert "intrinsics.txt" in str(info.value) and "positive" in str(info.value)
+    write_depth(folder / "depth" / "x.png", np.ones((4, 4)), 5000)  # keeps the helper in use
+
+
+# -- slam.eval (defects 5, 13) ------------------------------------------------------------------
+
+
+def _fake_run(folder: Path) -> None:
+    folder.mkdir()
+    rows = [f"{i}.0 {i * 0.1} 0 0 0 0 0 1" for i in range(5)]
+    for kind in ("slam", "odometry"):
+        (folder / f"poses_{kind}.tum.txt").write_text("\n".join(rows) + "\n")
+
+
+def test_eval_of_an_interrupted_run_fails_and_writes_nothing(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    _fake_run(run)
+    (run / "run_status.json").write_text(
+        json.dumps({"state": "interrupted", "frames_done": 7, "frames_total": 40})
+    )
+    with pytest.raises(EvalError, match="interrupted at frame 7 of 40"):
+        evaluate_run(run, make_plots=False)
+    (run / "run_status.json").write_text(
+        json.dumps({"state": "running", "frames_done": 3, "frames_total": 40})
+    )
+    with pytest.raises(EvalError, match="did not finish"):
+        evaluate_run(run, make_plots=False)
+    assert not (run / "metrics.json").exists()
+    result = subprocess.run(
+        [sys.executable, "-m", "slam.eval", str(run), "--no-plots"],
+        capture_output=True, text=True, cwd=REPO_ROOT, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert "did not finish" in one_line(result.stderr)
+
+
+def test_eval_names_the_malformed_tum_file(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    _fake_run(run)
+    (run / "poses_slam.tum.txt").write_text("1.0 garbage\n")
+    with pytest.raises(DatasetError, match=r"poses_slam\.tum\.txt"):
+        evaluate_run(run, make_plots=False)
+
+
+# -- --serve (defect 1) -------------------------------------------------------------------------
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def listening_addresses(port: int) -> set[str]:
+    """Addresses with a TCP socket listening on ``port`` (from /proc/net/tcp and tcp6)."""
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        if not Path(table).exists():
+            continue
+        for line in Path(table).read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            address, hex_port = local.split(":")
+            if state != "0A" or int(hex_port, 16) != port:
+                continue
+            if len(address) == 8:
+                found.add(socket.inet_ntop(socket.AF_INET, bytes.fromhex(address)[::-1]))
+            else:
+                raw = b"".join(bytes.fromhex(address[i : i + 8])[::-1] for i in range(0, 32, 8))
+                found.add(socket.inet_ntop(socket.AF_INET6, raw))
+    return found
+
+
+def test_serve_binds_both_servers_to_the_configured_loopback_address(tmp_path: Path) -> None:
+    if not Path("/proc/net/tcp").exists():
+        pytest.skip("needs /proc/net/tcp to list listening sockets")
+    from slam.app.rerun_logger import RerunLogger
+
+    grpc_port, web_port = _free_port(), _free_port()
+    logger = RerunLogger(
+        rrd_path=tmp_path / "r.rrd",
+        serve_port=grpc_port,
+        web_port=web_port,
+        serve_bind_ip="127.0.0.1",
+    )
+    try:
+        assert logger.viewer_url.startswith(f"http://127.0.0.1:{web_port}/")
+        assert listening_addresses(web_port) == {"127.0.0.1"}
+        assert listening_addresses(grpc_port) == {"127.0.0.1"}
+    finally:
+        logger.close()
+    assert listening_addresses(web_port) == set()
+
+
+def test_sigterm_handler_is_scoped_to_main_and_not_inherited_by_forks(capsys) -> None:
+    """A forked worker must keep SIGTERM's default (a stuck worker could not run the Python
+    handler, and a pool's terminate() would then hang), and main() restores the handler."""
+    import signal
+
+    from slam.app.signals import handle_sigterm, restore_sigterm
+
+    before = signal.getsignal(signal.SIGTERM)
+    run_cli(["demo", "--frames", "-1:2"], capsys)
+    assert signal.getsignal(signal.SIGTERM) is before
+    previous = handle_sigterm()
+    try:
+        pid = os.fork()
+        if pid == 0:  # child: report whether SIGTERM is back to default
+            os._exit(0 if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL else 1)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+    finally:
+        restore_sigterm(previous)
