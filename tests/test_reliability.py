@@ -27,8 +27,9 @@ from mapping.neural_map import NeuralMap
 from slam.app import cli
 from slam.app.config import set_overrides
 from slam.evaluation.cli import EvalError, evaluate_run
+from tests.dataset_files import write_depth, write_rgb
 from tests.test_map_io import _model, saved  # noqa: F401  (fixture)
-from tests.test_sources import make_tum, write_depth, write_rgb
+from tests.test_sources_rgbd import make_tum
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
