@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -102,16 +103,19 @@ def run_one(name: str, *, quick: bool, before: str | None, timeout_s: float) -> 
     returncode: int | None = None
     status, detail = "ok", ""
     with log_file.open("w") as stream:
+        # its own process group, so that a timeout also ends the processes it spawned
+        child = subprocess.Popen(
+            [sys.executable, *args],
+            cwd=REPO,
+            stdout=stream,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         try:
-            returncode = subprocess.run(
-                [sys.executable, *args],
-                cwd=REPO,
-                stdout=stream,
-                stderr=subprocess.STDOUT,
-                timeout=timeout_s,
-                check=False,
-            ).returncode
+            returncode = child.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
+            os.killpg(child.pid, signal.SIGKILL)
+            child.wait()
             status, detail = "timeout", f"killed after {timeout_s:.0f} s"
     if status == "ok" and returncode != 0:
         status, detail = "failed", f"exit status {returncode}"
