@@ -8,8 +8,13 @@ PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 TORCH_INDEX ?=
 TORCH_INDEX_ARG := $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX),)
+# KISS-SLAM, the benchmarks' reference system, lives in its own environment (it pins its own
+# kiss-icp and needs open3d); benchmarks find it through BENCH_KISS_SLAM_VENV.
+KISS_SLAM_VENV ?= .venv-kiss-slam
+KISS_SLAM_SPEC ?= kiss-slam==0.0.2
+KISS_SLAM_LOG := benchmarks/out/kiss-slam-env.log
 
-.PHONY: setup demo test lint bench bench-quick clean
+.PHONY: setup demo test lint bench bench-quick kiss-slam-env clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,11 +31,24 @@ test: setup
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
+$(KISS_SLAM_VENV)/.installed:
+	mkdir -p $(dir $(KISS_SLAM_LOG))
+	{ $(PYTHON) -m venv $(KISS_SLAM_VENV) && \
+	  $(KISS_SLAM_VENV)/bin/python -m pip install "$(KISS_SLAM_SPEC)"; } > $(KISS_SLAM_LOG) 2>&1 \
+	  || { tail -n 1 $(KISS_SLAM_LOG); exit 1; }
+	touch $@
+
+kiss-slam-env: $(KISS_SLAM_VENV)/.installed
+
+# Regenerate BENCHMARKS.md and benchmarks/results/ (quick: < 20 min on 2 cores, no KISS-SLAM).
+# A KISS-SLAM environment that cannot be created makes its rows say "skipped: <reason>".
 bench-quick: setup
-	$(PY) -m benchmarks.run_all --quick
+	BENCH_INVOKED_AS="make bench-quick" $(PY) -m benchmarks.run_all --quick
 
 bench: setup
-	$(PY) -m benchmarks.run_all
+	-$(MAKE) kiss-slam-env
+	BENCH_INVOKED_AS="make bench" BENCH_KISS_SLAM_VENV="$(abspath $(KISS_SLAM_VENV))" \
+	  $(PY) -m benchmarks.run_all
 
 clean:
-	rm -rf $(VENV) outputs .pytest_cache
+	rm -rf $(VENV) $(KISS_SLAM_VENV) outputs .pytest_cache

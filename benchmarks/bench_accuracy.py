@@ -1,6 +1,6 @@
 """Trajectory accuracy of the RGB-D pipeline and of every loop edge against ground truth.
 
-    python -m benchmarks.bench_accuracy [--label after] [--out benchmarks/results/accuracy.md]
+    python -m benchmarks.bench_accuracy [--before REV] [--quick] [--out FILE.md]
     python -m benchmarks.bench_accuracy --report-only
 
 Runs, each in its own process (``NullLogger``, map on the CPU, one torch thread):
@@ -9,22 +9,21 @@ Runs, each in its own process (``NullLogger``, map on the CPU, one torch thread)
   ../shared/data is absent);
 * the generated RGB-D room with configs/demo.yaml.
 
-Every run is stored under ``--label`` in ``benchmarks/results/accuracy.json``, so a "before" run
-made from an older checkout (``PYTHONPATH=<old checkout> python benchmarks/bench_accuracy.py
---label before``) and the current "after" run end up in one before/after table. For every run the
-section lists each verified loop edge's error against the ground-truth relative pose of the two
-anchors, and whether the pose graph kept it.
+``--before REV`` runs the same scenarios with revision REV, checked out beside this tree, in the
+same invocation, so both end up in one before/after table. For every run the section lists each
+verified loop edge's error against the ground-truth relative pose of the two anchors, and
+whether the pose graph kept it. ``benchmarks/results/accuracy.json`` holds this invocation only.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import logging
 import os
-import platform
-import subprocess
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -32,11 +31,14 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.harness.checkout import checkout
+from benchmarks.harness.child import in_child
+from benchmarks.harness.machine import git_revision, machine_line
+from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
+from common.atomic_io import write_text_atomic
 from slam.app.config import merge_overrides
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-RESULTS = REPO / "benchmarks" / "results"
+RESULTS = RESULTS_DIR
 
 log = logging.getLogger("benchmarks.bench_accuracy")
 
@@ -247,20 +249,6 @@ SCENARIOS = {
 }
 
 
-def _revision() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "describe", "--always", "--dirty"],
-            cwd=Path(os.environ.get("PYTHONPATH", REPO).split(os.pathsep)[0]),
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def _cm(value: float) -> str:
     return f"{100 * value:.1f}"
 
@@ -298,8 +286,8 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
     lines = [
         "## Trajectory accuracy (RGB-D loops and odometry)",
         "",
-        "- Command: `python -m benchmarks.bench_accuracy --label after` (the `before` rows: the "
-        "same script run with PYTHONPATH pointing at a checkout of the revision named)",
+        f"- Command: `{saved['command']}`",
+        f"- Machine: {saved['machine']}",
         "- Every run: one process, `NullLogger`, map on the CPU, torch with 1 thread; frames/s is "
         "the whole pipeline. Load average = 1-min load average at the end of the run (a shared "
         "2-core machine: other jobs inflate wall times). ATE: RMSE after SE(3) Umeyama "
@@ -376,21 +364,18 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
                 )
             lines.append("")
             lines += _diagnosis_lines(r["loops"])
-    lines.append(f"Machine: {saved['machine']}")
-    lines.append("")
-    path.write_text("\n".join(lines))
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--label", default="after", help="name of this set of runs")
+    parser.add_argument("--before", metavar="REV", help="also run revision REV")
     parser.add_argument("--out", type=Path, default=RESULTS / "accuracy.md")
     parser.add_argument("--only", choices=sorted(SCENARIOS), action="append")
     parser.add_argument("--report-only", action="store_true")
     parser.add_argument(
         "--quick", action="store_true", help="the generated room only (run_all --quick)"
     )
-    parser.add_argument("--revision", help="revision name to record (default: git describe)")
     parser.add_argument(
         "--override",
         type=json.loads,
@@ -403,41 +388,56 @@ def main(argv: list[str] | None = None) -> int:
         help="also register every loop pair from the ground truth (submaps fused with the "
         "ground-truth poses, and the keyframes alone) and report where each converges",
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     log.setLevel(logging.INFO)
     raw = args.out.with_suffix(".json")
-    saved = json.loads(raw.read_text()) if raw.is_file() else {"runs": {}}
-    saved["machine"] = (
-        f"{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}"
-    )
-    if not args.report_only:
-        runs = saved["runs"].setdefault(args.label, {})
-        runs["_revision"] = args.revision or _revision()
-        runs["_date"] = dt.datetime.now().isoformat(timespec="seconds")
-        for key in args.only or (["room"] if args.quick else sorted(SCENARIOS)):
-            _title, config_name, overrides, dataset = SCENARIOS[key]
-            if dataset == "7scenes" and not (DATA / "7scenes_redkitchen").is_dir():
-                log.warning("no 7-Scenes data under %s: skipped", DATA)
-                continue
-            runs[key] = _run(
-                config_name, merge_overrides(overrides, args.override), dataset, args.diagnose_loops
-            )
-            r = runs[key]
-            log.info(
-                "%s %s: ATE odometry %s cm, SLAM %s cm, loops verified/kept %d/%d, %.1f fps, "
-                "load %.1f",
-                key,
-                args.label,
-                _cm(r["ate_odometry_m"]),
-                _cm(r["ate_slam_m"]),
-                r["verified"],
-                r["kept"],
-                r["fps"],
-                r["load_avg"][0],
-            )
-        raw.parent.mkdir(parents=True, exist_ok=True)
-        raw.write_text(json.dumps(saved, indent=2))
+    if args.report_only:
+        write_report(args.out, json.loads(raw.read_text()))
+        return 0
+    shown = sys.argv[1:] if argv is None else argv
+    saved: dict[str, Any] = {
+        "command": shlex.join(["python", "-m", "benchmarks.bench_accuracy", *shown]),
+        "machine": machine_line(),
+        "runs": {},
+    }
+    with contextlib.ExitStack() as stack:
+        codes: dict[str, Path | None] = {}
+        if args.before:
+            codes["before"] = stack.enter_context(checkout(args.before))
+        codes["after"] = None
+        for label, code in codes.items():
+            runs = saved["runs"].setdefault(label, {})
+            runs["_revision"] = git_revision(code or REPO)
+            runs["_date"] = dt.datetime.now().isoformat(timespec="seconds")
+            for key in args.only or (["room"] if args.quick else sorted(SCENARIOS)):
+                _title, config_name, overrides, dataset = SCENARIOS[key]
+                if dataset == "7scenes" and not (DATA / "7scenes_redkitchen").is_dir():
+                    log.warning("no 7-Scenes data under %s: skipped", DATA)
+                    continue
+                runs[key] = r = in_child(
+                    _run,
+                    config_name,
+                    merge_overrides(overrides, args.override),
+                    dataset,
+                    args.diagnose_loops,
+                    code=code,
+                )
+                log.info(
+                    "%s %s: ATE odometry %s cm, SLAM %s cm, loops verified/kept %d/%d, %.1f fps",
+                    key,
+                    label,
+                    _cm(r["ate_odometry_m"]),
+                    _cm(r["ate_slam_m"]),
+                    r["verified"],
+                    r["kept"],
+                    r["fps"],
+                )
+    write_text_atomic(raw, json.dumps(saved, indent=2))
     write_report(args.out, saved)
     return 0
 

@@ -1,46 +1,48 @@
 """Keyframing cost per LiDAR scan: ``Keyframer.add`` on generated KITTI-00 scans (issue 11).
 
-    python -m benchmarks.bench_keyframing [--frames N] [--label after] [--quick] [--code DIR]
+    python -m benchmarks.bench_keyframing [--frames N] [--before REV] [--quick]
 
-Feeds the first N scans of the generated 64-beam KITTI-00 sequence (the same cached scans as
-``bench_throughput``, ~127k points each) with their ground-truth poses to a
+Feeds the first N scans of benchmarks.harness.kitti's generated KITTI-00 sequence (the full
+window, ~127k points a scan; ``--quick``: the quick window) with their ground-truth poses to a
 :class:`slam.algorithm.submaps.Keyframer` with ``configs/kitti.yaml``'s submap settings, alone in
-this
-process with one BLAS thread, as the pipeline runs it. Reports the CPU time of the calling thread
-(``time.thread_time``, so other processes on the machine inflate it less than wall time) per
-frame, split into frames that only accumulate and frames that also close a submap (compaction,
-normals, loop cloud), and what was closed (submaps, map points), so that two labels can be checked
-to produce the same map.
-
-Results accumulate in ``benchmarks/results/keyframing.json`` under ``--label``; ``--code DIR``
-imports ``slam`` and ``frontends`` from another checkout (e.g. ``git worktree add /tmp/base
-<commit>``) to measure that code; the report ``benchmarks/results/keyframing.md`` shows all
-labels.
+a process with one BLAS thread, as the pipeline runs it. Reports the CPU time of the calling
+thread (``time.thread_time``, so other processes on the machine inflate it less than wall time)
+per frame, split into frames that only accumulate and frames that also close a submap
+(compaction, normals, loop cloud), and what was closed (submaps, map points), so that two
+revisions can be checked to produce the same map. ``--before REV`` measures revision REV too,
+checked out beside this tree, in the same invocation.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import logging
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
 
-from benchmarks.bench_throughput import _config, _source
+from benchmarks.bench_throughput import _config
+from benchmarks.harness.checkout import checkout
+from benchmarks.harness.child import in_child
+from benchmarks.harness.kitti import kitti_source, window
+from benchmarks.harness.machine import machine_line
+from benchmarks.harness.paths import RESULTS_DIR
+from common.atomic_io import write_text_atomic
 
-REPO_RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
-RESULTS = os.path.join(REPO_RESULTS, "keyframing.json")
-REPORT = os.path.join(REPO_RESULTS, "keyframing.md")
+RESULTS = RESULTS_DIR / "keyframing.json"
+REPORT = RESULTS_DIR / "keyframing.md"
 QUICK_FRAMES = 120
 
 log = logging.getLogger("benchmarks.bench_keyframing")
 
 
-def measure(num_frames: int) -> dict:
+def measure(quick: bool, num_frames: int) -> dict:
     from threadpoolctl import threadpool_limits
 
     from slam.algorithm.submaps import Keyframer
@@ -51,7 +53,7 @@ def measure(num_frames: int) -> dict:
     accumulate_ms, close_ms, closed, points = [], [], [], []
     T_W0_W = None
     load = os.getloadavg()[0]
-    for frame in _source(num_frames):  # streamed: 500 scans are 1.5 GB
+    for frame in kitti_source(quick, num_frames):  # streamed: 500 scans are 1.5 GB
         if T_W0_W is None:
             T_W0_W = np.linalg.inv(frame.T_W_S_gt)
         points.append(len(frame.points))
@@ -76,60 +78,66 @@ def measure(num_frames: int) -> dict:
         "loop_points": int(sum(len(r.loop_points_A) for r in closed)),
         "load_start": load,
         "load_end": os.getloadavg()[0],
+        "date": dt.datetime.now().isoformat(timespec="seconds"),
     }
 
 
-def write_report(results: dict) -> None:
+def write_report(saved: dict) -> None:
     lines = [
         "## Keyframing per LiDAR scan",
         "",
-        "`python -m benchmarks.bench_keyframing --frames N --label L`: `Keyframer.add` on the "
-        "first N generated KITTI-00 scans with ground-truth poses, `configs/kitti.yaml` submap "
-        "settings, one thread; CPU time of that thread. *close* includes compaction, normals "
-        "and the loop cloud of the closed submap.",
+        f"- Command: `{saved['command']}`",
+        f"- Machine: {saved['machine']}",
         "",
-        "| run | date | load | points/scan | ms/frame | accumulate median ms | close mean ms "
+        f"`Keyframer.add` on {window(saved['quick']).describe(saved['frames'])} with "
+        "ground-truth poses, `configs/kitti.yaml` submap settings, one thread; CPU time of that "
+        "thread. *close* includes compaction, normals and the loop cloud of the closed submap.",
+        "",
+        "| code | date | load | points/scan | ms/frame | accumulate median ms | close mean ms "
         "| submaps | map points |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for key in sorted(results):
-        r = results[key]
+    for key, r in saved["runs"].items():
         lines.append(
             f"| {key} | {r['date']} | {r['load_start']:.1f}-{r['load_end']:.1f} "
             f"| {r['points_per_frame']:.0f} | {r['cpu_ms_per_frame']:.1f} "
             f"| {r['accumulate_cpu_ms_median']:.1f} | {r['close_cpu_ms_mean']:.0f} "
             f"| {r['submaps']} | {r['map_points']} |"
         )
-    with open(REPORT, "w") as stream:
-        stream.write("\n".join(lines) + "\n")
+    write_text_atomic(REPORT, "\n".join(lines) + "\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=500, help="first N scans")
+    parser.add_argument("--quick", action="store_true", help=f"the first {QUICK_FRAMES} scans")
+    parser.add_argument("--before", metavar="REV", help="also measure revision REV")
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=500, help="first N scans")
-    parser.add_argument("--label", default="after", help="code label of this run")
-    parser.add_argument("--quick", action="store_true", help=f"the first {QUICK_FRAMES} scans")
-    parser.add_argument("--code", help="checkout whose slam/ and frontends/ to measure")
-    args = parser.parse_args(argv)
-    if args.code:
-        sys.path.insert(0, os.path.abspath(args.code))  # before anything imports slam
+    args = build_parser().parse_args(argv)
     if args.quick:
         args.frames = min(args.frames, QUICK_FRAMES)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    run = measure(args.frames)
-    run["date"] = dt.datetime.now().isoformat(timespec="seconds")
-    import slam
-
-    run["code"] = os.path.dirname(os.path.dirname(os.path.abspath(slam.__file__)))
-    log.info("%s", run)
-    results = {}
-    if os.path.isfile(RESULTS):
-        with open(RESULTS) as stream:
-            results = json.load(stream)
-    results[f"{args.frames} frames, {args.label}"] = run
-    with open(RESULTS, "w") as stream:
-        json.dump(results, stream, indent=2)
-    write_report(results)
+    shown = sys.argv[1:] if argv is None else argv
+    saved = {
+        "command": shlex.join(["python", "-m", "benchmarks.bench_keyframing", *shown]),
+        "machine": machine_line(),
+        "quick": args.quick,
+        "frames": args.frames,
+        "runs": {},
+    }
+    with contextlib.ExitStack() as stack:
+        codes = {}
+        if args.before:
+            codes[f"before {args.before}"] = stack.enter_context(checkout(args.before))
+        codes["after"] = None
+        for label, code in codes.items():
+            saved["runs"][label] = in_child(measure, args.quick, args.frames, code=code)
+            log.info("%s: %s", label, saved["runs"][label])
+    write_text_atomic(RESULTS, json.dumps(saved, indent=2))
+    write_report(saved)
     return 0
 
 

@@ -1,10 +1,10 @@
 """Map size and memory against the raw points the map replaces, before and after a change.
 
-    python -m benchmarks.bench_map_size [--baseline-rev REV] [--scenarios demo 7scenes]
+    python -m benchmarks.bench_map_size [--before REV] [--scenarios demo 7scenes]
                                         [--out benchmarks/results/map_size.md]
 
 Every scenario runs ``python -m slam.run ... --no-viz`` in its own process, once with this
-checkout and, with ``--baseline-rev``, once with an older revision checked out into a temporary
+checkout and, with ``--before``, once with an older revision checked out into a temporary
 git worktree (the "before" column), so that peak RSS is each process's own. Reported per run:
 
 * ``map.npz`` size; voxels stored in submaps, bytes per stored submap voxel (the arrays of the
@@ -26,30 +26,31 @@ function of sequence length.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
+import contextlib
 import json
 import logging
 import os
-import platform
 import shlex
-import subprocess
 import sys
 import tempfile
-import time
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from benchmarks.harness.checkout import checkout
+from benchmarks.harness.child import run_command
+from benchmarks.harness.kitti import kitti_root, kitti_source
+from benchmarks.harness.machine import section_header
+from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
 from common.atomic_io import write_text_atomic
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-RESULTS = REPO / "benchmarks" / "results" / "map_size.md"
+RESULTS = RESULTS_DIR / "map_size.md"
 RSS_CHECKPOINTS = (500, 1000, 2000, 3000, 4000)
 SCENARIOS: dict[str, list[str]] = {
     "demo": ["demo"],
+    "demo-100": ["demo", "--frames", "0:100"],
     "7scenes": [
         "7scenes",
         "seq-01",
@@ -61,24 +62,6 @@ SCENARIOS: dict[str, list[str]] = {
     "kitti-1000": ["kitti", "00", "--frames", "0:1000"],  # --root added by kitti_root()
     "kitti-full": ["kitti", "00"],
 }
-
-
-def kitti_root() -> Path:
-    """The generated full-length KITTI-00-trajectory sequence (generated once, then cached)."""
-    from frontends.sources import make_source
-
-    source = make_source(
-        "generated",
-        kind="lidar",
-        trajectory="kitti",
-        kitti_poses=DATA / "kitti" / "poses" / "00.txt",
-        kitti_calib=DATA / "kitti" / "sequences" / "00" / "calib.txt",
-        start=0,
-        num_frames=4541,
-        step=1,
-        azimuth_steps=2048,
-    )
-    return Path(source.sequence_dir).parents[1]
 
 
 def _vm_hwm_mb(pid: int) -> float | None:
@@ -103,35 +86,31 @@ log = logging.getLogger("benchmarks.bench_map_size")
 
 
 def run_slam(checkout: Path, args: list[str], out: Path) -> dict[str, Any]:
-    """``slam.app.runner`` from ``checkout`` in a child process: its metrics, wall time and peak
-    RSS."""
+    """``slam.run`` from ``checkout`` as a measured child process: its metrics, wall time and
+    peak RSS, and the peak RSS reached by each of RSS_CHECKPOINTS frames."""
     env = dict(os.environ, PYTHONPATH=str(checkout), PYTHONUNBUFFERED="1")
     command = [sys.executable, "-m", "slam.run", *args, "--no-viz", "--out", str(out)]
     log.info("%s: %s", checkout, shlex.join(command))
-    start = time.perf_counter()
     rss_at: dict[int, float] = {}
-    with open(out.parent / f"{out.name}.log", "w") as log_file:
-        child = subprocess.Popen(command, cwd=checkout, env=env, stdout=log_file, stderr=log_file)
-        while True:
-            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
-            if pid:
-                break
-            frames, peak = _frames_written(out), _vm_hwm_mb(child.pid)
-            for checkpoint in RSS_CHECKPOINTS:
-                if frames >= checkpoint and checkpoint not in rss_at and peak is not None:
-                    rss_at[checkpoint] = peak
-            time.sleep(1.0)
-    wall = time.perf_counter() - start
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"slam.app.runner failed in {checkout}; see {out.parent / out.name}.log")
+
+    def sample(pid: int) -> None:
+        frames, peak = _frames_written(out), _vm_hwm_mb(pid)
+        for checkpoint in RSS_CHECKPOINTS:
+            if frames >= checkpoint and checkpoint not in rss_at and peak is not None:
+                rss_at[checkpoint] = peak
+
+    log_file = out.parent / f"{out.name}.log"
+    run = run_command(command, cwd=checkout, env=env, log_file=log_file, on_poll=sample)
+    if run.returncode != 0:
+        raise RuntimeError(f"slam.run failed in {checkout}; see {log_file}")
     metrics = json.loads((out / "metrics.json").read_text())
-    peak = usage.ru_maxrss / 1024
+    peak = run.usage.peak_rss_mb
     # the run's own peak before it scores its mesh against ground truth (newer runs report it)
     slam_peak = metrics.get("memory", {}).get("peak_rss_before_scoring_mb")
     rss_at[metrics["num_frames"]] = slam_peak if slam_peak is not None else peak
     return {
         "metrics": metrics,
-        "wall_s": wall,
+        "wall_s": run.usage.wall_s,
         "peak_rss_mb": peak,
         "slam_peak_rss_mb": slam_peak,
         "rss_at_frames": rss_at,
@@ -203,7 +182,7 @@ def measure(checkout: Path, name: str, work: Path, with_raw: bool) -> dict[str, 
     out = work / f"{name}-{checkout.name}"
     args = SCENARIOS[name]
     if name.startswith("kitti"):
-        args = [*args, "--root", str(kitti_root())]
+        args = [*args, "--root", str(kitti_root(kitti_source(quick=False)))]
     result = run_slam(checkout, args, out)
     result["map"] = map_file_stats(out / "map.npz")
     if with_raw:
@@ -290,16 +269,16 @@ def table(name: str, runs: dict[str, dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--baseline-rev", help="git revision to measure as 'before'")
+    parser.add_argument("--before", metavar="REV", help="git revision to measure as 'before'")
     parser.add_argument(
         "--scenarios",
         nargs="+",
         choices=list(SCENARIOS),
         help="default: demo, 7scenes and kitti-full (--quick: demo)",
     )
-    parser.add_argument("--quick", action="store_true", help="the demo scenario only")
+    parser.add_argument("--quick", action="store_true", help="the first 100 demo frames only")
     parser.add_argument(
         "--after-only",
         nargs="*",
@@ -308,60 +287,49 @@ def main(argv: list[str] | None = None) -> None:
         help="scenarios measured with this checkout only (no 'before' run)",
     )
     parser.add_argument("--out", type=Path, default=RESULTS, help="Markdown section to write")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.scenarios is None:
-        args.scenarios = ["demo"] if args.quick else ["demo", "7scenes", "kitti-full"]
+        args.scenarios = ["demo-100"] if args.quick else ["demo", "7scenes", "kitti-full"]
     if "7scenes" in args.scenarios and not (DATA / "7scenes_redkitchen").is_dir():
         log.warning("skipping 7scenes: %s is absent", DATA / "7scenes_redkitchen")
         args.scenarios.remove("7scenes")
-    revision = subprocess.run(
-        ["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True, text=True
-    ).stdout.strip()
-    load = os.getloadavg()[0]
+    command = shlex.join(
+        ["python", "-m", "benchmarks.bench_map_size", *(sys.argv[1:] if argv is None else argv)]
+    )
     lines = [
-        "## Map size and memory (lean map)",
-        "",
-        f"- Command: `python -m benchmarks.bench_map_size {shlex.join(sys.argv[1:])}`",
-        f"- Date: {dt.datetime.now().isoformat(timespec='seconds')}; revision {revision}"
-        + (f"; before = `{args.baseline_rev}`" if args.baseline_rev else ""),
-        f"- Machine: {platform.platform()}, {os.cpu_count()} CPUs, Python "
-        f"{platform.python_version()}; 1-min load average at start {load:.1f} (a shared "
-        "machine: wall times and frames/s are lower bounds)",
+        *section_header("Map size and memory (lean map)", command),
+        "- Revisions: after = this checkout"
+        + (f"; before = `{args.before}`, checked out beside it" if args.before else ""),
         "- Each run is `python -m slam.run ... --no-viz` in its own process; peak RSS is that "
         "process's maximum resident set size.",
         "",
     ]
-    with tempfile.TemporaryDirectory(prefix="bench_map_size-") as tmp:
+    with (
+        tempfile.TemporaryDirectory(prefix="bench_map_size-") as tmp,
+        contextlib.ExitStack() as stack,
+    ):
         work = Path(tmp)
         checkouts = {"after": REPO}
-        if args.baseline_rev:
-            before = work / "before"
-            subprocess.run(
-                ["git", "worktree", "add", "--detach", str(before), args.baseline_rev],
-                cwd=REPO,
-                check=True,
-                capture_output=True,
-            )
-            checkouts = {f"before ({args.baseline_rev})": before, "after": REPO}
-        try:
-            for name in args.scenarios:
-                runs = {}
-                for label, checkout in checkouts.items():
-                    if label != "after" and name in args.after_only:
-                        continue
-                    rgbd = not name.startswith("kitti")
-                    runs[label] = measure(checkout, name, work, with_raw=rgbd and label == "after")
-                    log.info("%s %s: %s", name, label, json.dumps(runs[label]["map"]))
-                lines += table(name, runs)
-        finally:
-            if args.baseline_rev:
-                subprocess.run(
-                    ["git", "worktree", "remove", "--force", str(work / "before")], cwd=REPO
-                )
+        if args.before:
+            checkouts = {f"before ({args.before})": stack.enter_context(checkout(args.before))}
+            checkouts["after"] = REPO
+        for name in args.scenarios:
+            runs = {}
+            for label, code in checkouts.items():
+                if label != "after" and name in args.after_only:
+                    continue
+                rgbd = not name.startswith("kitti")
+                runs[label] = measure(code, name, work, with_raw=rgbd and label == "after")
+                log.info("%s %s: %s", name, label, json.dumps(runs[label]["map"]))
+            lines += table(name, runs)
     text = "\n".join(lines) + "\n"
     write_text_atomic(args.out, text)
-    print(text)
+    log.info("wrote %s", args.out)
 
 
 if __name__ == "__main__":

@@ -21,17 +21,16 @@ and the KITTI relative error where the path is long enough.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import logging
-import os
-import platform
 import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.harness.kitti import KITTI_POSES, have_kitti, kitti_source, window
+from benchmarks.harness.machine import section_header
+from benchmarks.harness.paths import DATA, RESULTS_DIR
 from common.atomic_io import write_text_atomic
 from frontends.odometry import make_odometry
 from frontends.sources import make_source
@@ -45,8 +44,7 @@ from slam.evaluation.metrics import (
 
 log = logging.getLogger("benchmarks.bench_odometry")
 
-RESULTS = Path(__file__).resolve().parent / "results" / "odometry.md"
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+RESULTS = RESULTS_DIR / "odometry.md"
 
 
 @dataclass
@@ -115,35 +113,28 @@ def _kitti_lengths(length_m: float) -> tuple[float, ...]:
 
 
 def lidar_rows(quick: bool) -> tuple[list[Row], str]:
-    poses = DATA / "kitti" / "poses" / "00.txt"
-    calib = DATA / "kitti" / "sequences" / "00" / "calib.txt"
     num_frames = 150 if quick else 500
     t0 = time.perf_counter()
-    if poses.is_file() and calib.is_file():
-        source_args = {
-            "name": "generated",
-            "kind": "lidar",
-            "num_frames": num_frames,
-            "trajectory": "kitti",
-            "kitti_poses": poses,
-            "kitti_calib": calib,
-        }
-        what = f"generated HDL-64E-like scans along KITTI 00 frames 0-{num_frames - 1}"
+    if have_kitti():
+        source_args = {"quick": quick, "num_frames": num_frames}
+        what = "generated HDL-64E-like scans along " + window(quick).describe(num_frames)
+        make = kitti_source
     else:
-        log.warning("%s absent: using the generated loop trajectory", poses)
+        log.warning("%s absent: using the generated loop trajectory", KITTI_POSES)
         num_frames = max(num_frames, 186)
         source_args = {"name": "generated", "kind": "lidar", "num_frames": num_frames}
         what = f"generated HDL-64E-like scans on the generated {num_frames}-frame loop"
-    source = make_source(**source_args)
+        make = make_source
+    source = make(**source_args)
     generation_s = time.perf_counter() - t0
     points = len(source[0].points)
     lengths = _kitti_lengths(trajectory_length_m(source.gt_poses))
     rows = [_run("LiDAR, " + what, "kiss-icp", {}, source, kitti_lengths=lengths)]
-    if not quick:
+    if not quick and have_kitti():
         # The same scans from frame 20 on: separates the start (a straight street whose
         # geometry barely constrains motion along it while the constant-velocity model still
         # believes the car stands still) from steady-state drift.
-        late = make_source(**{**source_args, "frames": slice(20, None)})
+        late = kitti_source(quick, num_frames, first=20)
         late_lengths = _kitti_lengths(trajectory_length_m(late.gt_poses))
         rows.append(
             _run(
@@ -239,19 +230,6 @@ def seven_scenes_rows(quick: bool) -> tuple[list[Row], str]:
     return rows, note
 
 
-def machine() -> str:
-    import cv2
-    import torch
-
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    return (
-        f"{platform.platform()}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs, torch threads {torch.get_num_threads()}, OpenCV threads "
-        f"{cv2.getNumThreads()}, Python {platform.python_version()}; load average at start "
-        f"{load} (the machine is shared with other jobs: speeds are lower bounds)"
-    )
-
-
 def table(rows: list[Row]) -> list[str]:
     lines = [
         "| sequence | options | frames | path (m) | frames/s | ATE (m) | RPE (m / deg per frame) "
@@ -267,15 +245,22 @@ def table(rows: list[Row]) -> list[str]:
     return lines
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer frames, no variants")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("frontends.odometry.rgbd").setLevel(logging.ERROR)
 
     started = time.perf_counter()
-    header = machine()
+    import cv2
+    import torch
+
+    threads = f"torch threads {torch.get_num_threads()}, OpenCV threads {cv2.getNumThreads()}"
     lidar, lidar_note = lidar_rows(args.quick)
     real_note = real_scan_speed()
     room, room_note = room_rows(args.quick)
@@ -284,11 +269,8 @@ def main(argv: list[str] | None = None) -> int:
 
     command = "python -m benchmarks.bench_odometry" + (" --quick" if args.quick else "")
     lines = [
-        "## Odometry",
-        "",
-        f"- Date: {dt.datetime.now().isoformat(timespec='seconds')}",
-        f"- Command: `{command}` ({elapsed:.0f} s)",
-        f"- Machine: {header}",
+        *section_header("Odometry", command),
+        f"- {elapsed:.0f} s in all; {threads}",
         "- Frames/s: `register` calls only. ATE: RMSE after SE(3) Umeyama alignment without "
         "scale. End drift: end-point position error / ground-truth path length. KITTI relative "
         "error: devkit definition over the segment lengths given. Failures: frames "
@@ -316,7 +298,6 @@ def main(argv: list[str] | None = None) -> int:
     ]
     write_text_atomic(RESULTS, "\n".join(lines))
     log.info("wrote %s", RESULTS)
-    print("\n".join(lines))
     return 0
 
 

@@ -24,10 +24,7 @@ trained on):
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import logging
-import os
-import platform
 import shlex
 import sys
 import time
@@ -37,6 +34,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.harness.machine import section_header
+from benchmarks.harness.paths import DATA, RESULTS_DIR
+from benchmarks.harness.reference import tsdf
 from common.atomic_io import write_text_atomic
 from common.geometry import orthonormalize
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
@@ -46,8 +46,7 @@ from mapping.training.train import EVAL_SEED_BASE, encode_patches, evaluate
 
 log = logging.getLogger("benchmarks.bench_prior")
 
-RESULTS = Path(__file__).resolve().parent / "results" / "prior.md"
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+RESULTS = RESULTS_DIR / "prior.md"
 VOXEL_M = 0.1
 THRESHOLD_M = 0.05
 
@@ -221,57 +220,6 @@ def run_ours(model: PriorModel, frames: list):
     return mesh, nm.memory_bytes(), build, time.perf_counter() - t0
 
 
-def run_tsdf(frames: list, voxel_m: float, max_points: int):
-    """HashTSDF integration; surface = ray-cast points from every input pose (world frame)."""
-    import cv2
-
-    intr = frames[0].intrinsics
-    settings = cv2.VolumeSettings(cv2.VolumeType_HashTSDF)
-    settings.setVoxelSize(voxel_m)
-    settings.setTsdfTruncateDistance(4 * voxel_m)
-    settings.setDepthFactor(1.0)
-    settings.setMaxDepth(10.0)
-    for setter in ("Integrate", "Raycast"):
-        getattr(settings, f"set{setter}Width")(intr.width)
-        getattr(settings, f"set{setter}Height")(intr.height)
-        getattr(settings, f"setCamera{setter}Intrinsics")(intr.K.astype(np.float32))
-    volume = cv2.Volume(cv2.VolumeType_HashTSDF, settings)
-    t0 = time.perf_counter()
-    for frame in frames:
-        volume.integrate(frame.depth.astype(np.float32), frame.T_W_S_gt.astype(np.float32))
-    build = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    per_frame = max(1, max_points // len(frames))
-    rng = np.random.default_rng(0)
-    clouds = []
-    for frame in frames:
-        pts, _ = volume.raycast(frame.T_W_S_gt.astype(np.float32))
-        P = np.asarray(pts).reshape(-1, 4)[:, :3].astype(np.float64)
-        P = P[np.isfinite(P).all(1) & (np.abs(P).sum(1) > 0)]
-        if len(P) > per_frame:
-            P = P[rng.choice(len(P), per_frame, replace=False)]
-        T = frame.T_W_S_gt
-        clouds.append(P @ T[:3, :3].T + T[:3, 3])
-    points = np.concatenate(clouds)
-    extract = time.perf_counter() - t0
-    return points, _tsdf_memory(frames, voxel_m), build, extract
-
-
-def _tsdf_memory(frames: list, voxel_m: float) -> int:
-    """Estimated HashTSDF memory: 16^3-voxel units touched by the depth points +- truncation
-    along their rays, times 16^3 voxels of 2 bytes (int8 TSDF + uint8 weight)."""
-    unit = 16 * voxel_m
-    keys = set()
-    for frame in frames:
-        T = frame.T_W_S_gt
-        P = frame.points[:: max(1, len(frame.points) // 20000)]
-        rays = P / np.linalg.norm(P, axis=1, keepdims=True)
-        for offset in np.linspace(-4 * voxel_m, 4 * voxel_m, 5):
-            Q = (P + offset * rays) @ T[:3, :3].T + T[:3, 3]
-            keys.update(map(tuple, np.floor(Q / unit).astype(np.int64)))
-    return len(keys) * 16**3 * 2
-
-
 def points_metrics(points: np.ndarray, gt, gt_samples: np.ndarray) -> tuple[float, float, float]:
     from scipy.spatial import cKDTree
 
@@ -304,7 +252,7 @@ def evaluate_scene(name: str, frames: list, gt, models, lines: list[str], note: 
     results: list[SceneResult] = []
     tsdf_points = {}
     for voxel in (0.025, 0.1):
-        pts, mem, build, extract = run_tsdf(frames, voxel, 1_000_000)
+        pts, mem, build, extract = tsdf(frames, voxel, 1_000_000)
         tsdf_points[voxel] = pts
         results.append(SceneResult(f"TSDF {voxel * 100:g} cm", 0, 0, 0, mem, build, extract))
     reference_is_tsdf = gt is None
@@ -423,7 +371,9 @@ def scenes_section(models, quick: bool, lines: list[str]) -> None:
     except Exception as exc:  # report, do not stop the other scenes
         lines += [f"Generated room skipped: {exc.__class__.__name__}: {exc}", ""]
     replica = DATA / "replica"
-    if replica.is_dir():
+    if quick:
+        lines += ["Quick mode: the generated room only (no Replica, no 7-Scenes).", ""]
+    elif replica.is_dir():
         src = make_source(
             "replica", root=replica, sequence="office0", depth_options={"stride": stride}
         )
@@ -433,7 +383,9 @@ def scenes_section(models, quick: bool, lines: list[str]) -> None:
     else:
         lines += [f"Replica skipped: {replica} not found.", ""]
     kitchen = DATA / "7scenes_redkitchen"
-    if kitchen.is_dir():
+    if quick:
+        pass
+    elif kitchen.is_dir():
         src = make_source(
             "7scenes", root=kitchen, sequence="seq-01", depth_options={"stride": stride}
         )
@@ -454,30 +406,31 @@ def scenes_section(models, quick: bool, lines: list[str]) -> None:
 
 
 # ---------------------------------------------------------------------------- main
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer patches and frames")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS, help="prior weights")
     parser.add_argument("--no-scenes", action="store_true", help="only the patch sections")
     parser.add_argument("--out", type=Path, default=RESULTS, help="Markdown section to write")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(args.threads)
     models = load_models(args.weights)
     shipped = models[0][1] if args.weights.is_file() else None
     meta = getattr(shipped, "metadata", {}) if shipped is not None else {}
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    cmd = shlex.join(sys.argv[1:] if argv is None else argv)
+    cmd = shlex.join(
+        ["python", "-m", "benchmarks.bench_prior", *(sys.argv[1:] if argv is None else argv)]
+    )
     lines = [
-        "## Learned prior (mapping/training/patches.py, mapping/training/train.py)",
-        "",
-        f"- Command: `python -m benchmarks.bench_prior {cmd}`",
-        f"- Date: {dt.datetime.now().isoformat(timespec='seconds')}",
-        f"- Machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs visible, torch {torch.__version__} with "
-        f"{torch.get_num_threads()} threads, CPU only; 1-min load average at start {load:.1f} "
-        "(shared machine: wall times are inflated)",
+        *section_header(
+            "Learned prior (mapping/training/patches.py, mapping/training/train.py)", cmd
+        ),
+        f"- torch threads: {torch.get_num_threads()}, CPU only",
         f"- Weights: `{args.weights}`"
         + (
             f" (identity {shipped.identity()}, {meta.get('steps')} steps, "
@@ -487,7 +440,7 @@ def main(argv: list[str] | None = None) -> None:
         ),
         "",
     ]
-    sets = heldout(64 if args.quick else 256)
+    sets = heldout(32 if args.quick else 256)
     patch_section(models, sets, lines)
     lattice_section(models, sets, lines)
     if not args.no_scenes:
@@ -495,9 +448,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.quick:
             scene_models = scene_models[:1]
         scenes_section(scene_models, args.quick, lines)
-    text = "\n".join(lines) + "\n"
-    write_text_atomic(args.out, text)
-    print(text)
+    write_text_atomic(args.out, "\n".join(lines) + "\n")
+    log.info("wrote %s", args.out)
 
 
 if __name__ == "__main__":

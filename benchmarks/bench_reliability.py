@@ -33,7 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+from benchmarks.harness.checkout import checkout
+from benchmarks.harness.paths import REPO
+
 PY = sys.executable
 DEMO = ["demo", "--no-progress", "--set", "output.mesh_samples=1000"]
 
@@ -448,28 +450,27 @@ def cell(o: Outcome | None) -> str:
     return text.replace("|", "\\|").replace("\n", " ")[:400]
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="skip the multi-run cases")
     parser.add_argument("--before", metavar="REV", help="also run every case at this revision")
     parser.add_argument(
         "--out", type=Path, default=REPO / "benchmarks" / "results" / "reliability.md"
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     cases = [c for c in CASES if c.quick or not args.quick]
     with tempfile.TemporaryDirectory(prefix="bench-reliability-") as tmp:
         tmp_path = Path(tmp)
         before: list[Outcome | None] = [None] * len(cases)
         if args.before:
-            checkout = tmp_path / "before"
-            subprocess.run(["git", "worktree", "add", "--detach", str(checkout), args.before],
-                           cwd=REPO, check=True, capture_output=True)  # fmt: skip
-            try:
+            with checkout(args.before) as before_tree:
                 print(f"before ({args.before}):", file=sys.stderr)
                 (tmp_path / "work-before").mkdir()
-                before = run_cases(checkout, cases, tmp_path / "work-before")
-            finally:
-                subprocess.run(["git", "worktree", "remove", "--force", str(checkout)], cwd=REPO)
+                before = run_cases(before_tree, cases, tmp_path / "work-before")
         print("after (this checkout):", file=sys.stderr)
         (tmp_path / "work-after").mkdir()
         after = run_cases(REPO, cases, tmp_path / "work-after")

@@ -23,9 +23,6 @@ trajectory.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import os
-import platform
 import shutil
 import sys
 import time
@@ -36,10 +33,14 @@ from typing import Any
 
 import numpy as np
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-RESULTS = REPO_ROOT / "benchmarks" / "results" / "rerun.md"
-WORK_DIR = REPO_ROOT / "benchmarks" / "out" / "rerun"
-SHARED_KITTI = REPO_ROOT.parent / "shared" / "data" / "kitti"
+from benchmarks.harness.machine import section_header
+from benchmarks.harness.paths import DATA, RESULTS_DIR
+from benchmarks.harness.paths import WORK_DIR as BENCH_OUT
+from common.atomic_io import write_text_atomic
+
+RESULTS = RESULTS_DIR / "rerun.md"
+WORK_DIR = BENCH_OUT / "rerun"
+SHARED_KITTI = DATA / "kitti"
 
 
 @dataclass
@@ -216,16 +217,6 @@ def measure(case: Case) -> dict[str, Any]:
     }
 
 
-def machine() -> str:
-    import torch
-
-    return (
-        f"{platform.platform()}; {platform.processor() or platform.machine()}; "
-        f"os.cpu_count() = {os.cpu_count()}; torch threads {torch.get_num_threads()}; "
-        f"python {platform.python_version()}"
-    )
-
-
 def _method_table(result: dict) -> list[str]:
     """Markdown table of the time spent in each logger method, slowest first."""
     lines = ["| method | calls | total [s] | per call [ms] |", "|---|---:|---:|---:|"]
@@ -235,17 +226,12 @@ def _method_table(result: dict) -> list[str]:
     return lines
 
 
-def markdown(
-    results: list[dict[str, Any]], alone: dict[str, Any], command: str, started: str
-) -> str:
+def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str) -> str:
     lines = [
-        "## rerun",
+        *section_header("rerun", command),
         "",
         "Rerun recording size and logging overhead of whole runs (`benchmarks/bench_rerun.py`).",
         "",
-        f"- Command: `{command}`",
-        f"- Date: {started}",
-        f"- Machine: {machine()}",
         "- Each case ran twice in one process (slam.app.runner's `execute`): "
         "`--no-viz` (NullLogger) "
         "first, then `--rrd`; the sequence was generated beforehand. Wall times on a shared "
@@ -311,19 +297,22 @@ def markdown(
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="first 60 demo frames only")
+    parser.add_argument("--quick", action="store_true", help="first 30 demo frames only")
     parser.add_argument("--frames", help="frame range of the demo case (overrides the mode)")
     parser.add_argument(
         "--skip-lidar", action="store_true", help="full mode without the 1,500-frame LiDAR case"
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     argv_shown = list(sys.argv[1:] if argv is None else argv)
     command = " ".join(["python -m benchmarks.bench_rerun", *argv_shown])
-    started = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
-    frames = args.frames or ("0:60" if args.quick else None)
+    frames = args.frames or ("0:30" if args.quick else None)
     demo = ["demo", *(["--frames", frames] if frames else [])]
     cases = [Case("demo" + (f" [{frames}]" if frames else ""), demo)]
     if not args.quick and not args.skip_lidar:
@@ -352,11 +341,8 @@ def main(argv: list[str] | None = None) -> int:
     for case in cases:
         print(f"bench_rerun: {case.name}", file=sys.stderr)
         results.append(measure(case))
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    tmp = RESULTS.with_name(f".{RESULTS.name}.tmp")
-    tmp.write_text(markdown(results, alone, command, started))
-    os.replace(tmp, RESULTS)
-    print(RESULTS.read_text())
+    write_text_atomic(RESULTS, markdown(results, alone, command))
+    print(f"bench_rerun: wrote {RESULTS}", file=sys.stderr)
     return 0
 
 

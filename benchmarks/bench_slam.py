@@ -8,8 +8,8 @@ Scenarios (each in its own process, so that its peak memory is its own):
   0-1700 in full mode, every 3rd frame of 0-1650 in quick mode; both contain the revisit of the
   start area from frame 1559 on), run with configs/kitti.yaml, once with KISS-ICP odometry and
   once with ground truth plus an injected yaw drift (a stand-in for a drifting front-end, so that
-  the loop closure has something to correct). KISS-SLAM runs side by side when it can be
-  installed into /tmp/kissslam-venv.
+  the loop closure has something to correct). KISS-SLAM runs side by side when its environment
+  exists (``make kiss-slam-env``; see benchmarks/harness/reference.py).
 * RGB-D: the generated room loop (configs/demo.yaml) and real 7-Scenes redkitchen seq-01 frames
   0-399 (configs/7scenes.yaml; skipped when ../shared/data is absent).
 * Remapping: in the room run every submap keeps its points; after the run a second map is encoded
@@ -20,15 +20,8 @@ Scenarios (each in its own process, so that its peak memory is its own):
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
-import datetime as dt
 import json
 import logging
-import multiprocessing
-import os
-import platform
-import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -36,14 +29,19 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.harness.child import in_child
+from benchmarks.harness.kitti import KITTI_POSES, have_kitti, kitti_source, window
+from benchmarks.harness.machine import machine_line
+from benchmarks.harness.paths import DATA, RESULTS_DIR
+from benchmarks.harness.reference import KISS_SLAM_VERSION, kiss_slam
+from benchmarks.slam_tables import cm as _cm
+from benchmarks.slam_tables import fmt as _fmt
+from benchmarks.slam_tables import remap_table, stage_table, trajectory_table
 from common.atomic_io import write_text_atomic
 from frontends.odometry.base import Odometry, OdometryResult
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-KITTI_POSES = DATA / "kitti" / "poses" / "00.txt"
-KITTI_CALIB = DATA / "kitti" / "sequences" / "00" / "calib.txt"
-KISS_SLAM_VENV = Path("/tmp/kissslam-venv")
+FULL_LIDAR_FRAMES = 1700
+"""Full mode's LiDAR window: the first 1,700 poses (the revisit of the start is at 1559)."""
 PAPER_REMAP_FPS = 50.0
 DRIFT_TOTAL_DEG = 1.65
 """Injected yaw drift over the LiDAR window (the revisit stays within the proximity radius)."""
@@ -176,25 +174,13 @@ def _child_setup() -> None:
 # --------------------------------------------------------------------------- scenarios
 
 
-def lidar_window(quick: bool) -> dict[str, int]:
-    if quick:
-        return {"num_frames": 550, "step": 3, "azimuth_steps": 1024}
-    return {"num_frames": 1700, "step": 1, "azimuth_steps": 2048}
+def lidar_frames(quick: bool) -> int:
+    """Scans of the LiDAR window: the whole quick window, or the first 1,700 full-window poses."""
+    return window(quick).num_frames if quick else FULL_LIDAR_FRAMES
 
 
 def lidar_source(quick: bool, terrain_relief_m: float = 0.0):
-    from frontends.sources import make_source
-
-    return make_source(
-        "generated",
-        kind="lidar",
-        trajectory="kitti",
-        kitti_poses=KITTI_POSES,
-        kitti_calib=KITTI_CALIB,
-        start=0,
-        terrain_relief_m=terrain_relief_m,
-        **lidar_window(quick),
-    )
+    return kitti_source(quick, lidar_frames(quick), terrain_relief_m)
 
 
 def scenario_lidar(
@@ -219,7 +205,7 @@ def scenario_lidar(
     if odometry_mode == "kiss-icp":
         odometry = build_odometry(cfg, "lidar")
     else:
-        odometry = DriftingOdometry(DRIFT_TOTAL_DEG / lidar_window(quick)["num_frames"])
+        odometry = DriftingOdometry(DRIFT_TOTAL_DEG / lidar_frames(quick))
     pipeline, wall = _run(cfg, source, odometry)
     out = _summary(pipeline, wall, source.gt_poses)
     mesh = _mesh_accuracy(pipeline, source, num_samples=50_000)
@@ -309,73 +295,17 @@ def scenario_7scenes() -> dict | None:
 
 
 def scenario_kiss_slam(quick: bool) -> dict:
-    """KISS-SLAM 0.0.2 (own venv, default config) on the same generated KITTI-layout sequence."""
-    python = KISS_SLAM_VENV / "bin" / "python"
-    if not python.is_file():
-        return {"skipped": f"no KISS-SLAM venv at {KISS_SLAM_VENV}"}
-    check = subprocess.run(
-        [str(python), "-c", "import kiss_slam, open3d"], capture_output=True, text=True
-    )
-    if check.returncode != 0:
-        last = (check.stderr.strip().splitlines() or ["?"])[-1]
-        return {"skipped": f"KISS-SLAM does not import: {last}"}
-    from slam.app.trajectory_io import read_kitti
-    from slam.evaluation.metrics.trajectory import ate_rmse
-
-    source = lidar_source(quick)
-    root = Path(source.sequence_dir).parents[1]
-    work = Path("/tmp/kissslam-results")
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
-    start = time.perf_counter()
-    run = subprocess.run(
-        [
-            str(KISS_SLAM_VENV / "bin" / "kiss_slam_pipeline"),
-            str(root),
-            "--dataloader",
-            "kitti",
-            "--sequence",
-            "00",
-        ],
-        cwd=work,
-        capture_output=True,
-        text=True,
-        timeout=4 * 3600,
-    )
-    wall = time.perf_counter() - start
-    if run.returncode != 0:
-        last = (run.stderr.strip().splitlines() or ["?"])[-1]
-        return {"skipped": f"KISS-SLAM failed: {last}"}
-    found = sorted(work.rglob("*_poses_kitti.txt"))
-    if not found:
-        return {"skipped": "KISS-SLAM wrote no poses file"}
-    poses = read_kitti(found[0])
-    gt = source.gt_poses
-
-    def reported(label: str) -> float | None:
-        for line in run.stdout.splitlines():
-            if label in line:
-                words = line.replace(label, "").split()
-                try:
-                    return float(words[0])
-                except (IndexError, ValueError):
-                    return None
-        return None
-
-    out = {
-        "frames": len(poses),
-        "wall_s": wall,
-        "fps": len(poses) / wall,
-        "ate_slam_m": ate_rmse(poses, gt[: len(poses)]),
-        "closures": reported("Number of closures found"),
-        "own_frequency_hz": reported("Average Frequency"),
-    }
+    """KISS-SLAM (own environment, default config) on the same generated sequence."""
+    out = kiss_slam(lidar_source(quick), lidar_frames(quick))
+    if "skipped" in out:
+        return out
     out["summary"] = (
-        f"KISS-SLAM 0.0.2 (default config; its KITTI loader applies the 0.22 deg vertical-angle "
-        f"correction that the generated scans do not need) on the same sequence: ATE "
-        f"{out['ate_slam_m']:.3f} m (our ATE definition), closures reported "
+        f"KISS-SLAM {KISS_SLAM_VERSION} (default config; its KITTI loader applies the 0.22 deg "
+        "vertical-angle correction that the generated scans do not need) on the same sequence: "
+        f"ATE {out['ate_slam_m']:.3f} m (our ATE definition), closures reported "
         f"{_fmt(out['closures'], digits=0)}, {out['fps']:.1f} frames/s over the whole process "
-        f"({_fmt(out['own_frequency_hz'], digits=0)} Hz as it reports per scan)."
+        f"({_fmt(out['own_frequency_hz'], digits=0)} Hz as it reports per scan), peak RSS "
+        f"{out['peak_rss_mb']:.0f} MB."
     )
     return out
 
@@ -383,106 +313,11 @@ def scenario_kiss_slam(quick: bool) -> dict:
 # --------------------------------------------------------------------------- report
 
 
-def _fmt(value, unit: str = "", digits: int = 3) -> str:
-    if value is None:
-        return "n/a"
-    if isinstance(value, float):
-        return f"{value:.{digits}f}{unit}"
-    return f"{value}{unit}"
-
-
-def _cm(value) -> str:
-    return "n/a" if value is None else f"{100 * value:.2f}"
-
-
-def machine_line() -> str:
-    import torch
-
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return (
-        f"{platform.platform()}, {platform.machine()}, {os.cpu_count()} CPUs visible, "
-        f"torch {torch.__version__} with 1 thread per run, CPU only; 1-min load average at start "
-        f"{load:.1f} (a shared machine: other jobs inflate wall times)"
-    )
-
-
-def false_loops(r: dict, false_m: float, false_deg: float) -> tuple[int, int]:
-    """Verified loops (and those the graph kept) whose pose is off by more than the limits."""
-    wrong = [m > false_m or d > false_deg for m, d in r["loop_errors"]]
-    return sum(wrong), sum(w and k for w, k in zip(wrong, r["loop_kept"], strict=True))
-
-
-def trajectory_table(rows: list[tuple[str, dict, tuple[float, float]]]) -> list[str]:
-    lines = [
-        "| run | frames | submaps | loop candidates | verified | kept by graph | false verified "
-        "/ kept (limit) | median loop error [cm / deg] | ATE odometry [m] | ATE SLAM [m] | "
-        "ATE x / y / z odometry -> SLAM [m] | frames/s | peak RSS [MB] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-
-    def axes(r: dict) -> str:
-        if "ate_xyz_slam_m" not in r:  # results saved before the per-axis split
-            return "n/a"
-        odometry, slam = (
-            " / ".join(f"{v:.3f}" for v in r[k]) for k in ("ate_xyz_odometry_m", "ate_xyz_slam_m")
-        )
-        return f"{odometry} -> {slam}"
-
-    for name, r, (false_m, false_deg) in rows:
-        wrong, wrong_kept = false_loops(r, false_m, false_deg)
-        errors = np.array(r["loop_errors"]).reshape(-1, 2)
-        median = (
-            f"{100 * np.median(errors[:, 0]):.1f} / {np.median(errors[:, 1]):.2f}"
-            if len(errors)
-            else "n/a"
-        )
-        lines.append(
-            f"| {name} | {r['frames']} | {r['submaps']} | {r['candidates']} | {r['verified']} | "
-            f"{r['kept']} | {wrong} / {wrong_kept} ({100 * false_m:.0f} cm, {false_deg:.0f} deg) | "
-            f"{median} | {r['ate_odometry_m']:.3f} | {r['ate_slam_m']:.3f} | {axes(r)} | "
-            f"{r['fps']:.2f} | "
-            f"{r['peak_rss_mb']:.0f} |"
-        )
-    return lines
-
-
-def remap_table(rows: list[tuple[str, dict]]) -> list[str]:
-    lines = [
-        "| run | remap passes | submap moves | frames moved | total [s] | max per pass [s] | "
-        "submaps/s | frames/s (paper: 50) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for name, r in rows:
-        seconds = r["remap_s_total"]
-        sub_rate = r["remap_moved"] / seconds if seconds > 0 else None
-        frame_rate = r["remap_frames_moved"] / seconds if seconds > 0 else None
-        lines.append(
-            f"| {name} | {r['remap_events']} | {r['remap_moved']} | {r['remap_frames_moved']} | "
-            f"{seconds:.2f} | {r['remap_s_max']:.2f} | {_fmt(sub_rate, digits=1)} | "
-            f"{_fmt(frame_rate, digits=1)} |"
-        )
-    return lines
-
-
-def stage_table(rows: list[tuple[str, dict]]) -> list[str]:
-    stages = ["odometry", "keyframing", "mapping", "loop_detection", "pose_graph", "remap"]
-    lines = [
-        "| run | " + " | ".join(stages) + " | whole run |",
-        "|---|" + "---|" * (len(stages) + 1),
-    ]
-    for name, r in rows:
-        cells = [_fmt(r["stage_s"].get(s, 0.0), digits=1) for s in stages]
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | {r['wall_s']:.1f} |")
-    return lines
-
-
 def write_report(path: Path, results: dict, quick: bool, command: str) -> None:
-    w = lidar_window(quick)
     lines = [
         "## SLAM end to end (slam/)",
         "",
         f"- Command: `{command}`",
-        f"- Date: {results.get('date', dt.datetime.now().isoformat(timespec='seconds'))}",
         f"- Machine: {results['machine']}",
         "- Every run: one process, `NullLogger` (no Rerun recording), map on the CPU; frames/s is "
         "the whole pipeline (reading the data, odometry, keyframing, neural encoding, loop "
@@ -490,10 +325,9 @@ def write_report(path: Path, results: dict, quick: bool, command: str) -> None:
         "",
         "### LiDAR: simulated HDL-64E along the real KITTI 00 trajectory",
         "",
-        f"Frames 0-{(w['num_frames'] - 1) * w['step']} of KITTI 00, every {w['step']}. frame "
-        f"({w['num_frames']} scans, {w['azimuth_steps']} firings per revolution) through the "
-        "generated street scene; the window contains the revisit of the start area (from frame "
-        "1559 on the car passes the places of frames 112 on again). configs/kitti.yaml: "
+        f"{window(quick).describe(lidar_frames(quick))} through the generated street scene; "
+        "the window contains the revisit of the start area (from frame 1559 on the car passes "
+        "the places of frames 112 on again). configs/kitti.yaml: "
         "30 m submaps, V = 1 m, loop candidates from "
         "map_closures and anchor proximity (20 m), verified by ICP and overlap above the ground. "
         "The road follows KITTI 00's real elevation profile (its slopes, crests and dips; the "
@@ -577,21 +411,21 @@ def write_report(path: Path, results: dict, quick: bool, command: str) -> None:
     write_text_atomic(path, "\n".join(lines))
 
 
-def _in_child(fn, *args):
-    context = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-        return pool.submit(fn, *args).result()
-
-
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smaller LiDAR window")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "slam.md")
+    parser.add_argument(
+        "--quick", action="store_true", help="smaller LiDAR window, no drift run, no 7-Scenes"
+    )
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR / "slam.md")
     parser.add_argument("--skip-kiss-slam", action="store_true", help="do not run KISS-SLAM")
     parser.add_argument(
         "--report-only", action="store_true", help="rewrite the section from the saved .json"
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     raw = args.out.with_suffix(".json")
     command = "python -m benchmarks.bench_slam" + (" --quick" if args.quick else "")
     if args.report_only:
@@ -600,25 +434,26 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     results: dict[str, Any] = {
-        "machine": machine_line(),
-        "date": dt.datetime.now().isoformat(timespec="seconds"),
+        "machine": machine_line() + "; torch 1 thread per run, CPU only",
         "quick": args.quick,
         "command": command,
     }
-    if KITTI_POSES.is_file():
+    if have_kitti():
         log.info("LiDAR, KISS-ICP")
-        results["lidar_kiss"] = _in_child(scenario_lidar, args.quick, "kiss-icp")
-        log.info("LiDAR, drifting ground truth")
-        results["lidar_drift"] = _in_child(scenario_lidar, args.quick, "drift")
+        results["lidar_kiss"] = in_child(scenario_lidar, args.quick, "kiss-icp")
+        if not args.quick:  # quick: KISS-ICP odometry only
+            log.info("LiDAR, drifting ground truth")
+            results["lidar_drift"] = in_child(scenario_lidar, args.quick, "drift")
         if not args.skip_kiss_slam:
             log.info("KISS-SLAM")
             results["kiss_slam"] = scenario_kiss_slam(args.quick)
     else:
         log.warning("no %s: LiDAR scenarios skipped", KITTI_POSES)
     log.info("RGB-D room")
-    results["room"] = _in_child(scenario_room)
-    log.info("7-Scenes")
-    results["7scenes"] = _in_child(scenario_7scenes)
+    results["room"] = in_child(scenario_room)
+    if not args.quick:
+        log.info("7-Scenes")
+        results["7scenes"] = in_child(scenario_7scenes)
     raw.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(raw, json.dumps(results, indent=2, default=str))
     write_report(args.out, results, args.quick, command)

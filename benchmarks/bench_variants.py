@@ -6,8 +6,8 @@ Each variant is a generated street along the real KITTI 00 trajectory (and its e
 standard street with seeds 0, 1 and 2, a sparse street (long blank walls far apart), a periodic
 street (one identical building every 16 m), 1,024 vs 2,048 firings, and range noise 5 cm with
 2 % dropouts (the default is 2 cm). configs/kitti.yaml with KISS-ICP odometry; the odometry
-columns are KISS-ICP alone on the same scans. KISS-SLAM runs too when the env var
-KISS_SLAM_PYTHON names a Python with kiss_slam installed (skipped with the reason otherwise).
+columns are KISS-ICP alone on the same scans. KISS-SLAM is not run on the variants yet (its
+runner is benchmarks.harness.reference.kiss_slam, used by bench_throughput).
 Default: the full 4,541 scans; ``--quick``: every 3rd of frames 0-1647 (550 scans, the window
 of benchmarks.bench_slam, which includes the first revisit). ``--set`` overrides the run config
 (e.g. ``loop_closure.lidar.ambiguity_check=false`` for the "before" table). One table with
@@ -23,8 +23,6 @@ import datetime as dt
 import json
 import logging
 import multiprocessing
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -32,11 +30,11 @@ from typing import Any
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-KITTI_POSES = DATA / "kitti" / "poses" / "00.txt"
-KITTI_CALIB = DATA / "kitti" / "sequences" / "00" / "calib.txt"
-FULL_FRAMES = 4541
+from benchmarks.harness.kitti import KITTI_CALIB, KITTI_POSES
+from benchmarks.harness.kitti import window as kitti_window
+from benchmarks.harness.machine import machine_line
+from benchmarks.harness.paths import RESULTS_DIR
+from common.atomic_io import write_text_atomic
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "standard, seed 0": {},
@@ -53,10 +51,14 @@ VARIANTS: dict[str, dict[str, Any]] = {
 log = logging.getLogger("benchmarks.bench_variants")
 
 
+QUICK_VARIANTS = ("periodic",)
+"""What ``--quick`` runs unless ``--variants`` says otherwise (the bench-quick budget)."""
+
+
 def window(quick: bool) -> dict[str, int]:
-    if quick:
-        return {"num_frames": 550, "step": 3, "azimuth_steps": 1024}
-    return {"num_frames": FULL_FRAMES, "step": 1, "azimuth_steps": 2048}
+    """The generated-source window: the harness's quick or full KITTI-00 window."""
+    w = kitti_window(quick)
+    return {"num_frames": w.num_frames, "step": w.step, "azimuth_steps": w.azimuth_steps}
 
 
 def _source(quick: bool, variant: dict[str, Any]):
@@ -143,14 +145,6 @@ def run_ours(quick: bool, name: str, sets: list[str]) -> dict:
     }
 
 
-def run_kiss_slam(quick: bool, name: str) -> dict:
-    """KISS-SLAM on the same scans, when KISS_SLAM_PYTHON names a Python with kiss_slam."""
-    python = os.environ.get("KISS_SLAM_PYTHON")
-    if not python or not Path(python).is_file():
-        return {"skipped": "KISS_SLAM_PYTHON is not set to a Python with kiss_slam installed"}
-    return {"skipped": "KISS-SLAM runner not wired in this script yet"}
-
-
 def _fmt_xyz(v: list[float]) -> str:
     return " / ".join(f"{x:.2f}" for x in v)
 
@@ -173,7 +167,6 @@ def write_report(path: Path, results: dict) -> None:
         f"- Command: `{results['command']}`",
         f"- Date: {results['date']}",
         f"- Machine: {results['machine']}",
-        f"- KISS-SLAM: {results['kiss_slam']}",
         "",
         f"Generated 64-beam scans along KITTI 00 frames 0-{(w['num_frames'] - 1) * w['step']}, "
         f"every {w['step']}. ({w['num_frames']} scans, {w['azimuth_steps']} firings unless the "
@@ -204,34 +197,42 @@ def write_report(path: Path, results: dict) -> None:
         lines += ["", "Rejected candidates by reason (first word):", ""]
         lines += [f"- {name}: {json.dumps(r['rejections'])}" for name, r in runs.items()]
     lines.append("")
-    path.write_text("\n".join(lines))
+    write_text_atomic(path, "\n".join(lines))
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="550 scans (every 3rd), 1024 firings")
-    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"550 scans (every 3rd), 1024 firings; variants {', '.join(QUICK_VARIANTS)}",
+    )
+    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS))
     parser.add_argument(
         "--set", dest="sets", action="append", default=[], help="run config override KEY=VALUE"
     )
     parser.add_argument("--jobs", type=int, default=2, help="variants run at a time")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "variants.md")
-    args = parser.parse_args(argv)
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR / "variants.md")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.variants is None:
+        args.variants = list(QUICK_VARIANTS) if args.quick else list(VARIANTS)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     if not KITTI_POSES.is_file():
         print(f"{KITTI_POSES}: missing; the variants follow KITTI 00's poses", file=sys.stderr)
         return 2
     command = "python -m benchmarks.bench_variants" + (" --quick" if args.quick else "")
     command += "".join(f" --set {s}" for s in args.sets)
-    if args.variants != list(VARIANTS):
+    if args.variants != list(QUICK_VARIANTS if args.quick else VARIANTS):
         command += " --variants " + " ".join(f"'{v}'" for v in args.variants)
-    load = os.getloadavg()[0]
     results: dict = {
-        "machine": f"{platform.platform()}, {os.cpu_count()} CPUs, 1-min load {load:.1f}",
+        "machine": machine_line(),
         "date": dt.datetime.now().isoformat(timespec="seconds"),
         "quick": args.quick,
         "command": command,
-        "kiss_slam": run_kiss_slam(args.quick, args.variants[0]).get("skipped", "ran"),
         "runs": {},
     }
     context = multiprocessing.get_context("spawn")
@@ -240,8 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, future in futures.items():
             results["runs"][name] = future.result()
             log.info("%s", _row(name, results["runs"][name]))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(results, indent=2, default=str))
+    write_text_atomic(args.out.with_suffix(".json"), json.dumps(results, indent=2, default=str))
     write_report(args.out, results)
     log.info("wrote %s", args.out)
     return 0

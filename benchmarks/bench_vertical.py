@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import datetime as dt
 import json
 import logging
 import multiprocessing
@@ -27,7 +26,10 @@ import os
 import sys
 from pathlib import Path
 
-from benchmarks.bench_slam import REPO, lidar_window, machine_line, scenario_lidar
+from benchmarks.bench_slam import lidar_frames, scenario_lidar
+from benchmarks.harness.kitti import window
+from benchmarks.harness.machine import machine_line
+from benchmarks.harness.paths import RESULTS_DIR
 from common.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.bench_vertical")
@@ -64,17 +66,16 @@ def _timed_run(quick: bool, relief_m: float, mode: str) -> dict:
 
 
 def write_report(path: Path, results: dict) -> None:
-    w = lidar_window(results["quick"])
+    quick = results["quick"]
     lines = [
         "## LiDAR vertical drift (issue 12)",
         "",
         f"- Command: `{results['command']}`",
-        f"- Date: {results['date']}",
         f"- Machine: {results['machine']}",
         "",
-        f"Generated HDL-64E-like scans along KITTI 00 frames 0-{(w['num_frames'] - 1) * w['step']}"
-        f", every {w['step']}. frame ({w['num_frames']} scans, {w['azimuth_steps']} firings per "
-        "revolution); the road follows KITTI 00's real elevations (slopes, crests, dips; the "
+        "Generated HDL-64E-like scans along "
+        f"{window(quick).describe(lidar_frames(quick))}; the road follows KITTI 00's real "
+        "elevations (slopes, crests, dips; the "
         "ground under the car is the trajectory's height minus 1.73 m), and hills of the given "
         "height rise beside it. configs/kitti.yaml, without and with "
         "`odometry.ground_refinement` (each scan's height, roll and pitch fitted to a map of the "
@@ -92,14 +93,14 @@ def write_report(path: Path, results: dict) -> None:
     write_text_atomic(path, "\n".join(lines))
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="every 3rd frame, 1024 firings")
     parser.add_argument(
         "--relief",
         type=float,
         nargs="+",
-        help="hill heights to run (default 0 and 4 m; with --quick 4 m only: run_all budget)",
+        help="hill heights to run (default 0 and 4 m; with --quick 0 m only: its scans are cached)",
     )
     parser.add_argument(
         "--modes",
@@ -108,10 +109,14 @@ def main(argv: list[str] | None = None) -> int:
         default=list(MODES)[:2],
         help="odometry variants to run (default: KISS-ICP with and without ground refinement)",
     )
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "vertical.md")
-    args = parser.parse_args(argv)
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR / "vertical.md")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     if args.relief is None:
-        args.relief = [4.0] if args.quick else [0.0, 4.0]
+        args.relief = [0.0] if args.quick else [0.0, 4.0]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     command = "python -m benchmarks.bench_vertical" + (" --quick" if args.quick else "")
     command += " --relief " + " ".join(f"{r:g}" for r in args.relief)
@@ -119,7 +124,6 @@ def main(argv: list[str] | None = None) -> int:
         command += " --modes " + " ".join(f"'{m}'" for m in args.modes)
     results: dict = {
         "machine": machine_line(),
-        "date": dt.datetime.now().isoformat(timespec="seconds"),
         "quick": args.quick,
         "command": command,
         "runs": {},

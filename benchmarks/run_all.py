@@ -1,68 +1,68 @@
-"""Run every ``benchmarks/bench_*.py`` and assemble ``BENCHMARKS.md`` from their sections.
+"""Run every benchmark and regenerate ``BENCHMARKS.md`` from this invocation's sections.
 
-    python -m benchmarks.run_all [--quick] [--only NAME ...] [--assemble]
+    python -m benchmarks.run_all [--quick] [--only NAME ...] [--before REV] [--assemble]
 
-Each benchmark runs in its own process (``python -m benchmarks.bench_<name> [--quick]``) and
-writes ``benchmarks/results/<name>.md``. A benchmark that fails, times out or writes no section
-is reported in ``BENCHMARKS.md`` (with the tail of its log) and does not stop the others. Logs go
-to ``benchmarks/out/logs/<name>.log``; the status of the last run to
-``benchmarks/results/_run_all.json``, which ``--assemble`` reuses to rebuild ``BENCHMARKS.md``
-from the existing sections without running anything.
+Each ``benchmarks/bench_<name>.py`` in :data:`BENCHMARKS` runs in its own process
+(``python -m benchmarks.bench_<name> [--quick]``) and writes ``benchmarks/results/<name>.md``.
+``benchmarks/results/`` is emptied first, so it and ``BENCHMARKS.md`` hold this invocation's
+results only: a benchmark that is not run (``--only``) has no section. A benchmark that fails,
+times out or writes no section is reported with the tail of its log (``benchmarks/out/logs/``)
+and does not stop the others. ``--before REV`` passes ``--before REV`` to the benchmarks that
+compare revisions (:data:`BEFORE_AFTER`): each checks out REV beside this tree and measures both
+in the same invocation. ``--assemble`` rebuilds ``BENCHMARKS.md`` from ``results/run_all.json``
+and the sections without running anything.
 
-``--quick`` passes ``--quick`` to every benchmark and holds the whole run to a wall-clock budget
-(14 minutes by default): each benchmark gets the time that is left, and the ones that no longer
-fit are reported as skipped.
+``--quick`` passes ``--quick`` to every benchmark and holds the run to a wall-clock budget
+(20 minutes by default): each benchmark may use at most twice its fair share of the time that is
+left (so one slow benchmark cannot starve the rest); one that runs longer is reported as a
+timeout.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import logging
 import os
-import platform
 import shlex
+import signal
 import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from benchmarks.harness.machine import load_average, machine_description, now
+from benchmarks.harness.paths import REPO, RESULTS_DIR, WORK_DIR
 from common.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.run_all")
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-BENCH_DIR = REPO_ROOT / "benchmarks"
-RESULTS_DIR = BENCH_DIR / "results"
-LOG_DIR = BENCH_DIR / "out" / "logs"
-STATUS_FILE = RESULTS_DIR / "_run_all.json"
-OUTPUT_FILE = REPO_ROOT / "BENCHMARKS.md"
+BENCH_DIR = REPO / "benchmarks"
+LOG_DIR = WORK_DIR / "logs"
+STATUS_NAME = "run_all.json"
+OUTPUT_FILE = REPO / "BENCHMARKS.md"
 
-# Components first, then whole-pipeline runs, then what measures the pipeline's logging.
-PREFERRED_ORDER = (
-    "metrics",
-    "sources",
-    "generate",
+BENCHMARKS = (
     "odometry",
-    "encoder",
-    "networks",
     "prior",
     "mapping",
-    "neural_map",
-    "transform",
-    "meshing",
-    "loop_closure",
-    "loops",
-    "pose_graph",
-    "pipeline",
+    "keyframing",
+    "accuracy",
     "slam",
-    "demo",
+    "vertical",
+    "throughput",
+    "map_size",
+    "variants",
     "rerun",
+    "reliability",
 )
-QUICK_BUDGET_S = 14 * 60
-FULL_TIMEOUT_S = 3 * 3600
+"""Every ``bench_<name>.py``, in the order they run: components, then whole-pipeline runs, then
+what measures the pipeline's logging (tests/test_benchmarks.py keeps it in sync with the files)."""
+BEFORE_AFTER = ("accuracy", "keyframing", "throughput", "map_size", "reliability")
+"""Benchmarks that accept ``--before REV``."""
+QUICK_BUDGET_S = 20 * 60
+FULL_TIMEOUT_S = 4 * 3600
 LOG_TAIL_CHARS = 3000
 
 
@@ -79,219 +79,181 @@ class BenchStatus:
 
 
 def discover(bench_dir: Path = BENCH_DIR) -> list[str]:
-    """Names ``<name>`` of every ``bench_<name>.py``, in the order they should run."""
-    names = [path.stem.removeprefix("bench_") for path in bench_dir.glob("bench_*.py")]
-    rank = {name: index for index, name in enumerate(PREFERRED_ORDER)}
-    middle = rank.get("pipeline", len(rank))
-    return sorted(names, key=lambda name: (rank.get(name, middle - 0.5), name))
-
-
-def machine_description() -> dict[str, str]:
-    """Machine facts for the report header."""
-    from importlib import metadata
-
-    def version(package: str) -> str:
-        try:
-            return metadata.version(package)
-        except metadata.PackageNotFoundError:
-            return "not installed"
-
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": str(os.cpu_count()),
-        "python": platform.python_version(),
-        "torch": version("torch"),
-        "torch_threads": _torch_threads(),
-        "rerun_sdk": version("rerun-sdk"),
-    }
-
-
-def _torch_threads() -> str:
-    try:
-        import torch
-    except ImportError:
-        return "n/a"
-    return str(torch.get_num_threads())
-
-
-def git_revision() -> str:
-    """``git describe --always --dirty`` of the repository, or ``unknown``."""
-    try:
-        result = subprocess.run(
-            ["git", "describe", "--always", "--dirty"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-            timeout=20,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return result.stdout.strip() or "unknown"
+    """Names ``<name>`` of the ``bench_<name>.py`` files present, sorted."""
+    return sorted(path.stem.removeprefix("bench_") for path in bench_dir.glob("bench_*.py"))
 
 
 def _tail(path: Path, chars: int = LOG_TAIL_CHARS) -> str:
-    if not path.is_file():
-        return ""
-    text = path.read_text(errors="replace")
-    return text[-chars:]
+    return path.read_text(errors="replace")[-chars:] if path.is_file() else ""
 
 
-def run_one(name: str, *, quick: bool, timeout_s: float) -> BenchStatus:
-    """Run ``benchmarks.bench_<name>`` in a subprocess; its output goes to the log file."""
-    command = [sys.executable, "-m", f"benchmarks.bench_{name}", *(["--quick"] if quick else [])]
-    shown = "python " + " ".join(shlex.quote(part) for part in command[1:])
+def bench_command(name: str, *, quick: bool, before: str | None) -> list[str]:
+    """The command line that runs ``bench_<name>`` (without the interpreter)."""
+    command = ["-m", f"benchmarks.bench_{name}", *(["--quick"] if quick else [])]
+    if before and name in BEFORE_AFTER:
+        command += ["--before", before]
+    return command
+
+
+def run_one(name: str, *, quick: bool, before: str | None, timeout_s: float) -> BenchStatus:
+    """Run ``benchmarks.bench_<name>`` in a subprocess; its output goes to its log file."""
+    args = bench_command(name, quick=quick, before=before)
+    shown = shlex.join(["python", *args])
     result_file = RESULTS_DIR / f"{name}.md"
     LOG_DIR.mkdir(parents=True, exist_ok=True)
     log_file = LOG_DIR / f"{name}.log"
     started = time.time()
     returncode: int | None = None
-    status = "ok"
+    status, detail = "ok", ""
     with log_file.open("w") as stream:
+        # its own process group, so that a timeout also ends the processes it spawned
+        child = subprocess.Popen(
+            [sys.executable, *args],
+            cwd=REPO,
+            stdout=stream,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         try:
-            completed = subprocess.run(
-                command,
-                cwd=REPO_ROOT,
-                stdout=stream,
-                stderr=subprocess.STDOUT,
-                timeout=timeout_s,
-                check=False,
-            )
-            returncode = completed.returncode
+            returncode = child.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
-            status = "timeout"
-    seconds = time.time() - started
-    fresh = result_file.is_file() and result_file.stat().st_mtime >= started - 1.0
-    detail = ""
-    if status == "timeout":
-        detail = f"killed after {timeout_s:.0f} s"
-    elif returncode != 0:
-        status = "failed"
-        detail = f"exit status {returncode}"
-    elif not fresh:
+            os.killpg(child.pid, signal.SIGKILL)
+            child.wait()
+            status, detail = "timeout", f"killed after {timeout_s:.0f} s"
+    if status == "ok" and returncode != 0:
+        status, detail = "failed", f"exit status {returncode}"
+    elif status == "ok" and not result_file.is_file():
         status = "no-output"
-        detail = f"exited 0 but did not write {result_file.relative_to(REPO_ROOT)}"
+        detail = f"exited 0 but did not write {result_file.relative_to(REPO)}"
     if status != "ok":
         detail += "\n\n" + _tail(log_file)
-    return BenchStatus(name, status, round(seconds, 1), returncode, shown, detail)
+    return BenchStatus(name, status, round(time.time() - started, 1), returncode, shown, detail)
 
 
-def assemble(status_record: dict | None = None, *, output: Path = OUTPUT_FILE) -> Path:
-    """Rebuild ``BENCHMARKS.md`` from ``benchmarks/results/*.md`` and the last run's status."""
-    if status_record is None and STATUS_FILE.is_file():
-        status_record = json.loads(STATUS_FILE.read_text())
-    status_record = status_record or {}
-    statuses = {s["name"]: s for s in status_record.get("benchmarks", [])}
-    sections = {path.stem: path for path in RESULTS_DIR.glob("*.md")}
-    names = [n for n in discover() if n in sections or n in statuses]
-    names += sorted(n for n in set(sections) | set(statuses) if n not in names)
-    machine = status_record.get("machine") or machine_description()
-    now = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-
-    lines = [
+def header_lines(record: dict) -> list[str]:
+    """The report's header: what this invocation was, where and when it ran."""
+    machine = dict(record["machine"])
+    revision = machine.pop("revision", "unknown")
+    machine.pop("date", None)
+    invoked = record.get("invoked_as")
+    command = f"`{record['command']}`" + (f" (via `{invoked}`)" if invoked else "")
+    total = record.get("total_seconds")
+    return [
         "# Benchmarks",
         "",
-        "Measured numbers only; every section below was written by its own script under",
-        "`benchmarks/` and states its exact command. Re-create this file with",
-        "`python -m benchmarks.run_all [--quick]`, or rebuild it from the existing sections with",
-        "`python -m benchmarks.run_all --assemble`.",
+        "Measured numbers only, all from the one invocation described here; every section was",
+        "written by its own script under `benchmarks/` and states its exact command.",
         "",
-        f"- Run command: `{status_record.get('command', 'unknown (sections assembled only)')}`",
-        f"- Run started: {status_record.get('started', 'unknown')}; assembled: {now}",
-        f"- Mode: {status_record.get('mode', 'unknown')}; revision: "
-        f"{status_record.get('revision', git_revision())}",
-        "- Machine: "
-        + "; ".join(f"{key} {value}" for key, value in machine.items() if key != "platform"),
-        f"- Platform: {machine.get('platform', '')}",
+        f"- Command: {command}",
+        f"- Revision: {revision}"
+        + (" (uncommitted changes)" if revision.endswith("-dirty") else ""),
+        f"- Started: {record['started']}; finished: {record.get('finished', 'not finished')}"
+        + (f"; wall time {total:.0f} s" if total is not None else ""),
+        f"- Mode: {record['mode']}"
+        + (f"; before/after against `{record['before']}`" if record.get("before") else ""),
+        "- Machine: " + "; ".join(f"{key} {value}" for key, value in machine.items()),
+        f"- Load average at the end: {record.get('load_end', 'n/a')} (the machine is shared with "
+        "other jobs: wall times are upper bounds, frames/s lower bounds)",
+        "- Sections: only the benchmarks this invocation ran; `benchmarks/results/` was emptied "
+        "at its start, so nothing from an earlier invocation is mixed in.",
         "",
-        "| benchmark | status | wall time [s] | command |",
-        "|---|---|---:|---|",
     ]
-    for name in names:
-        state = statuses.get(name)
-        if state is None:
-            lines.append(f"| {name} | section only (not run by run_all) | | |")
-        else:
-            lines.append(
-                f"| [{name}](#{name}) | {state['status']} | {state['seconds']:.1f} | "
-                f"`{state['command']}` |"
-            )
+
+
+def assemble(record: dict, *, results_dir: Path = RESULTS_DIR, output: Path = OUTPUT_FILE) -> Path:
+    """Write ``output`` from an invocation ``record`` and the sections in ``results_dir``."""
+    statuses = record.get("benchmarks", [])
+    lines = header_lines(record)
+    lines += ["| benchmark | status | wall time [s] | command |", "|---|---|---:|---|"]
+    for state in statuses:
+        lines.append(
+            f"| [{state['name']}](#{state['name']}) | {state['status']} | "
+            f"{state['seconds']:.1f} | `{state['command']}` |"
+        )
     lines.append("")
-    for name in names:
-        lines.append(f'<a id="{name}"></a>')
-        lines.append("")
-        state = statuses.get(name)
-        if state is not None and state["status"] != "ok":
-            lines += [
-                f"## {name}: {state['status'].upper()}",
-                "",
-                f"Command: `{state['command']}`",
-                "",
-                "```text",
-                state["detail"].strip(),
-                "```",
-                "",
-            ]
-            if name in sections:
-                lines += ["Section left over from an earlier run (may be stale):", ""]
-        if name in sections:
-            lines += [sections[name].read_text().rstrip(), ""]
+    for state in statuses:
+        name = state["name"]
+        section = results_dir / f"{name}.md"
+        lines += [f'<a id="{name}"></a>', ""]
+        if state["status"] != "ok":
+            lines += [f"## {name}: {state['status'].upper()}", "", f"Command: `{state['command']}`"]
+            lines += ["", "```text", state["detail"].strip(), "```", ""]
+        elif section.is_file():
+            lines += [section.read_text().rstrip(), ""]
     write_text_atomic(output, "\n".join(lines).rstrip() + "\n")
     return output
 
 
-def main(argv: list[str] | None = None) -> int:
+def clear_results(results_dir: Path = RESULTS_DIR) -> None:
+    """Remove every file of an earlier invocation from ``results_dir``."""
+    results_dir.mkdir(parents=True, exist_ok=True)
+    for path in results_dir.iterdir():
+        if path.is_file():
+            path.unlink()
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="pass --quick to each benchmark")
-    parser.add_argument("--only", nargs="+", metavar="NAME", help="run only these benchmarks")
-    parser.add_argument(
-        "--assemble", action="store_true", help="only rebuild BENCHMARKS.md from results/*.md"
-    )
+    parser.add_argument("--only", nargs="+", metavar="NAME", choices=BENCHMARKS)
+    parser.add_argument("--before", metavar="REV", help="before/after tables against REV")
+    parser.add_argument("--assemble", action="store_true", help="only rebuild BENCHMARKS.md")
     parser.add_argument(
         "--budget-s",
         type=float,
         default=None,
         help=f"total wall-clock budget (default {QUICK_BUDGET_S} s with --quick, else none)",
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-
+    status_file = RESULTS_DIR / STATUS_NAME
     if args.assemble:
-        log.info("wrote %s", assemble())
+        if not status_file.is_file():
+            log.error("%s: absent; run `python -m benchmarks.run_all` first", status_file)
+            return 2
+        log.info("wrote %s", assemble(json.loads(status_file.read_text())))
         return 0
-
-    names = discover()
-    if args.only:
-        unknown = sorted(set(args.only) - set(names))
-        if unknown:
-            parser.error(f"no benchmarks/bench_<name>.py for: {', '.join(unknown)}")
-        names = [name for name in names if name in args.only]
+    missing = sorted(set(discover()) ^ set(BENCHMARKS))
+    if missing:
+        log.error("run_all.BENCHMARKS and benchmarks/bench_*.py differ in: %s", ", ".join(missing))
+        return 2
+    names = [name for name in BENCHMARKS if not args.only or name in args.only]
     budget_s = args.budget_s or (QUICK_BUDGET_S if args.quick else None)
     started = time.time()
+    shown = sys.argv[1:] if argv is None else argv
     record = {
-        "command": " ".join(["python -m benchmarks.run_all", *(argv or sys.argv[1:])]),
-        "started": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "command": shlex.join(["python", "-m", "benchmarks.run_all", *shown]),
+        "invoked_as": os.environ.get("BENCH_INVOKED_AS"),
+        "started": now(),
         "mode": "quick" if args.quick else "full",
-        "revision": git_revision(),
+        "before": args.before,
         "machine": machine_description(),
         "benchmarks": [],
     }
-    if args.only and STATUS_FILE.is_file():
-        # Keep the earlier outcome of the benchmarks this partial run leaves alone.
-        previous = json.loads(STATUS_FILE.read_text()).get("benchmarks", [])
-        record["benchmarks"] = [s for s in previous if s["name"] not in names]
-    for name in names:
+    clear_results()
+    for index, name in enumerate(names):
         remaining = FULL_TIMEOUT_S if budget_s is None else budget_s - (time.time() - started)
+        if budget_s is not None:
+            # at most twice a fair share of what is left, so one slow benchmark cannot starve
+            # all that come after it
+            remaining = min(remaining, 2 * remaining / (len(names) - index))
         if remaining < 5:
-            state = BenchStatus(name, "skipped", 0.0, None, f"bench_{name}", "budget exhausted")
+            command = shlex.join(["python", *bench_command(name, quick=args.quick, before=None)])
+            state = BenchStatus(name, "skipped", 0.0, None, command, "budget exhausted")
         else:
             log.info("running bench_%s (%.0f s left)", name, remaining)
-            state = run_one(name, quick=args.quick, timeout_s=remaining)
+            state = run_one(name, quick=args.quick, before=args.before, timeout_s=remaining)
         log.info("  %s: %s in %.1f s", name, state.status, state.seconds)
         record["benchmarks"].append(asdict(state))
-        write_text_atomic(STATUS_FILE, json.dumps(record, indent=2) + "\n")
-    record["total_seconds"] = round(time.time() - started, 1)
-    write_text_atomic(STATUS_FILE, json.dumps(record, indent=2) + "\n")
+        write_text_atomic(status_file, json.dumps(record, indent=2) + "\n")
+    record.update(
+        finished=now(), total_seconds=round(time.time() - started, 1), load_end=load_average()
+    )
+    write_text_atomic(status_file, json.dumps(record, indent=2) + "\n")
     log.info("wrote %s (%.0f s total)", assemble(record), record["total_seconds"])
     return 0 if all(s["status"] == "ok" for s in record["benchmarks"]) else 1
 

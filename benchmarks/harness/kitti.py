@@ -1,0 +1,79 @@
+"""The generated KITTI-00 LiDAR sequence every LiDAR benchmark uses.
+
+A 64-beam LiDAR simulated along the real KITTI 00 ground-truth trajectory
+(``frontends.sources.generated``; generated on first use, then cached). Two windows, so that all
+benchmarks share one cached sequence per mode: the full trajectory (all 4,541 poses, 2048 firings
+per revolution) and a quick one (every 3rd pose of 0-1647, 1024 firings; it still contains the
+revisit of the start area from frame 1559 on). A benchmark takes the first N frames of a window.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks.harness.paths import DATA
+
+KITTI_POSES = DATA / "kitti" / "poses" / "00.txt"
+KITTI_CALIB = DATA / "kitti" / "sequences" / "00" / "calib.txt"
+
+
+@dataclass(frozen=True)
+class Window:
+    """Which poses of KITTI 00 are scanned, and how finely."""
+
+    num_frames: int
+    step: int
+    azimuth_steps: int
+
+    @property
+    def last_pose(self) -> int:
+        return (self.num_frames - 1) * self.step
+
+    def describe(self, frames: int | None = None) -> str:
+        n = self.num_frames if frames is None else min(frames, self.num_frames)
+        every = "every" if self.step == 1 else f"every {self.step}."
+        return (
+            f"KITTI 00 poses 0-{(n - 1) * self.step}, {every} pose ({n} scans, "
+            f"{self.azimuth_steps} firings per revolution)"
+        )
+
+
+FULL = Window(num_frames=4541, step=1, azimuth_steps=2048)
+QUICK = Window(num_frames=550, step=3, azimuth_steps=1024)
+
+
+def window(quick: bool) -> Window:
+    """The quick or the full window."""
+    return QUICK if quick else FULL
+
+
+def have_kitti() -> bool:
+    """Whether the KITTI 00 poses and calibration the generator needs are present."""
+    return KITTI_POSES.is_file() and KITTI_CALIB.is_file()
+
+
+def kitti_source(quick: bool, num_frames: int | None = None, relief_m: float = 0.0, first: int = 0):
+    """Frames ``first`` to ``num_frames - 1`` of the quick or full window (all by default), with
+    hills of ``relief_m`` beside the road (another cached sequence when non-zero)."""
+    from frontends.sources import make_source
+
+    w = window(quick)
+    return make_source(
+        "generated",
+        kind="lidar",
+        trajectory="kitti",
+        kitti_poses=KITTI_POSES,
+        kitti_calib=KITTI_CALIB,
+        start=0,
+        num_frames=w.num_frames,
+        step=w.step,
+        azimuth_steps=w.azimuth_steps,
+        terrain_relief_m=relief_m,
+        frames=slice(first, num_frames),
+    )
+
+
+def kitti_root(source) -> Path:
+    """The KITTI-layout root (``sequences/00`` below it) of a generated source."""
+    return Path(source.sequence_dir).parents[1]

@@ -1,0 +1,265 @@
+"""The Markdown section of ``bench_throughput`` (``benchmarks/results/throughput.md``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from benchmarks.harness.kitti import window
+from benchmarks.harness.paths import RESULTS_DIR
+from common.atomic_io import write_text_atomic
+
+REPORT = RESULTS_DIR / "throughput.md"
+RSS_EVERY = 1000
+STAGES = (
+    "odometry",
+    "keyframing",
+    "mapping",
+    "loop_detection",
+    "pose_graph",
+    "remap",
+    "map_logging",
+    "final_mesh",
+    "map_save",
+)
+
+
+def _f(value, digits: int = 1) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}f}"
+
+
+def write_report(saved: dict) -> None:
+    results = saved["runs"]
+    lines = [
+        "## LiDAR throughput (issue 11)",
+        "",
+        f"- Command: `{saved['command']}`",
+        f"- Machine: {saved['machine']}",
+        f"- Sequence: generated scans along {window(saved['quick']).describe(saved['frames'])}"
+        + (f", {saved['relief']:g} m hills" if saved["relief"] else ""),
+        "- Runs: `after` is this checkout; `before <rev>` (with `--before`) is that revision "
+        "checked out beside it and measured in the same invocation. KISS-ICP and KISS-SLAM do "
+        "not depend on our code and run once.",
+        "",
+        "Generated 64-beam LiDAR along the real KITTI 00 trajectory (2048 firings per revolution, "
+        "~128k points per scan), configs/kitti.yaml, `NullLogger` (as `--no-viz`), CPU only, "
+        "2 cores shared with other jobs (the load average is part of each row). Ours includes "
+        "reading the scans, the final optimisation, the final mesh and writing `map.npz`; "
+        "KISS-ICP alone is reading + `register_frame`; KISS-SLAM is its `kiss_slam_pipeline` "
+        "process (0.0.2, default config). Ours' peak RSS is taken before its mesh is scored "
+        "against ground truth (evaluation, not SLAM; `peak_rss_with_scoring_mb` in "
+        "throughput.json). CPU = user + system time of all the method's threads (where "
+        "recorded): on two cores that are both busy, the wall time is about half of it, and it "
+        "varies less between runs than the wall time.",
+        "",
+        "| run | code | frames | method | wall [s] | CPU [s] | frames/s | vs KISS-ICP | "
+        "vs KISS-SLAM | peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in sorted(results):
+        run = results[key]
+        icp = run.get("kiss_icp") or {}
+        kslam = run.get("kiss_slam") or {}
+        for name in ("kiss_icp", "kiss_slam", "ours"):
+            r = run.get(name)
+            if not r or "skipped" in r or "frames" not in r:
+                continue
+            vs_icp = r["wall_s"] / icp["wall_s"] if icp.get("wall_s") else None
+            vs_slam = r["wall_s"] / kslam["wall_s"] if kslam.get("wall_s") else None
+            lines.append(
+                f"| {key} | {run['code']} | {r['frames']} | {name} | {_f(r['wall_s'])} | "
+                f"{_f(r.get('cpu_s'), 0)} | {_f(r['fps'], 2)} | {_f(vs_icp, 2)} | "
+                f"{_f(vs_slam, 2)} | "
+                f"{_f(r.get('peak_rss_mb'), 0)} | {_f(r.get('ate_odometry_m'), 3)} | "
+                f"{_f(r.get('ate_slam_m'), 3)} | {_f(run.get('load'), 1)} |"
+            )
+    lines += _per_axis_lines(results)
+    lines += [
+        "",
+        "Ours, per stage [s] (`map_logging` is the null logger's share; with the map worker, "
+        "mapping and remap run on a second thread, overlapped with odometry, so the stages can "
+        "add up to more than the whole run; CPU: the main thread's CPU time to the end of the "
+        "final remap, the map worker thread's, and the rest of the process (KISS-ICP's thread "
+        "pool, reading ahead, the final mesh, writing the map); `final_mesh` is the whole map "
+        "meshed after the last remap (on the whole thread budget) and `map_save` writing "
+        "`map.npz`, both after the last frame; n/a: not timed then), memory and map:",
+        "",
+        "| run | " + " | ".join(STAGES) + " | whole run | CPU main / map worker / other [s] | "
+        f"RSS at {RSS_EVERY:,}-frame steps [MB] | map.npz [MB] | voxels | mesh accuracy [cm] | "
+        "threads |",
+        "|---|" + "---|" * (len(STAGES) + 7),
+    ]
+    for key in sorted(results):
+        r = results[key].get("ours")
+        if not r:
+            continue
+        cells = [_f(r["stage_s"].get(s)) for s in STAGES]
+        rss = ", ".join(f"{k}: {v:.0f}" for k, v in r["rss_mb"].items())
+        threads = r.get("cpu_threads_s")
+        if threads:
+            other = r["cpu_s"] - threads["main"] - threads["map_worker"]
+            cpu = f"{threads['main']:.0f} / {threads['map_worker']:.0f} / {other:.0f}"
+        else:
+            cpu = "n/a"
+        lines.append(
+            f"| {key} | " + " | ".join(cells) + f" | {_f(r['wall_s'])} | {cpu} | {rss} | "
+            f"{r['map_npz_mb']:.1f} | {r['map_voxels']:,} | {100 * r['mesh_accuracy_m']:.2f} | "
+            f"{r['threads']} |"
+        )
+    shares = [k for k in sorted(results) if (results[k].get("ours") or {}).get("stage_cpu_s")]
+    if shares:
+        lines += [
+            "",
+            "Ours, the stages' shares of the run: CPU seconds of the thread that ran each stage "
+            "(the map worker's for mapping and remap; KISS-ICP's own thread pool is not in "
+            "odometry's), as a share of the run's wall time and of its CPU time. A stage on the "
+            "map worker overlaps the main thread, so its wall time there is mostly waiting for "
+            "a core; `map_worker_wait` is what the main thread lost waiting for the worker.",
+            "",
+            "| run | stage | wall [s] | CPU [s] | CPU / run wall | CPU / run CPU |",
+            "|---|---|---|---|---|---|",
+        ]
+        for key in shares:
+            r = results[key]["ours"]
+            stage_s = dict(r["stage_s"])
+            cpu = r["stage_cpu_s"]
+            for stage in (*STAGES, "map_worker_wait"):
+                if stage not in cpu:
+                    continue
+                lines.append(
+                    f"| {key} | {stage} | {_f(stage_s.get(stage))} | {cpu[stage]:.1f} | "
+                    f"{100 * cpu[stage] / r['wall_s']:.0f} % | "
+                    f"{100 * cpu[stage] / r['cpu_s']:.0f} % |"
+                )
+    lines += [
+        "",
+        "Micro-benchmarks (`--only micro`): one 640x480 depth frame of the benchmark room "
+        "subsampled to 30,000 points, encoded with Jacobians (V = 0.1 m; median of 5 runs before "
+        "stop 19, of 15 since); a room map meshed from cold (first `extract_mesh`, torch on 1 "
+        "thread; and on two Python threads of one torch thread each) and again unchanged.",
+        "",
+        "| run | encode, 1 thread [s] (CPU s) | frames/s | encode, 2 threads [s] | "
+        "mesh voxels | mesh cold [s] (CPU s) | mesh cold, 2 threads [s] | mesh again [s] | "
+        "load |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key in sorted(results):
+        m = results[key].get("micro")
+        if not m:
+            continue
+        lines.append(
+            f"| {key} | {m['encode_wall_s_1t']:.3f} ({m['encode_cpu_s_1t']:.3f}) | "
+            f"{1 / m['encode_wall_s_1t']:.2f} | {m['encode_wall_s_2t']:.3f} | "
+            f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
+            f"{_f(m.get('mesh_cold_wall_s_2t'), 2)} | {m['mesh_again_wall_s']:.3f} | "
+            f"{m['load']:.1f} |"
+        )
+    capped = [
+        k for k in sorted(results) if "encode_capped_wall_s_1t" in results[k].get("micro", {})
+    ]
+    if capped:
+        lines += [
+            "",
+            "The same frame with each voxel's Jacobian taken from at most "
+            "`mapping.jacobian_pairs_per_voxel` of its point-voxel pairs (the default since stop "
+            "17; the latents still use every pair): rel. diff = median per-voxel relative "
+            "difference of the Jacobians to those of every pair.",
+            "",
+            "| run | pairs | eager, 1 thread [s] (CPU s) | frames/s | eager, 2 threads [s] | "
+            "frames/s | Jacobian rel. diff (median) | load |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for key in capped:
+            m = results[key]["micro"]
+            two = m.get("encode_capped_wall_s_2t")
+            lines.append(
+                f"| {key} | {m['encode_capped_pairs']} | {m['encode_capped_wall_s_1t']:.3f} "
+                f"({m['encode_capped_cpu_s_1t']:.3f}) | {1 / m['encode_capped_wall_s_1t']:.2f} | "
+                f"{_f(two, 3)} | {_f(None if two is None else 1 / two, 2)} | "
+                f"{m['encode_capped_jacobian_rel_diff_median']:.3f} | {m['load']:.1f} |"
+            )
+    tables = [k for k in sorted(results) if "encode_table_wall_s_1t" in results[k].get("micro", {})]
+    if tables:
+        lines += [
+            "",
+            "The same frame, with the same Jacobian sample, by lookup in the encoder's latent "
+            "table (`mapping.encoder_table_nodes`, the default since stop 20) instead of the "
+            "network: build = building the table, once per process; rel. diff = per-voxel "
+            "relative difference to the network's latents and Jacobians (median / max).",
+            "",
+            "| run | nodes | build [s] | 1 thread [s] (CPU s) | frames/s | 2 threads [s] | "
+            "frames/s | latents rel. diff | Jacobians rel. diff | load |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for key in tables:
+            m = results[key]["micro"]
+            one, two = m["encode_table_wall_s_1t"], m["encode_table_wall_s_2t"]
+            lines.append(
+                f"| {key} | {m['encode_table_nodes']} | {m['encode_table_build_s']:.2f} | "
+                f"{one:.3f} ({m['encode_table_cpu_s_1t']:.3f}) | {1 / one:.1f} | {two:.3f} | "
+                f"{1 / two:.1f} | {m['encode_table_latent_rel_diff_median']:.1e} / "
+                f"{m['encode_table_latent_rel_diff_max']:.1e} | "
+                f"{m['encode_table_jacobian_rel_diff_median']:.1e} / "
+                f"{m['encode_table_jacobian_rel_diff_max']:.1e} | {m['load']:.1f} |"
+            )
+    lines += _rgbd_lines(results)
+    lines.append("")
+    write_text_atomic(REPORT, "\n".join(lines))
+
+
+def _per_axis_lines(results: dict) -> list[str]:
+    """Per-axis ATE (RMSE along world x, y, z after the SE(3) alignment) where recorded."""
+    rows = []
+    for key in sorted(results):
+        for name in ("kiss_icp", "kiss_slam", "ours"):
+            r = results[key].get(name) or {}
+            odometry, slam = r.get("ate_xyz_odometry_m"), r.get("ate_xyz_slam_m")
+            if odometry is None and slam is None:
+                continue
+            cells = [
+                "n/a" if xyz is None else " / ".join(f"{v:.3f}" for v in xyz)
+                for xyz in (odometry, slam)
+            ]
+            rows.append(f"| {key} | {name} | {cells[0]} | {cells[1]} |")
+    if not rows:
+        return []
+    return [
+        "",
+        "Per-axis ATE [m] (x / y / z, z up; issue 12's vertical drift), where recorded:",
+        "",
+        "| run | method | odometry x / y / z | SLAM x / y / z |",
+        "|---|---|---|---|",
+        *rows,
+    ]
+
+
+def _rgbd_lines(results: dict) -> list[str]:
+    """The RGB-D table of ``--only rgbd`` runs; nothing when there are none."""
+    rows = []
+    for key in sorted(results):
+        rgbd = results[key].get("rgbd")
+        if not rgbd:
+            continue
+        for name in ("room", "7scenes"):
+            r = rgbd.get(name)
+            if not r:
+                continue
+            accuracy = r.get("mesh_accuracy_m")
+            rows.append(
+                f"| {key} | {name} | {r['frames']} | {r['fps']:.2f} | "
+                f"{r['ate_odometry_m']:.4f} | {r['ate_slam_m']:.4f} | "
+                f"{'n/a' if accuracy is None else f'{100 * accuracy:.2f}'} | "
+                f"{r['peak_rss_mb']:.0f} | {rgbd['load']:.1f} |"
+            )
+    if not rows:
+        return []
+    return [
+        "",
+        "RGB-D (`--only rgbd`: bench_slam's room and 7-Scenes scenarios, `NullLogger`):",
+        "",
+        "| run | sequence | frames | frames/s | ATE odometry [m] | ATE SLAM [m] | "
+        "mesh accuracy [cm] | peak RSS [MB] | load |",
+        "|---|---|---|---|---|---|---|---|---|",
+        *rows,
+    ]

@@ -1,0 +1,121 @@
+"""The benchmark harness: run_all's list, every benchmark's --quick mode, the report header and
+the measured child processes (real processes, no mocks)."""
+
+from __future__ import annotations
+
+import importlib
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks import run_all
+from benchmarks.harness.child import in_child_measured, run_command
+from benchmarks.harness.machine import git_revision, machine_description
+from benchmarks.harness.reference import kiss_slam_unavailable
+
+BENCH_DIR = Path(run_all.__file__).resolve().parent
+
+
+def test_run_all_lists_exactly_the_benchmark_files():
+    present = sorted(p.stem.removeprefix("bench_") for p in BENCH_DIR.glob("bench_*.py"))
+    assert sorted(run_all.BENCHMARKS) == present
+    assert len(set(run_all.BENCHMARKS)) == len(run_all.BENCHMARKS)
+    assert set(run_all.BEFORE_AFTER) <= set(run_all.BENCHMARKS)
+
+
+@pytest.mark.parametrize("name", run_all.BENCHMARKS)
+def test_every_benchmark_imports_and_has_a_quick_mode(name):
+    module = importlib.import_module(f"benchmarks.bench_{name}")
+    assert module.build_parser().parse_args(["--quick"]).quick is True
+    assert callable(module.main)
+    if name in run_all.BEFORE_AFTER:
+        assert module.build_parser().parse_args(["--before", "HEAD~1"]).before == "HEAD~1"
+        assert run_all.bench_command(name, quick=True, before="abc")[-2:] == ["--before", "abc"]
+    else:
+        assert "--before" not in run_all.bench_command(name, quick=True, before="abc")
+
+
+def _record(command: str) -> dict:
+    return {
+        "command": command,
+        "invoked_as": "make bench-quick",
+        "started": "2026-01-01 10:00 UTC",
+        "finished": "2026-01-01 10:12 UTC",
+        "total_seconds": 720.0,
+        "load_end": "1.0, 1.0, 1.0",
+        "mode": "quick",
+        "before": None,
+        "machine": machine_description(),
+        "benchmarks": [
+            {
+                "name": "odometry",
+                "status": "ok",
+                "seconds": 12.5,
+                "returncode": 0,
+                "command": "python -m benchmarks.bench_odometry --quick",
+                "detail": "",
+            },
+            {
+                "name": "slam",
+                "status": "failed",
+                "seconds": 3.0,
+                "returncode": 1,
+                "command": "python -m benchmarks.bench_slam --quick",
+                "detail": "exit status 1\n\nValueError: boom",
+            },
+        ],
+    }
+
+
+def test_assembled_report_names_command_revision_and_only_this_invocations_sections(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "odometry.md").write_text("## Odometry\n\n| a | b |\n")
+    (results / "prior.md").write_text("## Stale prior section\n")  # not run by this invocation
+    output = run_all.assemble(
+        _record("python -m benchmarks.run_all --quick"),
+        results_dir=results,
+        output=tmp_path / "BENCHMARKS.md",
+    )
+    text = output.read_text()
+    header = text.split("| benchmark |")[0]
+    assert "`python -m benchmarks.run_all --quick` (via `make bench-quick`)" in header
+    assert f"Revision: {git_revision()}" in header
+    assert "2026-01-01 10:00 UTC" in header and "cores" in header and "cpu" in header
+    assert "## Odometry" in text
+    assert "## slam: FAILED" in text and "ValueError: boom" in text
+    assert "Stale prior section" not in text
+
+
+def test_clear_results_leaves_nothing_from_an_earlier_invocation(tmp_path):
+    (tmp_path / "throughput.json").write_text("{}")
+    (tmp_path / "slam.md").write_text("old")
+    run_all.clear_results(tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_child_function_is_measured_in_its_own_process():
+    result, usage = in_child_measured(math.factorial, 12)
+    assert result == math.factorial(12)
+    assert usage.wall_s > 0 and usage.cpu_s >= 0
+    assert 5 < usage.peak_rss_mb < 2000
+
+
+def test_command_peak_memory_is_the_childs(tmp_path):
+    allocate = "b = bytearray(300 * 1024 * 1024); b[::4096] = b'x' * len(b[::4096])"
+    run = run_command([sys.executable, "-c", allocate], cwd=tmp_path)
+    assert run.returncode == 0
+    assert run.usage.peak_rss_mb > 250
+    failing = run_command(
+        [sys.executable, "-c", "print('said'); raise SystemExit(3)"], cwd=tmp_path
+    )
+    assert failing.returncode == 3 and "said" in failing.stdout
+
+
+def test_missing_kiss_slam_environment_gives_a_reason(tmp_path, monkeypatch):
+    monkeypatch.setenv("BENCH_KISS_SLAM_VENV", str(tmp_path / "nowhere"))
+    reason = kiss_slam_unavailable()
+    assert reason is not None
+    assert str(tmp_path / "nowhere") in reason and "make kiss-slam-env" in reason
