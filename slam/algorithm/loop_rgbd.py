@@ -52,6 +52,7 @@ from frontends.frame import Frame, Intrinsics
 from frontends.odometry.point_to_plane import IcpResult, point_to_plane_icp
 from slam.algorithm.config import LoopClosureConfig, RgbdLoopConfig
 from slam.algorithm.loops import LoopCandidate, LoopDetector, relative_motion
+from slam.algorithm.place import PlaceDescriptor, keyframe_descriptor
 from slam.algorithm.submaps import SubmapRecord, transform_points, voxel_downsample
 
 logger = logging.getLogger(__name__)
@@ -538,6 +539,8 @@ class RgbdLoopDetector(LoopDetector):
         self._verifier = RgbdVerifier(cfg.rgbd)
         self._features: dict[int, KeyframeFeatures] = {}
         self._travelled: dict[int, float] = {}
+        # each submap's place descriptor, kept in the session for a later merge
+        self.descriptors: dict[int, PlaceDescriptor] = {}
 
     def process(
         self, submap: SubmapRecord, T_W_A_estimates: dict[int, np.ndarray]
@@ -548,6 +551,7 @@ class RgbdLoopDetector(LoopDetector):
         query = self._verifier.features(submap.keyframe, submap.points_A, submap.normals_A)
         if query is None:
             return []
+        self.descriptors[j] = keyframe_descriptor(query.pixels, query.descriptors, query.points_S)
         c = self.cfg
         T_W_Aj = T_W_A_estimates.get(j)
         ranked = []

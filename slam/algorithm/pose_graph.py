@@ -312,6 +312,20 @@ class PoseGraph:
         """The odometry pose the anchor was added with."""
         return self._odometry_anchor[node_id]
 
+    def odometry_edges(self) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+        """The chain's odometry factors as ``(i, j, T_Ai_Aj, covariance)`` (the 6x6 covariance
+        ``[rot, trans]`` of the noise the factor used, floors included), for a session record."""
+        edges = []
+        for factor in self._chain[1:]:
+            i, j = (int(k) for k in factor.keys())
+            covariance = np.asarray(factor.noiseModel().covariance(), dtype=np.float64)
+            edges.append((i, j, factor.measured().matrix(), covariance))
+        return edges
+
+    def loop_covariance(self, edge: LoopEdge) -> np.ndarray:
+        """6x6 covariance of the Gaussian noise a loop edge enters the graph with."""
+        return np.asarray(self._loop_gaussian_noise(edge).covariance(), dtype=np.float64)
+
     def loop_weights(self) -> list[float]:
         """Weight in [0, 1] of every loop edge at the latest solve (1 = fully trusted)."""
         return [edge.weight for edge in self.loops]
