@@ -55,7 +55,8 @@ def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth
     """Fraction of keyframe ``a``'s depth that agrees (3 cm) with keyframe ``b``'s, moved by the
     loop edge and by the ground truth: a check of the ground truth that needs no ground truth."""
     try:
-        from slam.algorithm.loop_rgbd import RgbdVerifier, depth_agreement
+        from slam.algorithm.loop_keyframes import depth_agreement
+        from slam.algorithm.loop_rgbd import RgbdVerifier
     except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
         return None, None
 
@@ -76,7 +77,8 @@ def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[s
     poses, so that a trajectory error against the ground truth can be put into proportion.
     """
     try:
-        from slam.algorithm.loop_rgbd import RgbdVerifier, depth_agreement
+        from slam.algorithm.loop_keyframes import depth_agreement
+        from slam.algorithm.loop_rgbd import RgbdVerifier
     except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
         return None
 
@@ -104,7 +106,9 @@ def _loop_diagnosis(pipeline, source, gt: np.ndarray, a: int, b: int, T_a_b: np.
     """
     from common.geometry import transform_points
     from frontends.odometry.point_to_plane import point_to_plane_icp
-    from slam.algorithm.loop_rgbd import RefineCloud, RgbdVerifier, depth_agreement
+    from slam.algorithm.loop_keyframes import depth_agreement
+    from slam.algorithm.loop_refine import RefineCloud
+    from slam.algorithm.loop_rgbd import RgbdVerifier
     from slam.algorithm.loops import relative_motion
 
     cfg = pipeline.cfg.loop_closure.rgbd

@@ -19,6 +19,10 @@ rebuilt on load (equal to the saved one up to float32 rounding of the fusion ord
   ``latent_basis[i] @ latent_coeffs[rows]`` (channels x 3 per voxel), its Jacobians
   ``(jacobian_basis[i] * jacobian_scales[i]) @ jacobian_coeffs[rows]``.
 
+Version 3 adds an optional *session* section (DESIGN section 10): ``header["session"]`` (JSON)
+and arrays named ``session_*``, written and read opaquely here (the SLAM layer defines them; see
+``slam.algorithm.session``). Version 2 files still load as maps; :func:`load_session` refuses them.
+
 Files are written to a temporary file in the target folder and moved into place.
 """
 
@@ -44,7 +48,9 @@ if TYPE_CHECKING:
     from mapping.neural_map import NeuralMap, Submap
 
 FORMAT = "neural-remap-slam/map"
-VERSION = 2
+VERSION = 3
+READABLE_VERSIONS = (2, 3)
+SESSION_PREFIX = "session_"
 _PER_VOXEL = ("keys", "weights", "latent_coeffs", "jacobian_coeffs")
 _PER_SUBMAP = ("latent_basis", "jacobian_basis", "jacobian_scales")
 
@@ -67,8 +73,16 @@ def _from_numpy(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
     return t
 
 
-def save_map(neural_map: NeuralMap, path: str | Path, submaps: list[Submap]) -> None:
-    """Write ``submaps`` with ``neural_map``'s config and model identity to ``path``, atomically."""
+def save_map(
+    neural_map: NeuralMap,
+    path: str | Path,
+    submaps: list[Submap],
+    session: tuple[dict, dict[str, np.ndarray]] | None = None,
+) -> None:
+    """Write ``submaps`` with ``neural_map``'s config and model identity to ``path``, atomically.
+
+    ``session``: ``(header, arrays)`` of the run's session section, stored as given.
+    """
     path = Path(path)
     ids = [s.submap_id for s in submaps]
     if len(set(ids)) != len(ids):
@@ -129,6 +143,10 @@ def save_map(neural_map: NeuralMap, path: str | Path, submaps: list[Submap]) -> 
         "jacobian_storage": cfg.jacobian_storage,
         "num_submaps": len(submaps),
     }
+    if session is not None:
+        header["session"] = session[0]
+        for name, value in session[1].items():
+            arrays[SESSION_PREFIX + name] = np.asarray(value)
     arrays["header"] = np.array(json.dumps(header))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
@@ -156,11 +174,11 @@ def _header(path: Path, data: dict[str, np.ndarray]) -> dict:
         raise MapFileError(f"{path}: corrupt map header; re-save the map") from exc
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise MapFileError(f"{path}: not a {FORMAT} file")
-    if header.get("version") != VERSION:
+    if header.get("version") not in READABLE_VERSIONS:
         raise MapFileError(
             f"{path}: map format version {header.get('version')} is not supported (this code "
-            f"reads version {VERSION}); regenerate it by running `python -m slam.run` on the "
-            "sequence again"
+            f"reads versions {READABLE_VERSIONS}); regenerate it by running `python -m slam.run` "
+            "on the sequence again"
         )
     return header
 
@@ -238,3 +256,25 @@ def load_map(
             f"{str(exc).splitlines()[0] if str(exc) else ''}); re-save the map"
         ) from exc
     return neural_map, submaps
+
+
+def load_session(path: str | Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
+    """``(map header, session header, session arrays)`` of a map file with a session section.
+
+    A file without one (version 2, or saved without a session) is a one-line
+    :class:`MapFileError` saying to re-run ``slam.run``.
+    """
+    path = Path(path)
+    data = _read_npz(path)
+    header = _header(path, data)
+    if header.get("version") != VERSION or not isinstance(header.get("session"), dict):
+        raise MapFileError(
+            f"{path}: map format version {header.get('version')} without session data cannot be "
+            f"merged; re-run `python -m slam.run` on the sequence to write a version {VERSION} map"
+        )
+    arrays = {
+        name[len(SESSION_PREFIX) :]: value
+        for name, value in data.items()
+        if name.startswith(SESSION_PREFIX)
+    }
+    return header, header["session"], arrays

@@ -235,11 +235,12 @@ class NeuralMap:
         return self._store.memory_bytes()
 
     # ------------------------------------------------------------------ persistence
-    def save(self, path: str | Path, submaps: list[Submap]) -> None:
-        """Write the map and its submaps (see :mod:`mapping.map_io`); atomic."""
+    def save(self, path: str | Path, submaps: list[Submap], session=None) -> None:
+        """Write the map and its submaps (and a session section, see :mod:`mapping.map_io`);
+        atomic."""
         from mapping.map_io import save_map
 
-        save_map(self, path, submaps)
+        save_map(self, path, submaps, session)
 
     @classmethod
     def load(

@@ -174,7 +174,7 @@ def test_rgbd_3d_check_rejects_depth_inconsistent_with_pnp(room):
 
 
 def test_rgbd_odometry_quality_sees_a_wrong_pose(room):
-    from slam.algorithm.loop_rgbd import depth_agreement
+    from slam.algorithm.loop_keyframes import depth_agreement
 
     verifier = RgbdVerifier(RgbdLoopConfig())
     reference, query, _ = _features(verifier, room, 0, 8)
@@ -215,7 +215,7 @@ def test_rgbd_dense_refinement_corrects_or_rejects_a_wrong_guess(room, offset):
 
 def test_rgbd_dense_refinement_rejects_a_flat_cost():
     """Two views of one plane: ICP cannot fix the in-plane motion, so the edge is rejected."""
-    from slam.algorithm.loop_rgbd import RefineCloud
+    from slam.algorithm.loop_refine import RefineCloud
 
     rng = np.random.default_rng(0)
     points = np.column_stack([rng.uniform(-1, 1, (20000, 2)), np.full(20000, 2.0)])

@@ -52,6 +52,7 @@ from slam.algorithm.loops import (
     relative_motion,
 )
 from slam.algorithm.normals import estimate_normals
+from slam.algorithm.place import PlaceDescriptor, bev_descriptor
 from slam.algorithm.submaps import SubmapRecord
 
 logger = logging.getLogger(__name__)
@@ -270,6 +271,8 @@ class LidarLoopDetector(LoopDetector):
         self._verifier = IcpVerifier(lidar)
         self._clouds: dict[int, np.ndarray] = {}
         self._travelled: dict[int, float] = {}
+        # each submap's place descriptor, kept in the session for a later merge
+        self.descriptors: dict[int, PlaceDescriptor] = {}
 
     def _eligible(self, i: int, submap: SubmapRecord) -> bool:
         return (
@@ -343,6 +346,7 @@ class LidarLoopDetector(LoopDetector):
     ) -> list[LoopCandidate]:
         cloud = np.asarray(submap.loop_points_A, dtype=np.float64)
         j = submap.submap_id
+        self.descriptors[j] = bev_descriptor(cloud, self.cfg.lidar.density_map_resolution_m)
         if len(cloud) < 100:  # nothing to match (and map_closures needs a cloud)
             self._clouds[j] = submap.loop_points_A
             self._travelled[j] = submap.travelled_m

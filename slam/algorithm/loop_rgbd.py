@@ -58,16 +58,8 @@ from slam.algorithm.loop_keyframes import (
 )
 from slam.algorithm.loop_refine import RefineCloud, refine_scores
 from slam.algorithm.loops import LoopCandidate, LoopDetector, Verification, relative_motion
+from slam.algorithm.place import PlaceDescriptor, keyframe_descriptor
 from slam.algorithm.submaps import SubmapRecord
-
-__all__ = [
-    "KeyframeFeatures",
-    "RefineCloud",
-    "RgbdLoopDetector",
-    "RgbdVerifier",
-    "depth_agreement",
-    "refine_scores",
-]
 
 logger = logging.getLogger(__name__)
 
@@ -419,6 +411,8 @@ class RgbdLoopDetector(LoopDetector):
         self._verifier = RgbdVerifier(cfg.rgbd)
         self._features: dict[int, KeyframeFeatures] = {}
         self._travelled: dict[int, float] = {}
+        # each submap's place descriptor, kept in the session for a later merge
+        self.descriptors: dict[int, PlaceDescriptor] = {}
 
     def process(
         self,
@@ -432,6 +426,7 @@ class RgbdLoopDetector(LoopDetector):
         query = self._verifier.features(submap.keyframe, submap.points_A, submap.normals_A)
         if query is None:
             return []
+        self.descriptors[j] = keyframe_descriptor(query.pixels, query.descriptors, query.points_S)
         c = self.cfg
         T_W_Aj = T_W_A_estimates.get(j)
         ranked = []

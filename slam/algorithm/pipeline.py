@@ -332,6 +332,12 @@ class SlamPipeline:
         T_W_A = np.array([anchors[s] for s in self._frame_submap])
         return T_W_A @ np.array(self._frame_T_A_S)
 
+    def frame_anchors(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every frame's submap id ``(N,)`` and pose in its anchor frame ``T_A_S (N, 4, 4)``."""
+        return np.array(self._frame_submap, dtype=np.int64), np.array(self._frame_T_A_S).reshape(
+            -1, 4, 4
+        )
+
     def submap_frames(self, submap_id: int) -> list[int]:
         """Indices (processing order) of the frames of a submap."""
         return self._frames_of.get(submap_id, [])

@@ -317,3 +317,17 @@ class PoseGraph:
     def poses(self) -> dict[int, np.ndarray]:
         """Current estimate of every anchor, ``{node_id: T_W_A}``."""
         return {n: self._estimate.atPose3(n).matrix() for n in self._node_ids}
+
+    def odometry_edges(self) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+        """The chain's odometry factors as ``(i, j, T_Ai_Aj, covariance)`` (the 6x6 covariance
+        ``[rot, trans]`` of the noise the factor used, floors included), for a session record."""
+        edges = []
+        for factor in self._chain[1:]:
+            i, j = (int(k) for k in factor.keys())
+            covariance = np.asarray(factor.noiseModel().covariance(), dtype=np.float64)
+            edges.append((i, j, factor.measured().matrix(), covariance))
+        return edges
+
+    def loop_covariance(self, edge: LoopEdge) -> np.ndarray:
+        """6x6 covariance of the Gaussian noise a loop edge enters the graph with."""
+        return np.asarray(self._loop_gaussian_noise(edge).covariance(), dtype=np.float64)

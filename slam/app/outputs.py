@@ -145,10 +145,12 @@ class RunOutputs:
             mesh.export(tmp, file_type="ply")
         return path
 
-    def write_map(self, neural_map, submaps: Sequence) -> Path:
-        """The neural map with its submaps (``NeuralMap.save`` writes atomically)."""
+    def write_map(self, neural_map, submaps: Sequence, session=None) -> Path:
+        """The neural map with its submaps and the run's session section
+        (:class:`~slam.algorithm.session.SessionRecord`, for merging); ``NeuralMap.save``
+        writes atomically."""
         path = self.path("map.npz")
-        neural_map.save(path, list(submaps))
+        neural_map.save(path, list(submaps), None if session is None else session.to_arrays())
         return path
 
     def write_status(
@@ -159,6 +161,11 @@ class RunOutputs:
         if reason:
             status["reason"] = reason
         write_text_atomic(self.path(RUN_STATUS_FILE), json.dumps(status) + "\n")
+
+    def write_ground_truth(self, poses: np.ndarray, timestamps: np.ndarray) -> None:
+        """The ground-truth trajectory (dataset frames), kept for evaluating a later merge."""
+        write_kitti(self.path("poses_gt.kitti.txt"), poses)
+        write_tum(self.path("poses_gt.tum.txt"), poses, timestamps)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         text = json.dumps(_json_safe(metrics), indent=2, sort_keys=False) + "\n"

@@ -203,8 +203,21 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     mesh = neural_map.extract_mesh(threads=threads.mesh_threads)
     if cfg.output.write_mesh:
         outputs.write_mesh(mesh)
+    gt = pipeline.gt_poses()
+    if gt is not None and len(gt):
+        outputs.write_ground_truth(source.to_dataset_frame(gt), pipeline.timestamps())
     if cfg.output.write_map:
-        outputs.write_map(neural_map, list(pipeline.submaps.values()))
+        from slam.algorithm.session import session_from_pipeline
+
+        setup = {
+            "sensor": sensor,
+            "dataset": cfg.source.dataset,
+            "sequence": cfg.source.sequence,
+            "frames": cfg.source.frames,
+        }
+        mirror = getattr(source, "dataset_mirror", None)
+        session = session_from_pipeline(pipeline, setup, mirror)
+        outputs.write_map(neural_map, list(pipeline.submaps.values()), session)
     wall_s = time.perf_counter() - start
     metrics = collect_metrics(
         pipeline.report(),

@@ -1,0 +1,243 @@
+"""Multi-session merging: a generated sequence split in two sessions, each run on its own, merged
+without the scans, against one run over the whole sequence.
+
+    python -m benchmarks.bench_merge [--quick] [--scenario demo|generated-lidar ...]
+
+Per scenario: ``slam.run`` on frames ``0:N/2`` and ``N/2:N`` (the second run knows nothing of
+where it starts) and on ``0:N``; then the data folder is deleted and ``slam.merge`` joins the two
+runs. Reported: combined ATE of the merge vs the full run's ATE, inter-session loops found and
+their error against the ground truth, merge wall time and peak RSS beside the full run's, the
+bytes the session section adds to ``map.npz``, and the merged map's mesh against (a) the raw
+points re-fused under the merged poses (a map encoded from the scans at the merged frame poses,
+which is what remapping must match) and (b) the full run's mesh (mean symmetric surface
+distance). Writes ``benchmarks/results/merge.md`` and ``.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.harness.child import run_command
+from benchmarks.harness.machine import section_header
+from benchmarks.harness.paths import REPO, RESULTS_DIR
+from common.atomic_io import write_text_atomic
+
+SCENARIOS = {
+    "demo": {"dataset": "demo", "frames": 240, "quick_frames": 120, "extra": []},
+    "generated-lidar": {
+        "dataset": "generated-lidar",
+        "frames": 150,
+        "quick_frames": 150,
+        "extra": [],
+    },
+}
+
+
+def _child(module: str, args: list[str], log: Path) -> tuple[float, float]:
+    """Run ``python -m module args``: (wall s, peak RSS MB); raises on failure."""
+    done = run_command(
+        [sys.executable, "-m", module, *args],
+        cwd=REPO,
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        log_file=log,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"{module} {' '.join(args)} failed; see {log}")
+    return done.usage.wall_s, done.usage.peak_rss_mb
+
+
+def _session_bytes(map_path: Path) -> int:
+    import zipfile
+
+    with zipfile.ZipFile(map_path) as z:
+        return sum(i.compress_size for i in z.infolist() if i.filename.startswith("session_"))
+
+
+def _loop_errors(merged: Path, gt: np.ndarray) -> list[dict[str, float]]:
+    """Error of every kept inter-session edge against the ground truth of its anchor frames."""
+    from mapping.map_io import load_session
+    from slam.algorithm.loops import relative_motion
+    from slam.algorithm.session import SessionRecord
+
+    _, header, arrays = load_session(merged / "map.npz")
+    session = SessionRecord.from_arrays(header, arrays)
+    anchor_row = {}
+    for row, node in enumerate(session.frame_submap.tolist()):
+        anchor_row.setdefault(node, row)
+    part_of = np.zeros(len(session.frame_submap), dtype=int)
+    for k, part in enumerate(session.parts):
+        part_of[part["first_row"] : part["first_row"] + part["rows"]] = k
+    M = session.dataset_mirror
+    errors = []
+    for e in session.loops:
+        ri, rj = anchor_row[e.i], anchor_row[e.j]
+        if part_of[ri] == part_of[rj]:
+            continue
+        truth = M @ np.linalg.inv(gt[ri]) @ gt[rj] @ M
+        t, r = relative_motion(truth, e.T_Ai_Aj)
+        errors.append({"i": e.i, "j": e.j, "translation_m": t, "rotation_deg": r})
+    return errors
+
+
+def _refused_map(run: Path, merged: Path, data_cfg: Path, work: Path) -> Any:
+    """The raw points of every frame, re-fused under the merged poses (one submap per
+    ``submaps.max_frames`` frames, encoded at identity)."""
+    from slam.app.builders import build_map, build_source
+    from slam.app.config import load_run_config
+    from slam.app.trajectory_io import read_kitti
+
+    cfg = load_run_config(data_cfg)
+    cfg.source.frames = None
+    source = build_source(cfg)
+    poses = source.to_dataset_frame(read_kitti(merged / "poses_slam.kitti.txt"))
+    neural_map = build_map(cfg)
+    step = cfg.submaps.max_frames
+    points, normals = [], []
+    for index in range(len(poses)):
+        frame = source[index]
+        if frame.normals is None:
+            from slam.algorithm.normals import estimate_normals
+
+            n, valid = estimate_normals(frame.points, np.zeros(3), num_neighbours=10,
+                                        max_radius_m=cfg.submaps.normal_radius_m)  # fmt: skip
+            p, n = frame.points[valid], n[valid]
+        else:
+            p, n = frame.points, frame.normals
+        T = poses[index]
+        points.append(p @ T[:3, :3].T + T[:3, 3])
+        normals.append(n @ T[:3, :3].T)
+        if len(points) == step or index == len(poses) - 1:
+            submap = neural_map.encode(index, np.concatenate(points), np.concatenate(normals),
+                                       np.eye(4))  # fmt: skip
+            neural_map.fuse(submap)
+            points, normals = [], []
+    return neural_map.extract_mesh()
+
+
+def _mesh_distance(a, b) -> dict[str, float]:
+    import trimesh
+
+    from slam.evaluation.metrics.mesh import surface_distances
+
+    pa = trimesh.sample.sample_surface(a, 50_000, seed=1)[0]
+    pb = trimesh.sample.sample_surface(b, 50_000, seed=2)[0]
+    ab, ba = surface_distances(pa, b), surface_distances(pb, a)
+    return {"a_to_b_m": float(np.mean(ab)), "b_to_a_m": float(np.mean(ba)),
+            "symmetric_m": float((np.mean(ab) + np.mean(ba)) / 2)}  # fmt: skip
+
+
+def scenario(name: str, quick: bool, work: Path) -> dict[str, Any]:
+    import trimesh
+
+    spec = SCENARIOS[name]
+    n = spec["quick_frames"] if quick else spec["frames"]
+    data = work / "data"
+    common = [
+        "--root",
+        str(data),
+        "--no-viz",
+        "--no-progress",
+        "--set",
+        f"generated.num_frames={n}",
+    ]
+    out: dict[str, Any] = {"frames": n}
+    runs = {"full": f"0:{n}", "a": f"0:{n // 2}", "b": f"{n // 2}:{n}"}
+    for key, frames in runs.items():
+        wall, rss = _child("slam.run", [spec["dataset"], "--frames", frames, *common,
+                                        "--out", str(work / key)], work / f"{key}.log")  # fmt: skip
+        metrics = json.loads((work / key / "metrics.json").read_text())
+        out[key] = {"wall_s": wall, "peak_rss_mb": rss,
+                    "ate_m": metrics["trajectory"]["slam"]["ate_rmse_m"],
+                    "map_bytes": (work / key / "map.npz").stat().st_size,
+                    "session_bytes": _session_bytes(work / key / "map.npz")}  # fmt: skip
+    backup = work / "data-kept"
+    shutil.move(data, backup)  # the merge runs without the scans
+    wall, rss = _child("slam.merge", [str(work / "a"), str(work / "b"), "--out",
+                                      str(work / "merged")], work / "merge.log")  # fmt: skip
+    shutil.move(backup, data)
+    merged = json.loads((work / "merged" / "metrics.json").read_text())
+    gt = np.concatenate([np.loadtxt(work / k / "poses_gt.kitti.txt").reshape(-1, 3, 4)
+                         for k in ("a", "b")])  # fmt: skip
+    gt = np.concatenate([gt, np.tile([[[0, 0, 0, 1.0]]], (len(gt), 1, 1))], axis=1)
+    out["merge"] = {"wall_s": wall, "peak_rss_mb": rss,
+                    "combined_ate_m": merged.get("combined_ate_rmse_m"),
+                    "inter_candidates": merged["inter_session_candidates"],
+                    "inter_kept": merged["inter_session_loops_kept"],
+                    "loop_errors": _loop_errors(work / "merged", gt),
+                    "seconds": merged["seconds"]}  # fmt: skip
+    merged_mesh = trimesh.load(work / "merged" / "mesh.ply", force="mesh")
+    full_mesh = trimesh.load(work / "full" / "mesh.ply", force="mesh")
+    refused = _refused_map(work / "a", work / "merged", work / "full" / "config.yaml", work)
+    out["mesh_vs_refused"] = _mesh_distance(merged_mesh, refused)
+    out["mesh_vs_full_run"] = _mesh_distance(merged_mesh, full_mesh)
+    return out
+
+
+def _cm(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.2f}"
+
+
+def report(results: dict[str, Any], command: str) -> str:
+    lines = [*section_header("Multi-session merge", command),
+             "- Two sessions (first and second half of one generated sequence), each run on its "
+             "own; the data folder is moved away before `slam.merge` runs.", ""]  # fmt: skip
+    for name, r in results.items():
+        m = r["merge"]
+        errors = m["loop_errors"]
+        err_t = max((e["translation_m"] for e in errors), default=None)
+        err_r = max((e["rotation_deg"] for e in errors), default=None)
+        a = r["a"]
+        lines += [
+            f"### {name} ({r['frames']} frames)", "",
+            "| | value |", "|---|---:|",
+            f"| ATE full run [cm] | {_cm(r['full']['ate_m'])} |",
+            f"| ATE session A / B alone [cm] | {_cm(a['ate_m'])} / {_cm(r['b']['ate_m'])} |",
+            f"| combined ATE after merge [cm] | {_cm(m['combined_ate_m'])} |",
+            f"| merged / full ATE | {m['combined_ate_m'] / r['full']['ate_m']:.2f} |",
+            f"| inter-session candidates / kept | {m['inter_candidates']} / {m['inter_kept']} |",
+            f"| worst kept inter-session edge vs truth [cm / deg] | {_cm(err_t)} / "
+            f"{'-' if err_r is None else f'{err_r:.2f}'} |",
+            f"| merge wall [s] / peak RSS [MB] | {m['wall_s']:.1f} / {m['peak_rss_mb']:.0f} |",
+            f"| full SLAM run wall [s] / peak RSS [MB] | {r['full']['wall_s']:.1f} / "
+            f"{r['full']['peak_rss_mb']:.0f} |",
+            f"| session section / map.npz (session A) [kB] | {a['session_bytes'] / 1e3:.0f} / "
+            f"{a['map_bytes'] / 1e3:.0f} ({100 * a['session_bytes'] / a['map_bytes']:.1f} %) |",
+            f"| merged mesh vs raw points re-fused under merged poses [cm] | "
+            f"{_cm(r['mesh_vs_refused']['symmetric_m'])} |",
+            f"| merged mesh vs full run's mesh [cm] | "
+            f"{_cm(r['mesh_vs_full_run']['symmetric_m'])} |",
+            "",
+        ]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="shorter sequences")
+    parser.add_argument("--scenario", nargs="+", choices=sorted(SCENARIOS), default=["demo"])
+    parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    results = {}
+    for name in args.scenario:
+        work = Path(tempfile.mkdtemp(prefix=f"merge-{name}-", dir=args.work))
+        results[name] = scenario(name, args.quick, work)
+    command = "python -m benchmarks.bench_merge " + " ".join(argv or sys.argv[1:])
+    write_text_atomic(RESULTS_DIR / "merge.json", json.dumps(results, indent=2) + "\n")
+    write_text_atomic(RESULTS_DIR / "merge.md", report(results, command.strip()))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,66 @@
+"""Settings of a multi-session merge (:mod:`slam.algorithm.merge`)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class MergeConfig(BaseModel):
+    """Inter-session loop search, verification on decoded surfaces, and the joint graph."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio of descriptor matches")
+    min_descriptor_inliers: int = Field(
+        12, ge=3, description="RANSAC inliers of the descriptor match for a candidate"
+    )
+    descriptor_inlier_vu: float = Field(
+        1.0, gt=0, description="RANSAC inlier distance of keypoint positions, voxel units"
+    )
+    max_candidates_per_submap: int = Field(
+        3,
+        ge=1,
+        description="descriptor matches per query submap tried, best first, until one verifies",
+    )
+    surface_max_points: int = Field(
+        20000, ge=100, description="decoded surface points kept per submap for verification"
+    )
+    surface_subdivisions: int = Field(
+        2, ge=1, description="lattice cells per voxel edge when decoding a submap's surface"
+    )
+    icp_gates_vu: tuple[float, ...] = Field(
+        (3.0, 1.5, 0.75), description="point-to-plane ICP correspondence gates, voxel units"
+    )
+    min_inlier_fraction: float = Field(
+        0.4, ge=0, le=1, description="query surface points within the last gate after ICP"
+    )
+    max_residual_vu: float = Field(
+        0.25, gt=0, description="robust point-to-plane residual sigma allowed, voxel units"
+    )
+    min_eigenvalue: float = Field(
+        0.01, ge=0, description="smallest normalised ICP Hessian eigenvalue (not degenerate)"
+    )
+    max_correction_vu: float = Field(
+        3.0, gt=0, description="ICP may move the descriptor's guess at most this far, voxel units"
+    )
+    max_correction_deg: float = Field(
+        10.0, gt=0, description="ICP may rotate the descriptor's guess at most this much"
+    )
+    covariance_factor: float = Field(
+        1.0, gt=0, description="scale of the ICP covariance of an inter-session edge"
+    )
+    loop_min_sigma_m: float = Field(
+        0.01, ge=0, description="translation sigma floor of an inter-session edge"
+    )
+    loop_min_sigma_rad: float = Field(
+        0.002, ge=0, description="rotation sigma floor of an inter-session edge"
+    )
+    gnc_inlier_probability: float = Field(
+        0.99, gt=0, lt=1, description="GNC inlier threshold of the joint graph (chi-square)"
+    )
+    remap_translation_m: float = Field(
+        0.005, ge=0, description="a submap whose merged anchor moved less stays where it was"
+    )
+    remap_rotation_deg: float = Field(
+        0.05, ge=0, description="a submap whose merged anchor turned less stays where it was"
+    )

@@ -1,0 +1,200 @@
+"""A session: what a run keeps, besides its submaps' latents, so that a later merge can join it to
+other runs without the raw data (DESIGN section 10).
+
+* the pose graph: every anchor's final estimate ``T_W_A``, the odometry factors between
+  consecutive anchors and the loop factors the graph kept, each with the 6x6 covariance
+  (``[rot, trans]``) of the noise it entered the graph with;
+* every frame's anchor and pose relative to it (``T_A_S``) and its timestamp, so a merge can
+  write every frame's pose after the anchors moved;
+* each submap's place descriptor (:mod:`slam.algorithm.place`);
+* the sensor setup (JSON) and the fixed map from the loader's frames to the dataset's own
+  (``dataset_mirror``), so merged trajectories are written in the dataset's frames.
+
+:meth:`SessionRecord.to_arrays` / :meth:`SessionRecord.from_arrays` turn it into named numpy arrays
+and a JSON-able header; :mod:`mapping.map_io` stores them opaquely in the map file. Poses stay
+float64 (a merge of a run with itself must reproduce its poses); covariances are float32 and
+descriptor positions float16 (they only seed a verification).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.algorithm.place import PlaceDescriptor
+
+
+@dataclass
+class Edge:
+    """A factor between anchors ``i`` and ``j``: measurement ``T_Ai_Aj`` and 6x6 covariance."""
+
+    i: int
+    j: int
+    T_Ai_Aj: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass
+class SessionRecord:
+    """One run's pose graph, frames and descriptors (see the module docstring).
+
+    Attributes:
+        setup: sensor setup and provenance (``sensor``, ``dataset``, ``sequence``, ...).
+        node_ids: (K,) anchor ids in graph order (submap ids).
+        T_W_A: (K, 4, 4) final anchor estimates.
+        odometry: odometry factors (consecutive anchors of one run).
+        loops: loop factors kept by the graph.
+        frame_submap: (N,) anchor id of every frame.
+        frame_T_A_S: (N, 4, 4) every frame's pose in its anchor frame.
+        timestamps: (N,) seconds.
+        descriptors: ``{anchor id: PlaceDescriptor}``.
+        dataset_mirror: 4x4 map of the loader's frames to the dataset's (``M P M``).
+        parts: for a merged run, ``[{"name", "first_row", "rows"}]`` of the runs it joined.
+    """
+
+    setup: dict
+    node_ids: np.ndarray
+    T_W_A: np.ndarray
+    odometry: list[Edge]
+    loops: list[Edge]
+    frame_submap: np.ndarray
+    frame_T_A_S: np.ndarray
+    timestamps: np.ndarray
+    descriptors: dict[int, PlaceDescriptor]
+    dataset_mirror: np.ndarray = field(default_factory=lambda: np.eye(4))
+    parts: list[dict] = field(default_factory=list)
+
+    @property
+    def sensor(self) -> str:
+        return str(self.setup.get("sensor", ""))
+
+    def anchor_poses(self) -> dict[int, np.ndarray]:
+        return {int(n): T for n, T in zip(self.node_ids, self.T_W_A, strict=True)}
+
+    def frame_poses(self, T_W_A: dict[int, np.ndarray] | None = None) -> np.ndarray:
+        """(N, 4, 4) frame poses under anchor poses ``T_W_A`` (default: the stored ones)."""
+        anchors = self.anchor_poses() if T_W_A is None else T_W_A
+        if len(self.frame_submap) == 0:
+            return np.zeros((0, 4, 4))
+        return np.array([anchors[int(s)] for s in self.frame_submap]) @ self.frame_T_A_S
+
+    def to_dataset_frame(self, poses: np.ndarray) -> np.ndarray:
+        M = self.dataset_mirror
+        return M @ np.asarray(poses) @ M
+
+    # --- serialisation ------------------------------------------------------------------------
+
+    def to_arrays(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """``(header, arrays)`` for :func:`mapping.map_io.save_map`."""
+
+        def edges(items: list[Edge]) -> dict[str, np.ndarray]:
+            return {
+                "ij": np.array([[e.i, e.j] for e in items], np.int64).reshape(-1, 2),
+                "T": np.array([e.T_Ai_Aj for e in items], np.float64).reshape(-1, 4, 4),
+                "cov": np.array([e.covariance for e in items], np.float32).reshape(-1, 6, 6),
+            }
+
+        ids = sorted(self.descriptors)
+        counts = [len(self.descriptors[i]) for i in ids]
+        arrays = {
+            "node_ids": np.asarray(self.node_ids, np.int64),
+            "T_W_A": np.asarray(self.T_W_A, np.float64).reshape(-1, 4, 4),
+            "frame_submap": np.asarray(self.frame_submap, np.int64),
+            "frame_T_A_S": np.asarray(self.frame_T_A_S, np.float64).reshape(-1, 4, 4)[:, :3],
+            "timestamps": np.asarray(self.timestamps, np.float64),
+            "dataset_mirror": np.asarray(self.dataset_mirror, np.float64),
+            "descriptor_ids": np.asarray(ids, np.int64),
+            "descriptor_planar": np.array([self.descriptors[i].planar for i in ids], bool),
+            "descriptor_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            "descriptor_positions": np.concatenate(
+                [np.zeros((0, 3), np.float16)]
+                + [self.descriptors[i].positions_A.astype(np.float16) for i in ids]
+            ),
+            "descriptor_bits": np.concatenate(
+                [np.zeros((0, 32), np.uint8)] + [self.descriptors[i].bits for i in ids]
+            ),
+        }
+        for name, items in (("odometry", self.odometry), ("loop", self.loops)):
+            for key, value in edges(items).items():
+                arrays[f"{name}_{key}"] = value
+        return {"setup": self.setup, "parts": self.parts}, arrays
+
+    @classmethod
+    def from_arrays(cls, header: dict, arrays: dict[str, np.ndarray]) -> SessionRecord:
+        """Inverse of :meth:`to_arrays`; inconsistent arrays raise a one-line ``ValueError``."""
+        node_ids = arrays["node_ids"].astype(np.int64)
+        T_W_A = arrays["T_W_A"].astype(np.float64)
+        if T_W_A.shape != (len(node_ids), 4, 4):
+            raise ValueError("session anchors and their poses disagree")
+        frame_submap = arrays["frame_submap"].astype(np.int64)
+        rows = arrays["frame_T_A_S"].astype(np.float64)
+        if rows.shape != (len(frame_submap), 3, 4) or not set(frame_submap.tolist()) <= set(
+            node_ids.tolist()
+        ):
+            raise ValueError("session frames refer to unknown anchors")
+        frame_T_A_S = np.tile(np.eye(4), (len(rows), 1, 1))
+        frame_T_A_S[:, :3] = rows
+
+        def edges(name: str) -> list[Edge]:
+            ij, T, cov = (arrays[f"{name}_{k}"] for k in ("ij", "T", "cov"))
+            if not len(ij) == len(T) == len(cov):
+                raise ValueError(f"session {name} factors are inconsistent")
+            return [
+                Edge(int(a), int(b), t.astype(np.float64), c.astype(np.float64))
+                for (a, b), t, c in zip(ij, T, cov, strict=True)
+            ]
+
+        ids = arrays["descriptor_ids"]
+        offsets = arrays["descriptor_offsets"]
+        if offsets.shape != (len(ids) + 1,) or offsets[-1] != len(arrays["descriptor_bits"]):
+            raise ValueError("session descriptor offsets disagree with the descriptors")
+        descriptors = {
+            int(n): PlaceDescriptor(
+                arrays["descriptor_positions"][a:b].astype(np.float32),
+                arrays["descriptor_bits"][a:b].astype(np.uint8),
+                bool(planar),
+            )
+            for n, a, b, planar in zip(
+                ids, offsets[:-1], offsets[1:], arrays["descriptor_planar"], strict=True
+            )
+        }
+        return cls(
+            setup=dict(header.get("setup", {})),
+            node_ids=node_ids,
+            T_W_A=T_W_A,
+            odometry=edges("odometry"),
+            loops=edges("loop"),
+            frame_submap=frame_submap,
+            frame_T_A_S=frame_T_A_S,
+            timestamps=arrays["timestamps"].astype(np.float64),
+            descriptors=descriptors,
+            dataset_mirror=arrays["dataset_mirror"].astype(np.float64),
+            parts=list(header.get("parts", [])),
+        )
+
+
+def session_from_pipeline(
+    pipeline, setup: dict, dataset_mirror: np.ndarray | None
+) -> SessionRecord:
+    """The session of a finished :class:`~slam.algorithm.pipeline.SlamPipeline`."""
+    graph = pipeline.graph
+    poses = graph.poses()
+    node_ids = np.array(graph.node_ids, dtype=np.int64)
+    odometry = [Edge(i, j, T, cov) for i, j, T, cov in graph.odometry_edges()]
+    loops = [Edge(e.i, e.j, e.T_Ai_Aj, graph.loop_covariance(e)) for e in graph.loops if e.inlier]
+    frame_submap, frame_T_A_S = pipeline.frame_anchors()
+    detector = pipeline.loop_detector
+    descriptors = dict(getattr(detector, "descriptors", {}) or {})
+    return SessionRecord(
+        setup=dict(setup),
+        node_ids=node_ids,
+        T_W_A=np.array([poses[int(n)] for n in node_ids]).reshape(-1, 4, 4),
+        odometry=odometry,
+        loops=loops,
+        frame_submap=frame_submap,
+        frame_T_A_S=frame_T_A_S,
+        timestamps=pipeline.timestamps(),
+        descriptors=descriptors,
+        dataset_mirror=np.eye(4) if dataset_mirror is None else np.asarray(dataset_mirror),
+    )

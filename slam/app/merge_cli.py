@@ -1,0 +1,187 @@
+"""``python -m slam.merge RUN_DIR RUN_DIR [RUN_DIR ...] --out DIR``: merge runs into one map.
+
+Reads only each run folder's ``map.npz`` (latents and session section), and, for evaluation and
+the recording, ``poses_gt.kitti.txt`` and ``mesh.ply`` where present; never a scan. Everything is
+computed before ``DIR`` is created, so a merge that fails (incompatible maps, a run that shares
+no place with the others) writes nothing and exits non-zero with one line on stderr.
+
+``DIR`` receives what a run writes: ``poses_slam.{kitti,tum}.txt`` (every session's frames in the
+order the runs were given, in the first run's frame), ``sessions.csv``, ``loops.csv``,
+``map.npz`` (itself a session: a merged run can be merged again), ``mesh.ply``, ``metrics.json``
+and ``recording.rrd``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import resource
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from frontends.errors import DatasetError
+from mapping.errors import MapFileError
+from slam.app.config import UsageError
+
+logger = logging.getLogger("slam.merge")
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{message} (see python -m slam.merge --help)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _OneLineParser(
+        prog="python -m slam.merge",
+        description="Merge separate runs into one loop-closed neural map (no raw data needed).",
+    )
+    parser.add_argument("runs", nargs="+", type=Path, help="run folders (the first sets the frame)")
+    parser.add_argument("--out", type=Path, required=True, help="new or empty output folder")
+    parser.add_argument("--no-viz", action="store_true", help="write no Rerun recording")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log INFO to stderr")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    return parser
+
+
+def load_run(folder: Path):
+    """``(SessionInput, NeuralMap)`` of a run folder; a bad folder is a one-line error."""
+    from mapping.map_io import load_session
+    from mapping.neural_map import NeuralMap
+    from slam.algorithm.merge import SessionInput
+    from slam.algorithm.session import SessionRecord
+
+    path = folder / "map.npz"
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: run folder not found; give folders written by slam.run")
+    _, session_header, arrays = load_session(path)
+    try:
+        session = SessionRecord.from_arrays(session_header, arrays)
+    except (KeyError, ValueError) as exc:
+        raise MapFileError(
+            f"{path}: session section is inconsistent ({exc}); re-run slam.run"
+        ) from exc
+    neural_map, submaps = NeuralMap.load(path)
+    return SessionInput(str(folder), session, submaps), neural_map
+
+
+def _ground_truth(folder: Path, rows: int) -> np.ndarray | None:
+    from slam.app.trajectory_io import read_kitti
+
+    path = folder / "poses_gt.kitti.txt"
+    if not path.is_file():
+        return None
+    poses = read_kitti(path)
+    return poses if len(poses) == rows else None
+
+
+def _metrics(result, inputs, folders: list[Path], seconds: float) -> dict[str, Any]:
+    from slam.evaluation.metrics.trajectory import ate_rmse
+
+    sessions, est_all, gt_all = [], [], []
+    for k, (item, folder) in enumerate(zip(inputs, folders, strict=True)):
+        poses = item.session.to_dataset_frame(result.frame_poses[k])
+        entry: dict[str, Any] = {"session": k, "run_folder": str(folder), "frames": len(poses)}
+        gt = _ground_truth(folder, len(poses))
+        if gt is not None and len(poses) >= 3:
+            entry["ate_rmse_m"] = ate_rmse(poses, gt)
+            entry["ate_rmse_m_run"] = ate_rmse(
+                item.session.to_dataset_frame(item.session.frame_poses()), gt
+            )
+            est_all.append(poses)
+            gt_all.append(gt)
+        sessions.append(entry)
+    accepted = [c for c in result.loops if c.accepted]
+    metrics: dict[str, Any] = {
+        "sessions": sessions,
+        "inter_session_candidates": len(result.loops),
+        "inter_session_loops_verified": len(accepted),
+        "inter_session_loops_kept": sum(bool(c.graph_inlier) for c in accepted),
+        "intra_session_loops": len(result.intra_loops),
+        "submaps": len(result.submaps),
+        "map_voxels": result.neural_map.num_voxels,
+        "seconds": {**result.seconds, "total": seconds},
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    }
+    if len(est_all) == len(inputs):
+        metrics["combined_ate_rmse_m"] = ate_rmse(np.concatenate(est_all), np.concatenate(gt_all))
+    return metrics
+
+
+def _empty_or_new(folder: Path) -> None:
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        raise UsageError(f"{folder}: --out must be a new or empty folder")
+
+
+def merge(args: argparse.Namespace) -> dict[str, Any]:
+    """Load, merge and write; returns the metrics."""
+    import trimesh
+
+    from common.atomic_io import write_text_atomic
+    from slam.algorithm.merge import merge_sessions
+    from slam.app.merge_outputs import merge_loops_csv, sessions_csv, write_recording
+    from slam.app.outputs import RunOutputs
+
+    start = time.perf_counter()
+    _empty_or_new(args.out)
+    loaded = [load_run(folder) for folder in args.runs]
+    inputs = [item for item, _ in loaded]
+    maps = [m for _, m in loaded]
+    result = merge_sessions(inputs, maps)
+    mesh = result.neural_map.extract_mesh()
+    seconds = time.perf_counter() - start
+    metrics = _metrics(result, inputs, args.runs, seconds)
+
+    outputs = RunOutputs(args.out)
+    first = inputs[0].session
+    poses = np.concatenate([first.to_dataset_frame(p) for p in result.frame_poses])
+    timestamps = np.concatenate([item.session.timestamps for item in inputs])
+    outputs.write_poses(poses, poses, timestamps)
+    for name in ("poses_odometry.kitti.txt", "poses_odometry.tum.txt"):
+        outputs.path(name).unlink(missing_ok=True)  # a merge has no odometry of its own
+    names = [str(folder) for folder in args.runs]
+    rows = [len(p) for p in result.frame_poses]
+    write_text_atomic(outputs.path("sessions.csv"), sessions_csv(names, rows))
+    write_text_atomic(outputs.path("loops.csv"), merge_loops_csv(result))
+    outputs.write_map(result.neural_map, result.submaps, result.session)
+    outputs.write_mesh(mesh)
+    outputs.write_metrics(metrics)
+    if not args.no_viz:
+        before = []
+        for folder in args.runs:
+            path = folder / "mesh.ply"
+            before.append(trimesh.load(path, force="mesh") if path.is_file() else None)
+        write_recording(outputs.recording_path, result, names, before, mesh)
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit status."""
+    from slam.algorithm.merge import MergeError
+
+    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    try:
+        args = build_parser().parse_args(argv)
+        logging.basicConfig(
+            level=logging.INFO if args.verbose else logging.WARNING,
+            format="%(levelname)s %(name)s: %(message)s",
+        )
+        metrics = merge(args)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except (UsageError, MergeError, MapFileError, DatasetError) as exc:
+        if debug:
+            raise
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2 if isinstance(exc, UsageError) else 1
+    loops = metrics["inter_session_loops_kept"]
+    line = f"merged {len(metrics['sessions'])} runs: {loops} inter-session loops kept"
+    if "combined_ate_rmse_m" in metrics:
+        line += f", combined ATE {100 * metrics['combined_ate_rmse_m']:.2f} cm"
+    print(f"{line}; wrote {args.out}")
+    return 0

@@ -1,0 +1,159 @@
+"""``python -m slam.merge``: sessions of a generated room merge without their scans; a run merged
+with itself is unchanged; incompatible maps and runs without a shared place are refused."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapping.neural_map import NeuralMap
+from slam.app.trajectory_io import read_kitti
+
+ROOT = Path(__file__).resolve().parents[1]
+# a short lap of the generated room (its end revisits its start), split in two sessions
+ROOM = ("--set", "generated.num_frames=120")
+# benchmarks/results/merge.md (the same split): combined ATE 0.48 cm; bound 3x that
+COMBINED_ATE_BOUND_M = 0.015
+
+
+def _python(module: str, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def _run(folder: Path, data: Path, frames: str, *extra: str) -> Path:
+    result = _python(
+        "slam.run", "demo", "--root", str(data), "--frames", frames, "--no-viz", "--no-progress",
+        "--out", str(folder), *ROOM, *extra,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    return folder
+
+
+def _one_line_error(result: subprocess.CompletedProcess, *needles: str) -> str:
+    assert result.returncode != 0
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[str, Path]:
+    """Two halves of one lap, each run on its own, then their scans deleted."""
+    base = tmp_path_factory.mktemp("merge")
+    data = base / "data"
+    folders = {
+        "a": _run(base / "a", data, "0:60"),
+        "b": _run(base / "b", data, "60:120"),
+    }
+    shutil.rmtree(data)  # a merge must never need the scans
+    return folders
+
+
+def test_two_sessions_merge_without_scans(runs, tmp_path: Path):
+    out = tmp_path / "merged"
+    result = _python("slam.merge", str(runs["a"]), str(runs["b"]), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    for name in ("poses_slam.kitti.txt", "poses_slam.tum.txt", "sessions.csv", "loops.csv",
+                 "map.npz", "mesh.ply", "metrics.json", "recording.rrd"):  # fmt: skip
+        assert (out / name).is_file(), name
+    assert len(read_kitti(out / "poses_slam.kitti.txt")) == 120
+    sessions = (out / "sessions.csv").read_text().splitlines()
+    assert sessions[1].split(",")[2:] == ["0", "60"] and sessions[2].split(",")[2:] == ["60", "60"]
+    loops = (out / "loops.csv").read_text()
+    assert "inter,0,1," in loops
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["inter_session_loops_kept"] >= 1
+    ate = metrics["combined_ate_rmse_m"]
+    assert ate < COMBINED_ATE_BOUND_M, f"combined ATE {ate:.4f} m"
+    # the merged run is itself a session: it merges again with one of its parts
+    again = _python(
+        "slam.merge", str(out), str(runs["b"]), "--out", str(tmp_path / "again"), "--no-viz"
+    )
+    assert again.returncode == 0, again.stderr
+
+
+def test_run_merged_with_itself_is_unchanged(runs, tmp_path: Path):
+    out = tmp_path / "self"
+    result = _python("slam.merge", str(runs["a"]), str(runs["a"]), "--out", str(out), "--no-viz")
+    assert result.returncode == 0, result.stderr
+    original = read_kitti(runs["a"] / "poses_slam.kitti.txt")
+    merged = read_kitti(out / "poses_slam.kitti.txt")
+    n = len(original)
+    np.testing.assert_allclose(merged[:n], original, atol=1e-6)
+    np.testing.assert_allclose(merged[n:], original, atol=1e-6)
+    before = NeuralMap.load(runs["a"] / "map.npz")[0].voxel_block()
+    after = NeuralMap.load(out / "map.npz")[0].voxel_block()
+    np.testing.assert_array_equal(before.keys.numpy(), after.keys.numpy())
+    np.testing.assert_allclose(after.latents.numpy(), before.latents.numpy(), atol=1e-5)
+
+
+def test_different_voxel_size_is_refused(runs, tmp_path: Path):
+    coarse = _run(
+        tmp_path / "coarse", tmp_path / "data", "0:10", "--set", "mapping.voxel_size_m=0.15"
+    )
+    out = tmp_path / "out"
+    result = _python("slam.merge", str(runs["a"]), str(coarse), "--out", str(out))
+    _one_line_error(result, "voxel size", str(coarse))
+    assert not out.exists()
+
+
+def test_version_2_map_loads_but_is_not_merged(runs, tmp_path: Path):
+    old = tmp_path / "old"
+    old.mkdir()
+    with np.load(runs["b"] / "map.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files if not k.startswith("session_")}
+    header = json.loads(str(arrays["header"]))
+    header["version"] = 2
+    del header["session"]
+    arrays["header"] = np.array(json.dumps(header))
+    np.savez_compressed(old / "map.npz", **arrays)
+    assert NeuralMap.load(old / "map.npz")[0].num_voxels > 0  # still a map
+    result = _python("slam.merge", str(runs["a"]), str(old), "--out", str(tmp_path / "out"))
+    _one_line_error(result, "version 2", "re-run", "slam.run")
+
+
+def test_runs_without_shared_place_are_reported(runs, tmp_path: Path):
+    other = _run(tmp_path / "other", tmp_path / "data", "80:90", "--set", "generated.seed=7")
+    out = tmp_path / "out"
+    result = _python("slam.merge", str(runs["a"]), str(other), "--out", str(out))
+    _one_line_error(result, "shares no place", str(other))
+    assert not out.exists()
+
+
+def test_bev_descriptor_recovers_a_planar_motion():
+    """The LiDAR descriptor (bird's-eye ORB) matched across a known yaw and shift."""
+    from slam.algorithm.place import bev_descriptor, match_places
+
+    rng = np.random.default_rng(0)
+    clouds = [rng.uniform([-40, -40, 0], [40, 40, 0.1], (20000, 3))]
+    for _ in range(60):  # boxes standing on the ground
+        centre, half = rng.uniform(-35, 35, 2), rng.uniform(0.5, 4, 2)
+        xy = rng.uniform(centre - half, centre + half, (400, 2))
+        clouds.append(np.column_stack([xy, rng.uniform(0, 3, 400)]))
+    reference = np.concatenate(clouds)
+    yaw, t = 0.3, np.array([3.0, -2.0, 0.0])
+    R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    query = (reference - t) @ R  # reference = R query + t
+    T, inliers = match_places(
+        bev_descriptor(reference, 0.5), bev_descriptor(query, 0.5), inlier_m=1.0
+    )
+    assert T is not None and inliers >= 20
+    assert np.linalg.norm(T[:3, 3] - t) < 0.2
+    assert np.abs(T[:3, :3] - R).max() < 0.02
