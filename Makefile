@@ -13,6 +13,11 @@ TORCH_INDEX_ARG := $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX),)
 KISS_SLAM_VENV ?= .venv-kiss-slam
 KISS_SLAM_SPEC ?= kiss-slam==0.0.2
 KISS_SLAM_LOG := benchmarks/out/kiss-slam-env.log
+# `make bench BEFORE=REV`: the benchmarks that can also measure REV (checked out beside this tree)
+# put it in the same tables, in the same invocation.
+BEFORE ?=
+BENCH_ARGS := $(if $(BEFORE),--before $(BEFORE),)
+BEFORE_LABEL := $(if $(BEFORE), BEFORE=$(BEFORE),)
 
 .PHONY: setup demo test lint bench bench-quick kiss-slam-env clean
 
@@ -43,12 +48,12 @@ kiss-slam-env: $(KISS_SLAM_VENV)/.installed
 # Regenerate BENCHMARKS.md and benchmarks/results/ (quick: < 20 min on 2 cores, no KISS-SLAM).
 # A KISS-SLAM environment that cannot be created makes its rows say "skipped: <reason>".
 bench-quick: setup
-	BENCH_INVOKED_AS="make bench-quick" $(PY) -m benchmarks.run_all --quick
+	BENCH_INVOKED_AS="make bench-quick$(BEFORE_LABEL)" $(PY) -m benchmarks.run_all --quick $(BENCH_ARGS)
 
 bench: setup
 	-$(MAKE) kiss-slam-env
-	BENCH_INVOKED_AS="make bench" BENCH_KISS_SLAM_VENV="$(abspath $(KISS_SLAM_VENV))" \
-	  $(PY) -m benchmarks.run_all
+	BENCH_INVOKED_AS="make bench$(BEFORE_LABEL)" BENCH_KISS_SLAM_VENV="$(abspath $(KISS_SLAM_VENV))" \
+	  $(PY) -m benchmarks.run_all $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) $(KISS_SLAM_VENV) outputs .pytest_cache

@@ -203,7 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--budget-s",
         type=float,
         default=None,
-        help=f"total wall-clock budget (default {QUICK_BUDGET_S} s with --quick, else none)",
+        help=f"total wall-clock budget (default {QUICK_BUDGET_S} s with --quick, twice that "
+        "with --before, else none)",
     )
     return parser
 
@@ -223,7 +224,9 @@ def main(argv: list[str] | None = None) -> int:
         log.error("run_all.BENCHMARKS and benchmarks/bench_*.py differ in: %s", ", ".join(missing))
         return 2
     names = [name for name in BENCHMARKS if not args.only or name in args.only]
-    budget_s = args.budget_s or (QUICK_BUDGET_S if args.quick else None)
+    # --before measures two revisions in several benchmarks: twice the time
+    quick_budget_s = QUICK_BUDGET_S * (2 if args.before else 1)
+    budget_s = args.budget_s or (quick_budget_s if args.quick else None)
     started = time.time()
     shown = sys.argv[1:] if argv is None else argv
     record = {
