@@ -19,7 +19,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import stat
 import struct
 import subprocess
@@ -34,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness.checkout import checkout
+from benchmarks.harness.net import free_port, listening_addresses
 from benchmarks.harness.paths import REPO
 
 PY = sys.executable
@@ -153,29 +153,6 @@ def umount(folder: Path) -> None:
     subprocess.run(["umount", str(folder)], capture_output=True)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def listen_addresses(port: int) -> set[str]:
-    found = set()
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        if not Path(table).exists():
-            continue
-        for line in Path(table).read_text().splitlines()[1:]:
-            parts = line.split()
-            address, hex_port = parts[1].split(":")
-            if parts[3] == "0A" and int(hex_port, 16) == port:
-                if len(address) == 8:
-                    found.add(socket.inet_ntop(socket.AF_INET, bytes.fromhex(address)[::-1]))
-                else:
-                    raw = b"".join(bytes.fromhex(address[i : i + 8])[::-1] for i in (0, 8, 16, 24))
-                    found.add(socket.inet_ntop(socket.AF_INET6, raw))
-    return found
-
-
 # -- cases -------------------------------------------------------------------------------------
 
 
@@ -191,8 +168,8 @@ def case_serve(code: Path, work: Path, base: Path) -> Outcome:
     seen_web, seen_grpc = set(), set()
     deadline = time.monotonic() + 300
     while process.poll() is None and time.monotonic() < deadline:
-        seen_web |= listen_addresses(web)
-        seen_grpc |= listen_addresses(grpc)
+        seen_web |= listening_addresses(web)
+        seen_grpc |= listening_addresses(grpc)
         time.sleep(0.1)
     _, err = process.communicate(timeout=60)
     lines = [line for line in err.splitlines() if line.startswith("viewer:")]

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.harness.kitti import KITTI_CALIB, KITTI_POSES
+from benchmarks.harness.kitti import KITTI_POSES, kitti_source
 from benchmarks.harness.kitti import window as kitti_window
 from benchmarks.harness.machine import machine_line
 from benchmarks.harness.paths import RESULTS_DIR
@@ -59,21 +59,6 @@ def window(quick: bool) -> dict[str, int]:
     """The generated-source window: the harness's quick or full KITTI-00 window."""
     w = kitti_window(quick)
     return {"num_frames": w.num_frames, "step": w.step, "azimuth_steps": w.azimuth_steps}
-
-
-def _source(quick: bool, variant: dict[str, Any]):
-    from frontends.sources import make_source
-
-    kwargs = {**window(quick), **variant}
-    return make_source(
-        "generated",
-        kind="lidar",
-        trajectory="kitti",
-        kitti_poses=KITTI_POSES,
-        kitti_calib=KITTI_CALIB,
-        start=0,
-        **kwargs,
-    )
 
 
 def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float, bool]]:
@@ -105,7 +90,7 @@ def run_ours(quick: bool, name: str, sets: list[str]) -> dict:
     )
     from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
-    source = _source(quick, VARIANTS[name])
+    source = kitti_source(quick, **VARIANTS[name])
     overrides = {
         "source": {"dataset": "generated"},
         "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import stat
 import struct
 import subprocess
@@ -18,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.harness.net import free_port, listening_addresses
 from common.atomic_io import atomic_path, write_text_atomic
 from frontends.errors import DatasetError
 from frontends.sources.base import make_source
@@ -325,37 +325,12 @@ def test_eval_names_the_malformed_tum_file(tmp_path: Path) -> None:
 # -- --serve (defect 1) -------------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def listening_addresses(port: int) -> set[str]:
-    """Addresses with a TCP socket listening on ``port`` (from /proc/net/tcp and tcp6)."""
-    found = set()
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        if not Path(table).exists():
-            continue
-        for line in Path(table).read_text().splitlines()[1:]:
-            local, state = line.split()[1], line.split()[3]
-            address, hex_port = local.split(":")
-            if state != "0A" or int(hex_port, 16) != port:
-                continue
-            if len(address) == 8:
-                found.add(socket.inet_ntop(socket.AF_INET, bytes.fromhex(address)[::-1]))
-            else:
-                raw = b"".join(bytes.fromhex(address[i : i + 8])[::-1] for i in range(0, 32, 8))
-                found.add(socket.inet_ntop(socket.AF_INET6, raw))
-    return found
-
-
 def test_serve_binds_both_servers_to_the_configured_loopback_address(tmp_path: Path) -> None:
     if not Path("/proc/net/tcp").exists():
         pytest.skip("needs /proc/net/tcp to list listening sockets")
     from slam.app.rerun_logger import RerunLogger
 
-    grpc_port, web_port = _free_port(), _free_port()
+    grpc_port, web_port = free_port(), free_port()
     logger = RerunLogger(
         rrd_path=tmp_path / "r.rrd",
         serve_port=grpc_port,

@@ -53,12 +53,26 @@ def have_kitti() -> bool:
     return KITTI_POSES.is_file() and KITTI_CALIB.is_file()
 
 
-def kitti_source(quick: bool, num_frames: int | None = None, relief_m: float = 0.0, first: int = 0):
+def kitti_source(
+    quick: bool,
+    num_frames: int | None = None,
+    relief_m: float = 0.0,
+    first: int = 0,
+    **variant,
+):
     """Frames ``first`` to ``num_frames - 1`` of the quick or full window (all by default), with
-    hills of ``relief_m`` beside the road (another cached sequence when non-zero)."""
+    hills of ``relief_m`` beside the road (another cached sequence when non-zero); ``variant``
+    overrides generator settings (seed, street_style, azimuth_steps, range_noise_m, dropout)."""
     from frontends.sources import make_source
 
     w = window(quick)
+    settings = {
+        "num_frames": w.num_frames,
+        "step": w.step,
+        "azimuth_steps": w.azimuth_steps,
+        "terrain_relief_m": relief_m,
+        **variant,
+    }
     return make_source(
         "generated",
         kind="lidar",
@@ -66,11 +80,8 @@ def kitti_source(quick: bool, num_frames: int | None = None, relief_m: float = 0
         kitti_poses=KITTI_POSES,
         kitti_calib=KITTI_CALIB,
         start=0,
-        num_frames=w.num_frames,
-        step=w.step,
-        azimuth_steps=w.azimuth_steps,
-        terrain_relief_m=relief_m,
         frames=slice(first, num_frames),
+        **settings,
     )
 
 
