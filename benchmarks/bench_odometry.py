@@ -83,8 +83,10 @@ def _run(name: str, method: str, options: dict, source, *, kitti_lengths=None) -
         t_err, r_err = kitti_relative_error(est, gt, lengths_m=kitti_lengths)
         lengths = ",".join(f"{x:g}" for x in kitti_lengths)
         kitti = f"{t_err:.2f} % / {r_err:.2f} deg/100m ({lengths} m)"
+    from frontends.odometry.rgbd import RgbdOdometry
+
     failures = "-"
-    if hasattr(odometry, "num_failures"):
+    if isinstance(odometry, RgbdOdometry):  # the only one with a keyframe fallback
         failures = f"{odometry.num_failures} / {odometry.num_fallbacks}"
     row = Row(
         name=name,
