@@ -148,6 +148,7 @@ def test_set_frame_range_is_a_range_not_a_base_60_number(capsys) -> None:
     status, err = run_cli(["demo", "--set", "source.frames=10:5"], capsys)
     assert status == 2
     assert "B must be greater than A" in one_line(err)
+    assert one_line(err).startswith("error: --set source.frames=10:5 ")
 
 
 def test_set_validation_error_names_the_set_argument(capsys) -> None:

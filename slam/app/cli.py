@@ -107,23 +107,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def parse_frames(text: str) -> slice:
-    """``"A:B[:STEP]"`` (parts may be empty) as a slice; a bad range is a :class:`UsageError`."""
+def parse_frames(text: str, option: str = "--frames") -> slice:
+    """``"A:B[:STEP]"`` (parts may be empty) as a slice; a bad range is a :class:`UsageError`
+    naming ``option`` (the argument or config key the range came from)."""
     parts = text.split(":")
     if len(parts) not in (2, 3):
-        raise UsageError(f"--frames '{text}': expected A:B or A:B:STEP, e.g. 0:500 or ::2")
+        raise UsageError(f"{option} '{text}': expected A:B or A:B:STEP, e.g. 0:500 or ::2")
     try:
         values = [int(p) if p.strip() else None for p in parts]
     except ValueError:
-        raise UsageError(f"--frames '{text}': A, B and STEP must be integers") from None
+        raise UsageError(f"{option} '{text}': A, B and STEP must be integers") from None
     start, stop = values[0], values[1]
     step = values[2] if len(values) == 3 else None
     if step is not None and step <= 0:
-        raise UsageError(f"--frames '{text}': STEP must be positive")
+        raise UsageError(f"{option} '{text}': STEP must be positive")
     if (start is not None and start < 0) or (stop is not None and stop < 0):
-        raise UsageError(f"--frames '{text}': A and B must not be negative")
+        raise UsageError(f"{option} '{text}': A and B must not be negative")
     if start is not None and stop is not None and stop <= start:
-        raise UsageError(f"--frames '{text}': B must be greater than A")
+        raise UsageError(f"{option} '{text}': B must be greater than A")
     return slice(start, stop, step)
 
 
@@ -200,8 +201,9 @@ def resolve_config(args: argparse.Namespace) -> tuple[DatasetEntry, RunConfig]:
             raise UsageError(f"{args.dataset} needs --root DIR, the folder holding the dataset")
         if not Path(root).expanduser().is_dir():
             raise FileNotFoundError(f"dataset root {root} does not exist; pass --root DIR")
-    if cfg.source.frames is not None:
-        parse_frames(cfg.source.frames)
+    if cfg.source.frames is not None and args.frames is None:
+        origin = set_origins(args.set).get("source.frames", f"source.frames of {path}")
+        parse_frames(cfg.source.frames, origin)
     return entry, cfg
 
 
