@@ -16,8 +16,10 @@ KISS_SLAM_LOG := benchmarks/out/kiss-slam-env.log
 # `make bench BEFORE=REV`: the benchmarks that can also measure REV (checked out beside this tree)
 # put it in the same tables, in the same invocation.
 BEFORE ?=
-BENCH_ARGS := $(if $(BEFORE),--before $(BEFORE),)
-BEFORE_LABEL := $(if $(BEFORE), BEFORE=$(BEFORE),)
+# BEFORE_IN=NAMES: only these benchmarks measure REV (see `python -m benchmarks.run_all --help`).
+BEFORE_IN ?=
+BENCH_ARGS := $(if $(BEFORE),--before $(BEFORE),) $(if $(BEFORE_IN),--before-in $(BEFORE_IN),)
+BEFORE_LABEL := $(if $(BEFORE), BEFORE=$(BEFORE),)$(if $(BEFORE_IN), BEFORE_IN='$(BEFORE_IN)',)
 
 .PHONY: setup demo test lint bench bench-quick kiss-slam-env clean
 

@@ -88,17 +88,27 @@ def _tail(path: Path, chars: int = LOG_TAIL_CHARS) -> str:
     return path.read_text(errors="replace")[-chars:] if path.is_file() else ""
 
 
-def bench_command(name: str, *, quick: bool, before: str | None) -> list[str]:
-    """The command line that runs ``bench_<name>`` (without the interpreter)."""
+def bench_command(
+    name: str, *, quick: bool, before: str | None, before_in: tuple[str, ...] = BEFORE_AFTER
+) -> list[str]:
+    """The command line that runs ``bench_<name>`` (without the interpreter); ``before`` goes to
+    the benchmarks of ``before_in``."""
     command = ["-m", f"benchmarks.bench_{name}", *(["--quick"] if quick else [])]
-    if before and name in BEFORE_AFTER:
+    if before and name in before_in:
         command += ["--before", before]
     return command
 
 
-def run_one(name: str, *, quick: bool, before: str | None, timeout_s: float) -> BenchStatus:
+def run_one(
+    name: str,
+    *,
+    quick: bool,
+    before: str | None,
+    timeout_s: float,
+    before_in: tuple[str, ...] = BEFORE_AFTER,
+) -> BenchStatus:
     """Run ``benchmarks.bench_<name>`` in a subprocess; its output goes to its log file."""
-    args = bench_command(name, quick=quick, before=before)
+    args = bench_command(name, quick=quick, before=before, before_in=before_in)
     shown = shlex.join(["python", *args])
     result_file = RESULTS_DIR / f"{name}.md"
     LOG_DIR.mkdir(parents=True, exist_ok=True)
@@ -198,6 +208,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--quick", action="store_true", help="pass --quick to each benchmark")
     parser.add_argument("--only", nargs="+", metavar="NAME", choices=BENCHMARKS)
     parser.add_argument("--before", metavar="REV", help="before/after tables against REV")
+    parser.add_argument(
+        "--before-in",
+        nargs="+",
+        metavar="NAME",
+        choices=BEFORE_AFTER,
+        default=list(BEFORE_AFTER),
+        help="the benchmarks that measure --before (default: all that can). Those that import "
+        "REV's modules (accuracy, keyframing, throughput, map_size) need REV to have today's "
+        "module API; reliability runs REV's command line and works for any REV",
+    )
     parser.add_argument("--assemble", action="store_true", help="only rebuild BENCHMARKS.md")
     parser.add_argument(
         "--budget-s",
@@ -225,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     names = [name for name in BENCHMARKS if not args.only or name in args.only]
     # --before measures two revisions in several benchmarks: twice the time
-    quick_budget_s = QUICK_BUDGET_S * (2 if args.before else 1)
+    quick_budget_s = QUICK_BUDGET_S * (2 if args.before and len(args.before_in) > 1 else 1)
     budget_s = args.budget_s or (quick_budget_s if args.quick else None)
     started = time.time()
     shown = sys.argv[1:] if argv is None else argv
@@ -250,7 +270,13 @@ def main(argv: list[str] | None = None) -> int:
             state = BenchStatus(name, "skipped", 0.0, None, command, "budget exhausted")
         else:
             log.info("running bench_%s (%.0f s left)", name, remaining)
-            state = run_one(name, quick=args.quick, before=args.before, timeout_s=remaining)
+            state = run_one(
+                name,
+                quick=args.quick,
+                before=args.before,
+                timeout_s=remaining,
+                before_in=tuple(args.before_in),
+            )
         log.info("  %s: %s in %.1f s", name, state.status, state.seconds)
         record["benchmarks"].append(asdict(state))
         write_text_atomic(status_file, json.dumps(record, indent=2) + "\n")
