@@ -11,7 +11,8 @@ TORCH_INDEX_ARG := $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX),)
 # KISS-SLAM, the benchmarks' reference system, lives in its own environment (it pins its own
 # kiss-icp and needs open3d); benchmarks find it through BENCH_KISS_SLAM_VENV.
 KISS_SLAM_VENV ?= .venv-kiss-slam
-KISS_SLAM_SPEC ?= kiss-slam==0.0.2
+# kiss-slam 0.0.2 imports PIL without declaring it, hence pillow.
+KISS_SLAM_SPEC ?= kiss-slam==0.0.2 pillow
 KISS_SLAM_LOG := benchmarks/out/kiss-slam-env.log
 # `make bench BEFORE=REV`: the benchmarks that can also measure REV (checked out beside this tree)
 # put it in the same tables, in the same invocation.
@@ -41,8 +42,12 @@ test: setup
 $(KISS_SLAM_VENV)/.installed:
 	mkdir -p $(dir $(KISS_SLAM_LOG))
 	{ $(PYTHON) -m venv $(KISS_SLAM_VENV) && \
-	  $(KISS_SLAM_VENV)/bin/python -m pip install "$(KISS_SLAM_SPEC)"; } > $(KISS_SLAM_LOG) 2>&1 \
+	  $(KISS_SLAM_VENV)/bin/python -m pip install $(KISS_SLAM_SPEC); } > $(KISS_SLAM_LOG) 2>&1 \
 	  || { tail -n 1 $(KISS_SLAM_LOG); exit 1; }
+	@# open3d (a KISS-SLAM dependency) links the system's libusb-1.0; without it nothing imports.
+	$(KISS_SLAM_VENV)/bin/python -c "import kiss_slam.pipeline" >> $(KISS_SLAM_LOG) 2>&1 \
+	  || { echo "KISS-SLAM does not import: $$(tail -n 1 $(KISS_SLAM_LOG))" \
+	       "(if it names libusb-1.0.so: apt install libusb-1.0-0)" | tee -a $(KISS_SLAM_LOG); exit 1; }
 	touch $@
 
 kiss-slam-env: $(KISS_SLAM_VENV)/.installed
