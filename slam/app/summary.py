@@ -4,19 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
-
-def _length(value: float | None) -> str:
-    if value is None or not np.isfinite(value):
-        return "n/a"
-    return f"{value * 100:.1f} cm" if value < 1.0 else f"{value:.2f} m"
-
-
-_UNCULLED = {
-    "frustum": "all ground truth in a camera's view, occluded surfaces too",
-    "none": "the whole ground truth",
-}
+from slam.evaluation.summary import length, mesh_lines
 
 
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
@@ -39,31 +27,10 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     trajectory = metrics.get("trajectory")
     if trajectory:
         lines.append(
-            f"ATE odometry {_length(trajectory['odometry']['ate_rmse_m'])} -> "
-            f"SLAM {_length(trajectory['slam']['ate_rmse_m'])}"
+            f"ATE odometry {length(trajectory['odometry']['ate_rmse_m'])} -> "
+            f"SLAM {length(trajectory['slam']['ate_rmse_m'])}"
         )
-    mesh = metrics.get("mesh")
-    if mesh:
-        culling = str(mesh.get("culling", ""))
-        where = (
-            "over observed surfaces"
-            if culling.startswith("observed")
-            else {"frustum": "over surfaces in view", "none": "over the whole ground truth"}.get(
-                culling, f"culling {culling}"
-            )
-        )
-        lines.append(
-            f"mesh accuracy {_length(mesh['accuracy_m'])}, completion "
-            f"{_length(mesh['completion_m'])}, completion ratio "
-            f"{100 * mesh['completion_ratio']:.0f}% (< {_length(mesh['threshold_m'])}) {where}"
-        )
-        unculled = metrics.get("mesh_unculled")
-        if unculled:
-            lines.append(
-                f"  unculled ({_UNCULLED.get(unculled.get('culling'), unculled.get('culling'))}): "
-                f"completion {_length(unculled['completion_m'])}, ratio "
-                f"{100 * unculled['completion_ratio']:.0f}%"
-            )
+    lines += mesh_lines(metrics)
     for warning in metrics.get("warnings", []):
         lines.append(f"WARNING: {warning}")
     if metrics.get("recording"):

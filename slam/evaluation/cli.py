@@ -71,6 +71,7 @@ from slam.evaluation.run_folder import (
 )
 from slam.evaluation.run_metrics import observed_face_mask
 from slam.evaluation.run_plots import draw_plots
+from slam.evaluation.summary import length, mesh_lines
 
 __all__ = ["EvalError", "evaluate_run", "observed_face_mask", "read_gt_poses"]
 
@@ -258,14 +259,7 @@ def _relative(path: Path, run_dir: Path) -> str:
 
 
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
-    """A few lines for the terminal."""
-
-    def finite(value: float | None) -> bool:
-        return value is not None and math.isfinite(value)
-
-    def cm(value: float | None) -> str:
-        return f"{100 * value:.2f} cm" if finite(value) else "n/a"
-
+    """A few lines for the terminal: per-trajectory errors in more detail than a run prints."""
     lines = []
     trajectory = metrics.get("trajectory")
     if trajectory:
@@ -274,25 +268,13 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             kitti = t["kitti_t_err_percent"]
             axes = ""
             if "ate_z_rmse_m" in t:  # metrics.json written before the per-axis split lacks it
-                axes = " (x/y/z " + "/".join(cm(t[f"ate_{a}_rmse_m"]) for a in "xyz") + ")"
+                axes = " (x/y/z " + "/".join(length(t[f"ate_{a}_rmse_m"]) for a in "xyz") + ")"
+            kitti_text = "n/a" if kitti is None or not math.isfinite(kitti) else f"{kitti:.2f} %"
             lines.append(
-                f"{name:8s} ATE {cm(t['ate_rmse_m'])}{axes}, "
-                f"RPE {cm(t['rpe_trans_rmse_m'])}/frame, "
-                f"KITTI t_err {f'{kitti:.2f} %' if finite(kitti) else 'n/a'}"
+                f"{name:8s} ATE {length(t['ate_rmse_m'])}{axes}, "
+                f"RPE {length(t['rpe_trans_rmse_m'])}/frame, KITTI t_err {kitti_text}"
             )
-    mesh = metrics.get("mesh")
-    if mesh:
-        lines.append(
-            f"mesh     accuracy {cm(mesh['accuracy_m'])}, completion {cm(mesh['completion_m'])}, "
-            f"ratio {100 * (mesh['completion_ratio'] or 0):.1f}% (culling {mesh.get('culling')})"
-        )
-    unculled = metrics.get("mesh_unculled")
-    if unculled:
-        ratio = 100 * (unculled["completion_ratio"] or 0)
-        lines.append(
-            f"         unculled ({unculled.get('culling')}): completion "
-            f"{cm(unculled['completion_m'])}, ratio {ratio:.1f}%"
-        )
+    lines += mesh_lines(metrics)
     for plot in (metrics.get("evaluation") or {}).get("plots", []):
         lines.append(f"plot     {plot}")
     return lines
