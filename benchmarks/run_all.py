@@ -54,6 +54,7 @@ BENCHMARKS = (
     "throughput",
     "map_size",
     "variants",
+    "real",
     "merge",
     "rerun",
     "reliability",

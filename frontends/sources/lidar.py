@@ -1,11 +1,13 @@
 """Any LiDAR recording that a ``kiss_icp.datasets`` dataloader reads ("lidar").
 
 The dataloaders of KISS-ICP 1.3 are wrapped, not re-implemented: ``generic`` (a folder of
-``.bin/.pcd/.ply/.xyz/.obj/.off/.stl`` scans), ``rosbag`` (ROS1 ``.bag`` files or a ROS2 bag
+``.bin/.ply/.xyz/.obj/.off/.stl`` scans), ``rosbag`` (ROS1 ``.bag`` files or a ROS2 bag
 folder), ``mcap``, ``ouster`` (``.pcap`` + metadata JSON), ``nuscenes``, ``mulran``, ``ncd``,
 ``helipr``, ``boreas``, ``apollo``, ``nclt``, ``kitti`` and ``kitti_raw``. One addition: a folder
 of ``.npy`` scans (``(N, >=3)`` float arrays) is read with ``numpy.load`` (no pickles), because
-KISS-ICP's generic loader does not list ``.npy``.
+KISS-ICP's generic loader does not list ``.npy``. And a ``generic`` folder whose scans are all
+``.pcd`` is read with ``pypcd4`` (frontends/sources/pcd_folder.py), not through KISS-ICP's
+open3d reader.
 
 What comes through from the dataloader:
 
@@ -14,7 +16,9 @@ What comes through from the dataloader:
   ``time``, ``timestamp``; MulRan, NCD, Boreas, KITTI raw, HeLiPR);
 - scan timestamps: ``get_frames_timestamps()`` (bags and MCAP give the message stamps as they are
   read; KITTI its ``times.txt``), ``scan_timestamps`` / ``timestamps`` where the dataloader keeps
-  them (nanoseconds are converted to seconds), else ``index / nominal_rate_hz``;
+  them (nanoseconds are converted to seconds); for a folder of scans, a ``times.txt`` (one
+  stamp a line, one line per scan) in the folder or beside it (MulRan's ``times.txt`` next to
+  ``scans/``, KITTI's next to ``velodyne/``); else ``index / nominal_rate_hz``;
 - ground truth ``gt_poses`` where the dataloader has it; otherwise an optional KITTI (12 values,
   one row per scan) or TUM (``t tx ty tz qx qy qz qw``, matched by timestamp) file given as
   ``gt_poses``.
@@ -37,8 +41,9 @@ import numpy as np
 
 from frontends.errors import DatasetError
 from frontends.frame import Frame
-from frontends.sources._io import fail, one_line, read_tum_trajectory
+from frontends.sources._io import fail, load_table, one_line, read_tum_trajectory
 from frontends.sources.base import SensorKind, Source, register_source
+from frontends.sources.pcd_folder import PcdFolder
 
 log = logging.getLogger(__name__)
 
@@ -77,8 +82,10 @@ OPTIONAL_MODULES: dict[str, tuple[tuple[str, ...], str]] = {
 """Modules a dataloader imports that this project does not install by default, and the extra of
 ``pyproject.toml`` that installs them."""
 
-GENERIC_EXTRA = {"pcd": "open3d"}
-"""Generic-folder scan formats that need an optional reader (``.ply``/``.obj``/... use trimesh)."""
+KISS_GENERIC_SUFFIXES = frozenset({"bin", "ply", "xyz", "obj", "off", "stl"})
+"""Generic-folder scan formats left to KISS-ICP's generic dataloader (trimesh, numpy)."""
+
+TIMES_FILE = "times.txt"
 
 NANOSECONDS_ABOVE = 1e14
 """Scan stamps larger than this are nanoseconds (1e14 s is far beyond any epoch time)."""
@@ -91,11 +98,6 @@ def install_hint(extra: str) -> str:
 def check_dataloader_modules(dataloader: str, path: Path) -> None:
     """Raise a one-line DatasetError naming the extra to install when a reader is missing."""
     modules, extra = OPTIONAL_MODULES.get(dataloader, ((), ""))
-    if dataloader == "generic" and path.is_dir():
-        suffixes = {p.suffix.lstrip(".").lower() for p in path.iterdir() if p.is_file()}
-        for suffix, generic_extra in GENERIC_EXTRA.items():
-            if suffix in suffixes and not {"ply", "bin", "xyz", "obj", "off", "stl"} & suffixes:
-                modules, extra = ("open3d",), generic_extra
     for module in modules:
         try:
             importlib.import_module(module)
@@ -172,12 +174,32 @@ def open_dataloader(
     with _dataloader_errors(path, dataloader, "open it"):
         if dataloader == "npy":
             return _NpyFolder(path)
+        if dataloader == "generic" and _is_pcd_folder(path):
+            return PcdFolder(path)
         from kiss_icp.datasets import dataset_factory
 
         dataset = dataset_factory(dataloader, path, sequence=sequence, topic=topic)
     if dataloader == "mcap":
         dataset.read_point_cloud = _with_field_constants(dataset.read_point_cloud)
     return dataset
+
+
+def _is_pcd_folder(path: Path) -> bool:
+    """A folder holding ``.pcd`` scans and no scan format of KISS-ICP's generic loader."""
+    if not path.is_dir():
+        return False
+    suffixes = {p.suffix.lstrip(".").lower() for p in path.iterdir() if p.is_file()}
+    return "pcd" in suffixes and not KISS_GENERIC_SUFFIXES & suffixes
+
+
+def folder_times_file(path: Path) -> Path | None:
+    """``times.txt`` in a scan folder, else beside it, or None."""
+    if not path.is_dir():
+        return None
+    for candidate in (path / TIMES_FILE, path.parent / TIMES_FILE):
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 POINT_FIELD_TYPES = {
@@ -341,6 +363,19 @@ class LidarSource(Source):
                 values = np.asarray(getter(), dtype=np.float64).reshape(-1)
             if len(values) == self._count:
                 return _seconds(values)
+        times_file = folder_times_file(self.path)
+        if times_file is not None:
+            values = load_table(times_file, 1, "one scan timestamp a line").reshape(-1)
+            if len(values) == self._count:
+                log.info("%s: scan timestamps from %s", self.name, times_file)
+                return _seconds(values)
+            log.warning(
+                "%s: %s has %d stamps for %d scans; ignored",
+                self.name,
+                times_file,
+                len(values),
+                self._count,
+            )
         return np.arange(self._count, dtype=np.float64) / self.nominal_rate_hz
 
     # --- scans ------------------------------------------------------------------------------
