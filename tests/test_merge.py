@@ -1,5 +1,9 @@
-"""``python -m slam.merge``: sessions of a generated room merge without their scans; a run merged
-with itself is unchanged; incompatible maps and runs without a shared place are refused."""
+"""``python -m slam.merge`` and ``slam.run --map``: sessions of a generated room merge without
+their scans, and a run continues another's map; a run merged with itself is unchanged;
+incompatible maps and runs without a shared place are refused.
+
+One module fixture makes every run (four short runs of one generated room); each test reuses
+them."""
 
 from __future__ import annotations
 
@@ -21,6 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ROOM = ("--set", "generated.num_frames=120")
 # benchmarks/results/merge.md (the same split): combined ATE 0.48 cm; bound 3x that
 COMBINED_ATE_BOUND_M = 0.015
+MERGED_FILES = ("poses_slam.kitti.txt", "poses_slam.tum.txt", "sessions.csv", "loops.csv",
+                "map.npz", "mesh.ply", "metrics.json")  # fmt: skip
 
 
 def _python(module: str, *args: str) -> subprocess.CompletedProcess:
@@ -35,10 +41,10 @@ def _python(module: str, *args: str) -> subprocess.CompletedProcess:
     )
 
 
-def _run(folder: Path, data: Path, frames: str, *extra: str) -> Path:
+def _run(folder: Path, data: Path, frames: str | None, *extra: str) -> Path:
     result = _python(
-        "slam.run", "demo", "--root", str(data), "--frames", frames, "--no-viz", "--no-progress",
-        "--out", str(folder), *ROOM, *extra,
+        "slam.run", "demo", "--root", str(data), *(("--frames", frames) if frames else ()),
+        "--no-viz", "--no-progress", "--out", str(folder), *ROOM, *extra,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     return folder
@@ -53,27 +59,80 @@ def _one_line_error(result: subprocess.CompletedProcess, *needles: str) -> str:
     return lines[0]
 
 
+def _drop_first_frames(data: Path, count: int) -> None:
+    """Delete the images of the first ``count`` frames and their rows in the lists."""
+    (room,) = data.glob("*/room")
+    rows = (room / "associations.txt").read_text().splitlines()
+    for row in rows[:count]:
+        for name in row.split()[1::2]:
+            (room / name).unlink()
+    (room / "associations.txt").write_text("\n".join(rows[count:]) + "\n")
+    for name in ("rgb.txt", "depth.txt"):
+        lines = (room / name).read_text().splitlines()
+        header = [line for line in lines if line.startswith("#")]
+        body = [line for line in lines if not line.startswith("#")]
+        (room / name).write_text("\n".join(header + body[count:]) + "\n")
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> dict[str, Path]:
-    """Two halves of one lap, each run on its own, then their scans deleted."""
+    """Two halves of one lap: the first run on its own, the second continuing the first's map
+    (``--map``) after the first half's images were deleted (it runs alone into
+    ``continued/session``); a coarser run and a run of a stretch the first half never saw; then
+    all the images deleted."""
     base = tmp_path_factory.mktemp("merge")
     data = base / "data"
     folders = {
         "a": _run(base / "a", data, "0:60"),
-        "b": _run(base / "b", data, "60:120"),
+        "coarse": _run(base / "coarse", data, "0:10", "--set", "mapping.voxel_size_m=0.15"),
+        "other": _run(base / "other", data, "80:90"),
     }
+    _drop_first_frames(data, 60)  # the continuation cannot read the first run's scans
+    folders["continued"] = _run(base / "continued", data, None, "--map", str(folders["a"]))
+    folders["b"] = folders["continued"] / "session"
     shutil.rmtree(data)  # a merge must never need the scans
     return folders
+
+
+def _first_session_aligned_rmse(poses: np.ndarray, truth: np.ndarray, n: int) -> float:
+    """RMSE of rows ``n:`` after aligning the truth on rows ``:n`` only (rigid, positions)."""
+    from slam.algorithm.place import _rigid_fit
+
+    T = _rigid_fit(truth[:n, :3, 3], poses[:n, :3, 3], False)
+    error = truth[n:, :3, 3] @ T[:3, :3].T + T[:3, 3] - poses[n:, :3, 3]
+    return float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
+
+
+def test_continuing_a_map_places_the_run_in_its_frame(runs):
+    out = runs["continued"]
+    for name in MERGED_FILES:
+        assert (out / name).is_file(), name
+    sessions = (out / "sessions.csv").read_text().splitlines()
+    assert sessions[1].split(",")[1:] == [str(runs["a"]), "0", "60"]
+    assert sessions[2].split(",")[1:] == [str(runs["b"]), "60", "60"]
+    poses = read_kitti(out / "poses_slam.kitti.txt")
+    first = read_kitti(runs["a"] / "poses_slam.kitti.txt")
+    # the map's own session stays where it was (the joint graph only nudges it) ...
+    assert np.abs(poses[:60, :3, 3] - first[:, :3, 3]).max() < COMBINED_ATE_BOUND_M
+    # ... and the new one lands in its frame: truth aligned on the first session alone
+    truth = read_kitti(out / "poses_gt.kitti.txt")
+    assert _first_session_aligned_rmse(poses, truth, 60) < COMBINED_ATE_BOUND_M
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["inter_session_loops_kept"] >= 1
+    assert metrics["combined_ate_rmse_m"] < COMBINED_ATE_BOUND_M
+    assert json.loads((runs["b"] / "metrics.json").read_text())["input"]["frames_total"] == 60
 
 
 def test_two_sessions_merge_without_scans(runs, tmp_path: Path):
     out = tmp_path / "merged"
     result = _python("slam.merge", str(runs["a"]), str(runs["b"]), "--out", str(out))
     assert result.returncode == 0, result.stderr
-    for name in ("poses_slam.kitti.txt", "poses_slam.tum.txt", "sessions.csv", "loops.csv",
-                 "map.npz", "mesh.ply", "metrics.json", "recording.rrd"):  # fmt: skip
+    for name in (*MERGED_FILES, "recording.rrd"):
         assert (out / name).is_file(), name
-    assert len(read_kitti(out / "poses_slam.kitti.txt")) == 120
+    poses = read_kitti(out / "poses_slam.kitti.txt")
+    assert len(poses) == 120
+    # merging afterwards gives what continuing the map gave
+    np.testing.assert_allclose(poses, read_kitti(runs["continued"] / "poses_slam.kitti.txt"))
     sessions = (out / "sessions.csv").read_text().splitlines()
     assert sessions[1].split(",")[2:] == ["0", "60"] and sessions[2].split(",")[2:] == ["60", "60"]
     loops = (out / "loops.csv").read_text()
@@ -82,11 +141,16 @@ def test_two_sessions_merge_without_scans(runs, tmp_path: Path):
     assert metrics["inter_session_loops_kept"] >= 1
     ate = metrics["combined_ate_rmse_m"]
     assert ate < COMBINED_ATE_BOUND_M, f"combined ATE {ate:.4f} m"
-    # the merged run is itself a session: it merges again with one of its parts
+    # the merged run is itself a session: it merges again with one of its parts, and lists the
+    # runs it joined
     again = _python(
         "slam.merge", str(out), str(runs["b"]), "--out", str(tmp_path / "again"), "--no-viz"
     )
     assert again.returncode == 0, again.stderr
+    rows = (tmp_path / "again" / "sessions.csv").read_text().splitlines()[1:]
+    assert [row.split(",")[1:] for row in rows] == [
+        [str(runs["a"]), "0", "60"], [str(runs["b"]), "60", "60"], [str(runs["b"]), "120", "60"],
+    ]  # fmt: skip
 
 
 def test_run_merged_with_itself_is_unchanged(runs, tmp_path: Path):
@@ -105,13 +169,18 @@ def test_run_merged_with_itself_is_unchanged(runs, tmp_path: Path):
 
 
 def test_different_voxel_size_is_refused(runs, tmp_path: Path):
-    coarse = _run(
-        tmp_path / "coarse", tmp_path / "data", "0:10", "--set", "mapping.voxel_size_m=0.15"
-    )
     out = tmp_path / "out"
-    result = _python("slam.merge", str(runs["a"]), str(coarse), "--out", str(out))
-    _one_line_error(result, "voxel size", str(coarse))
+    result = _python("slam.merge", str(runs["a"]), str(runs["coarse"]), "--out", str(out))
+    _one_line_error(result, "voxel size", str(runs["coarse"]))
     assert not out.exists()
+    # continuing it: refused before a frame is read (the data folder does not exist)
+    data = tmp_path / "data"
+    result = _python(
+        "slam.run", "demo", "--root", str(data), "--no-viz", "--no-progress", "--out", str(out),
+        "--map", str(runs["coarse"]), *ROOM,
+    )  # fmt: skip
+    _one_line_error(result, "voxel size", str(runs["coarse"]), "mapping.voxel_size_m=0.15")
+    assert not out.exists() and not data.exists()
 
 
 def test_version_2_map_loads_but_is_not_merged(runs, tmp_path: Path):
@@ -130,10 +199,9 @@ def test_version_2_map_loads_but_is_not_merged(runs, tmp_path: Path):
 
 
 def test_runs_without_shared_place_are_reported(runs, tmp_path: Path):
-    other = _run(tmp_path / "other", tmp_path / "data", "80:90", "--set", "generated.seed=7")
     out = tmp_path / "out"
-    result = _python("slam.merge", str(runs["a"]), str(other), "--out", str(out))
-    _one_line_error(result, "shares no place", str(other))
+    result = _python("slam.merge", str(runs["a"]), str(runs["other"]), "--out", str(out))
+    _one_line_error(result, "shares no place", str(runs["other"]))
     assert not out.exists()
 
 

@@ -2,9 +2,11 @@
 
 1. Every anchor of every session gets a global id (sessions in the order given).
 2. Inter-session loop candidates: each submap of a later session is matched against the submaps
-   of every earlier session by the stored place descriptors (:func:`slam.algorithm.place.
-   match_places`); they are verified best first, and the first that passes is the submap's edge
-   (so a run merged with itself gets exactly the edges to its own twin submaps).
+   of every earlier session by the stored place descriptors: ratio-test matches with every
+   earlier submap (a brute-force Hamming match, cheap), a RANSAC fit only for the few with the
+   most matches (:func:`slam.algorithm.place.fit_matches`); the fitted ones are verified best
+   first, and the first that passes is the submap's edge (so a run merged with itself gets
+   exactly the edges to its own twin submaps).
 3. Verification and the relative pose come from surface points *decoded from each submap's own
    neural map* (its original encoding, meshed alone: vertices and normals of the SDF's zero
    crossing), never from scans: point-to-plane ICP from the descriptor's guess, accepted only with
@@ -33,7 +35,7 @@ from frontends.odometry.point_to_plane import point_to_plane_icp
 from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.loops import relative_motion
 from slam.algorithm.merge_config import MergeConfig
-from slam.algorithm.place import match_places
+from slam.algorithm.place import fit_matches, ratio_matches
 from slam.algorithm.session import Edge, SessionRecord
 
 logger = logging.getLogger(__name__)
@@ -102,9 +104,9 @@ class SurfaceDecoder:
         self._cfg = neural_map.cfg.model_copy(update={"mesh_subdivisions": subdivisions})
         self._model = neural_map.model
         self._max_points = max_points
-        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._cache: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
 
-    def __call__(self, key: int, submap: Submap) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, key: tuple[str, int], submap: Submap) -> tuple[np.ndarray, np.ndarray]:
         if key not in self._cache:
             alone = NeuralMap(self._cfg, self._model)
             copy = Submap(
@@ -228,21 +230,26 @@ def _find_inter_loops(
         for q_local, q_desc in inputs[k].session.descriptors.items():
             if q_local not in submap_of[k] or q_local not in ids.of[k]:
                 continue
-            ranked = []
+            shortlist = []  # every earlier submap by its ratio-test matches: cheap, no fit
             for m in range(k):
                 for r_local, r_desc in inputs[m].session.descriptors.items():
                     if r_local not in submap_of[m] or r_local not in ids.of[m]:
                         continue
-                    guess, inliers = match_places(
-                        r_desc, q_desc, cfg.ratio_test, cfg.descriptor_inlier_vu * V
-                    )
-                    if guess is not None and inliers >= cfg.min_descriptor_inliers:
-                        ranked.append((inliers, m, r_local, guess))
+                    index = ratio_matches(r_desc, q_desc, cfg.ratio_test)
+                    if len(index) >= cfg.min_descriptor_inliers:
+                        shortlist.append((len(index), m, r_local, r_desc, index))
+            shortlist.sort(key=lambda item: -item[0])
+            ranked = []
+            for _, m, r_local, r_desc, index in shortlist[: cfg.max_fits_per_submap]:
+                guess, inliers = fit_matches(r_desc, q_desc, index, cfg.descriptor_inlier_vu * V)
+                if guess is not None and inliers >= cfg.min_descriptor_inliers:
+                    ranked.append((inliers, m, r_local, guess))
             ranked.sort(key=lambda item: -item[0])
             for inliers, m, r_local, guess in ranked[: cfg.max_candidates_per_submap]:
                 i, j = ids.of[m][r_local], ids.of[k][q_local]
-                reference = decoder(i, submap_of[m][r_local])
-                query = decoder(j, submap_of[k][q_local])
+                # keyed by run folder: a run given twice is decoded once
+                reference = decoder((inputs[m].name, r_local), submap_of[m][r_local])
+                query = decoder((inputs[k].name, q_local), submap_of[k][q_local])
                 accepted, reason, T, scores, result = verify(reference, query, guess, V, cfg)
                 scores["descriptor_inliers"] = float(inliers)
                 loop = InterLoop(i, j, m, k, accepted, reason, T, scores)
@@ -404,7 +411,8 @@ def _merged_session(
         frame_submap.append(np.array([mapping[int(n)] for n in s.frame_submap], dtype=np.int64))
         frame_T_A_S.append(s.frame_T_A_S)
         timestamps.append(s.timestamps)
-        parts.append({"name": item.name, "first_row": row, "rows": len(s.frame_submap)})
+        for part in s.parts or [{"name": item.name, "first_row": 0, "rows": len(s.frame_submap)}]:
+            parts.append({**part, "first_row": row + int(part["first_row"])})
         row += len(s.frame_submap)
     inter = [
         Edge(c.i, c.j, c.T_Ai_Aj, c.covariance) for c in loops if c.accepted and c.graph_inlier

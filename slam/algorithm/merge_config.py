@@ -17,6 +17,12 @@ class MergeConfig(BaseModel):
     descriptor_inlier_vu: float = Field(
         1.0, gt=0, description="RANSAC inlier distance of keypoint positions, voxel units"
     )
+    max_fits_per_submap: int = Field(
+        8,
+        ge=1,
+        description="earlier submaps with the most ratio-test matches given a RANSAC fit, per "
+        "query submap",
+    )
     max_candidates_per_submap: int = Field(
         3,
         ge=1,

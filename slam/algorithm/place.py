@@ -86,21 +86,66 @@ def keyframe_descriptor(
 
 
 def _rigid_fit(source: np.ndarray, target: np.ndarray, planar: bool) -> np.ndarray:
-    """Least-squares ``T`` with ``target ~ T source`` (Kabsch; yaw-only when planar)."""
+    """Least-squares ``T`` with ``target ~ T source`` (Kabsch; yaw-only when planar).
+
+    ``source`` and ``target`` are ``(..., n, 3)``: leading axes fit many sets at once."""
     if planar:
-        source, target = source[:, :2], target[:, :2]
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    H = (source - mu_s).T @ (target - mu_t)
+        source, target = source[..., :2], target[..., :2]
+    mu_s, mu_t = source.mean(axis=-2), target.mean(axis=-2)
+    H = np.swapaxes(source - mu_s[..., None, :], -1, -2) @ (target - mu_t[..., None, :])
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    D = np.eye(len(mu_s))
-    D[-1, -1] = d
-    R = Vt.T @ D @ U.T
-    T = np.eye(4)
-    k = len(mu_s)
-    T[:k, :k] = R
-    T[:k, 3] = mu_t - R @ mu_s
+    V, Ut = np.swapaxes(Vt, -1, -2), np.swapaxes(U, -1, -2)
+    d = np.sign(np.linalg.det(V @ Ut))
+    D = np.broadcast_to(np.eye(H.shape[-1]), H.shape).copy()
+    D[..., -1, -1] = np.where(d == 0, 1.0, d)
+    R = V @ D @ Ut
+    k = H.shape[-1]
+    T = np.broadcast_to(np.eye(4), (*H.shape[:-2], 4, 4)).copy()
+    T[..., :k, :k] = R
+    T[..., :k, 3] = mu_t - (R @ mu_s[..., None])[..., 0]
     return T
+
+
+def ratio_matches(
+    reference: PlaceDescriptor, query: PlaceDescriptor, ratio: float = 0.8
+) -> np.ndarray:
+    """``(M, 2)`` (reference index, query index) of the matches passing Lowe's ratio test."""
+    import cv2
+
+    if len(reference) < 2 or len(query) < 1:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query.bits, reference.bits, k=2)
+    good = [
+        (m[0].trainIdx, m[0].queryIdx)
+        for m in pairs
+        if len(m) == 2 and m[0].distance < ratio * m[1].distance
+    ]
+    return np.array(good, dtype=np.int64).reshape(-1, 2)
+
+
+def fit_matches(
+    reference: PlaceDescriptor,
+    query: PlaceDescriptor,
+    index: np.ndarray,
+    inlier_m: float = 0.5,
+    iterations: int = 300,
+    seed: int = 0,
+) -> tuple[np.ndarray | None, int]:
+    """RANSAC rigid fit of matched positions (all hypotheses scored at once)."""
+    sample = 2 if query.planar else 3
+    if len(index) < sample + 1:
+        return None, 0
+    ref = reference.positions_A[index[:, 0]].astype(np.float64)
+    qry = query.positions_A[index[:, 1]].astype(np.float64)
+    rng = np.random.default_rng(seed)
+    picks = np.argpartition(rng.random((iterations, len(index))), sample - 1, axis=1)[:, :sample]
+    T = _rigid_fit(qry[picks], ref[picks], query.planar)  # (iterations, 4, 4)
+    moved = np.einsum("hij,nj->hni", T[:, :3, :3], qry) + T[:, None, :3, 3]
+    inliers = np.linalg.norm(moved - ref, axis=2) < inlier_m
+    best = inliers[int(np.argmax(inliers.sum(axis=1)))]
+    if best.sum() < sample + 1:
+        return None, int(best.sum())
+    return _rigid_fit(qry[best], ref[best], query.planar), int(best.sum())
 
 
 def match_places(
@@ -112,31 +157,7 @@ def match_places(
     seed: int = 0,
 ) -> tuple[np.ndarray | None, int]:
     """``(T_ref_query guess, RANSAC inliers)`` of two descriptors (``(None, 0)``: no match)."""
-    import cv2
-
     if len(reference) < 3 or len(query) < 3:
         return None, 0
-    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query.bits, reference.bits, k=2)
-    good = [
-        (m[0].trainIdx, m[0].queryIdx)
-        for m in pairs
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance
-    ]
-    sample = 2 if query.planar else 3
-    if len(good) < sample + 1:
-        return None, 0
-    index = np.array(good)
-    ref = reference.positions_A[index[:, 0]].astype(np.float64)
-    qry = query.positions_A[index[:, 1]].astype(np.float64)
-    rng = np.random.default_rng(seed)
-    best = np.zeros(len(index), dtype=bool)
-    for _ in range(iterations):
-        pick = rng.choice(len(index), sample, replace=False)
-        T = _rigid_fit(qry[pick], ref[pick], query.planar)
-        residual = np.linalg.norm(qry @ T[:3, :3].T + T[:3, 3] - ref, axis=1)
-        inliers = residual < inlier_m
-        if inliers.sum() > best.sum():
-            best = inliers
-    if best.sum() < sample + 1:
-        return None, int(best.sum())
-    return _rigid_fit(qry[best], ref[best], query.planar), int(best.sum())
+    index = ratio_matches(reference, query, ratio)
+    return fit_matches(reference, query, index, inlier_m, iterations, seed)

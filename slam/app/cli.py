@@ -95,6 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
     viz.add_argument("--no-viz", action="store_true", help="record nothing")
     parser.add_argument("--out", type=Path, help="run folder (default: outputs/<name>-<time>)")
     parser.add_argument(
+        "--map",
+        type=Path,
+        metavar="RUN_DIR",
+        help="continue the map of this run folder: the run is relocalised in it and the output "
+        "is a merged run (the run alone goes to OUT/session)",
+    )
+    parser.add_argument(
         "--set",
         action="append",
         default=[],
@@ -369,6 +376,11 @@ def _main(argv: list[str], debug: bool) -> int:
     try:
         args = build_parser().parse_args(argv)
         entry, cfg = resolve_config(args)
+        previous = None
+        if args.map is not None:  # refuse a map the run cannot join before reading a frame
+            from slam.app.continue_map import load_map_folder
+
+            previous = load_map_folder(args.map, cfg)
         folder, created = run_folder(cfg, args)
         _setup_logging(folder / "run.log", args.verbose)
         from slam.app.runner import execute
@@ -376,10 +388,18 @@ def _main(argv: list[str], debug: bool) -> int:
         metrics = execute(
             entry,
             cfg,
-            folder,
+            folder if previous is None else folder / "session",
             progress=not args.no_progress,
             announce=lambda line: print(line, file=sys.stderr, flush=True),
+            check_config=None if previous is None else _map_check(previous, args.map),
         )
+        if previous is not None:
+            from slam.app.continue_map import merge_into
+
+            merged = merge_into(
+                previous, args.map, folder / "session", folder, cfg.viz.mode != "none"
+            )
+            metrics["continued_map"] = merged
     except KeyboardInterrupt as exc:
         terminated = isinstance(exc, Terminated)
         _discard_empty_run(folder, created)
@@ -397,7 +417,22 @@ def _main(argv: list[str], debug: bool) -> int:
     if not metrics.get("summary_announced"):
         for line in summary_lines(metrics):
             print(line)
+    merged = metrics.get("continued_map")
+    if merged is not None:
+        line = (
+            f"continued {args.map}: {merged['inter_session_loops_kept']} inter-session loops kept"
+        )
+        if "combined_ate_rmse_m" in merged:
+            line += f", combined ATE {100 * merged['combined_ate_rmse_m']:.2f} cm"
+        print(f"{line}; merged run in {folder} (this run alone in {folder / 'session'})")
     return 0
+
+
+def _map_check(previous, map_folder: Path):
+    """The ``--map`` check of a config whose voxel size came from the first scan."""
+    from slam.app.continue_map import check_config
+
+    return lambda cfg: check_config(previous[1], cfg, map_folder, before_first_scan=False)
 
 
 if __name__ == "__main__":

@@ -117,45 +117,74 @@ def _empty_or_new(folder: Path) -> None:
         raise UsageError(f"{folder}: --out must be a new or empty folder")
 
 
+def _session_rows(inputs, folders: list[Path]) -> tuple[list[str], list[int]]:
+    """Run folder and rows of every session; a merged run lists the runs it joined."""
+    names, rows = [], []
+    for item, folder in zip(inputs, folders, strict=True):
+        parts = item.session.parts or [{"name": str(folder), "rows": len(item.session.timestamps)}]
+        names += [str(part["name"]) for part in parts]
+        rows += [int(part["rows"]) for part in parts]
+    return names, rows
+
+
 def merge(args: argparse.Namespace) -> dict[str, Any]:
     """Load, merge and write; returns the metrics."""
+    start = time.perf_counter()
+    _empty_or_new(args.out)
+    loaded = [load_run(folder) for folder in args.runs]
+    return merge_runs(loaded, args.runs, args.out, not args.no_viz, start)
+
+
+def merge_runs(
+    loaded: list, folders: list[Path], out: Path, viz: bool, start: float
+) -> dict[str, Any]:
+    """Merge loaded runs (:func:`load_run` of each of ``folders``) and write the merged run
+    folder ``out``; returns the metrics. Nothing is written when the merge fails."""
     import trimesh
 
     from common.atomic_io import write_text_atomic
     from slam.algorithm.merge import merge_sessions
     from slam.app.merge_outputs import merge_loops_csv, sessions_csv, write_recording
     from slam.app.outputs import RunOutputs
+    from slam.app.threads import apply_plan, plan_thread_budget
 
-    start = time.perf_counter()
-    _empty_or_new(args.out)
-    loaded = [load_run(folder) for folder in args.runs]
+    # torch on one thread fewer than the cores, as in a run: a pool as wide as the machine
+    # spins against anything else running (a merge of the room took minutes, not seconds)
+    threads = apply_plan(plan_thread_budget(0, map_worker=True))
     inputs = [item for item, _ in loaded]
     maps = [m for _, m in loaded]
     result = merge_sessions(inputs, maps)
-    mesh = result.neural_map.extract_mesh()
+    mesh_start = time.perf_counter()
+    mesh = result.neural_map.extract_mesh(threads=threads.mesh_threads)
+    result.seconds["mesh"] = time.perf_counter() - mesh_start
     seconds = time.perf_counter() - start
-    metrics = _metrics(result, inputs, args.runs, seconds)
+    metrics = _metrics(result, inputs, folders, seconds)
 
-    outputs = RunOutputs(args.out)
+    outputs = RunOutputs(out)
     first = inputs[0].session
     poses = np.concatenate([first.to_dataset_frame(p) for p in result.frame_poses])
     timestamps = np.concatenate([item.session.timestamps for item in inputs])
     outputs.write_poses(poses, poses, timestamps)
     for name in ("poses_odometry.kitti.txt", "poses_odometry.tum.txt"):
         outputs.path(name).unlink(missing_ok=True)  # a merge has no odometry of its own
-    names = [str(folder) for folder in args.runs]
-    rows = [len(p) for p in result.frame_poses]
+    truth = [
+        _ground_truth(folder, len(p)) for folder, p in zip(folders, result.frame_poses, strict=True)
+    ]
+    if all(gt is not None for gt in truth):  # kept, so that a merged run can be evaluated
+        outputs.write_ground_truth(np.concatenate(truth), timestamps)
+    names, rows = _session_rows(inputs, folders)
     write_text_atomic(outputs.path("sessions.csv"), sessions_csv(names, rows))
     write_text_atomic(outputs.path("loops.csv"), merge_loops_csv(result))
     outputs.write_map(result.neural_map, result.submaps, result.session)
     outputs.write_mesh(mesh)
     outputs.write_metrics(metrics)
-    if not args.no_viz:
+    if viz:
         before = []
-        for folder in args.runs:
+        for folder in folders:
             path = folder / "mesh.ply"
             before.append(trimesh.load(path, force="mesh") if path.is_file() else None)
-        write_recording(outputs.recording_path, result, names, before, mesh)
+        labels = [str(folder) for folder in folders]
+        write_recording(outputs.recording_path, result, labels, before, mesh)
     return metrics
 
 

@@ -57,11 +57,13 @@ def execute(
     folder: Path,
     progress: bool,
     announce=None,
+    check_config=None,
 ) -> dict[str, Any]:
     """Run the pipeline on the configured sequence and write the run folder; returns metrics.
 
     ``announce(line)`` receives what the user must see while the run goes on (the viewer URL of
-    ``viz.mode: serve``, and the summary before serving on after the run).
+    ``viz.mode: serve``, and the summary before serving on after the run). ``check_config(cfg)``
+    may refuse the final config (after the first scan set its scale) by raising.
 
     ``run_status.json`` says whether the run finished (see :data:`RUN_STATUS_FILE`): it is
     ``running`` until the end (so a killed run stays ``running``), and ``interrupted``,
@@ -76,6 +78,8 @@ def execute(
     source = build_source(cfg)
     _scale_lidar_config(cfg, source)
     outputs.write_config(cfg)
+    if check_config is not None:
+        check_config(cfg)
     state = _RunState(frames_total=len(source))
     outputs.write_status("running", 0, state.frames_total)
     try:

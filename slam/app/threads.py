@@ -66,13 +66,19 @@ def apply_thread_budget(cfg) -> ThreadBudget:
     ``odometry.kiss_icp.registration.max_num_threads``
     (non-zero) is kept.
     """
-    import torch
-
     plan = plan_thread_budget(cfg.threads, cfg.map_worker)
-    torch.set_num_threads(plan.torch)
     registration = cfg.odometry.kiss_icp.registration
     if not registration.max_num_threads:
         registration.max_num_threads = plan.kiss_icp
+    return apply_plan(plan)
+
+
+def apply_plan(plan: ThreadBudget) -> ThreadBudget:
+    """Set torch's, OpenCV's and BLAS's threads to ``plan`` (what has no odometry, such as a
+    merge, calls this alone)."""
+    import torch
+
+    torch.set_num_threads(plan.torch)
     try:
         import cv2
 

@@ -1,0 +1,81 @@
+"""``python -m slam.run ... --map RUN_DIR``: a new session in an existing map's frame.
+
+The map folder's ``map.npz`` (its latents and session section; never its scans) is loaded and
+checked against the run's config before any frame is read (voxel size and latent storage; a
+LiDAR run whose voxel size comes from its first scan is checked after that scan). The run then
+goes as usual into ``OUT/session`` (a complete run folder of its own), and the new session is
+relocalised against the stored submaps and merged by :func:`slam.algorithm.merge.merge_sessions`:
+descriptor candidates of the new run's submaps (its first submap first) against every stored
+submap, each verified on surface points decoded from both submaps' neural maps; the new session
+is placed by its best verified edge, then one pose graph over all sessions and the remap. ``OUT``
+receives what ``slam.merge`` writes: poses of every session in the map's frame, ``sessions.csv``
+(the map's sessions, then the new one), ``loops.csv``, ``map.npz``, ``mesh.ply``,
+``metrics.json`` and the recording.
+
+Relocalisation runs after the last frame rather than when the first submap closes: the pipeline
+is unchanged (its keyframing and loop detection run on their own threads) and a run that starts
+outside the stored map but enters it later still joins it. When no submap of the new run verifies
+against the map, the run ends with one line saying so and exit status 1; its own run folder
+``OUT/session`` is kept (nothing is lost: ``python -m slam.merge`` can join it later, e.g. with a
+run linking both).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from frontends.errors import DatasetError
+
+SESSION_FOLDER = "session"
+_STORAGE = ("storage_dtype", "jacobian_storage", "latent_rank", "jacobian_rank")
+
+
+def load_map_folder(folder: Path, cfg) -> tuple:
+    """``(SessionInput, NeuralMap)`` of ``--map``; refuses a map the run's config cannot join."""
+    from slam.app.merge_cli import load_run
+
+    previous = load_run(folder)
+    check_config(previous[1], cfg, folder, before_first_scan=True)
+    return previous
+
+
+def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None:
+    """One-line :class:`DatasetError` when the run's map settings differ from the stored map's."""
+    mapping = cfg.mapping
+    scaled = cfg.source.lidar.scale_from_first_scan and (
+        "voxel_size_m" not in mapping.model_fields_set
+    )
+    if not (before_first_scan and scaled) and mapping.voxel_size_m != neural_map.voxel_size_m:
+        raise DatasetError(
+            f"--map {folder}: voxel size {neural_map.voxel_size_m} m differs from this run's "
+            f"{mapping.voxel_size_m} m; run with --set mapping.voxel_size_m="
+            f"{neural_map.voxel_size_m}"
+        )
+    stored = neural_map.cfg
+    if any(getattr(stored, key) != getattr(mapping, key) for key in _STORAGE):
+        raise DatasetError(
+            f"--map {folder}: latent storage ({', '.join(_STORAGE)}) differs from this run's; "
+            "run with the map's mapping settings"
+        )
+
+
+def merge_into(previous: tuple, map_folder: Path, session_folder: Path, out: Path, viz: bool):
+    """Relocalise and merge the finished run in ``session_folder`` into the stored map; write
+    the merged run into ``out``; returns its metrics."""
+    from slam.algorithm.merge import MergeError
+    from slam.app.merge_cli import load_run, merge_runs
+
+    start = time.perf_counter()
+    current = load_run(session_folder)
+    try:
+        metrics: dict[str, Any] = merge_runs(
+            [previous, current], [map_folder, session_folder], out, viz, start
+        )
+    except MergeError as exc:
+        raise DatasetError(
+            f"--map {map_folder}: this run could not be relocalised in it ({exc}); the run alone "
+            f"is kept in {session_folder}"
+        ) from None
+    return metrics
