@@ -1,16 +1,22 @@
-"""Multi-session merging: a generated sequence split in two sessions, each run on its own, merged
-without the scans, against one run over the whole sequence.
+"""Multi-session merging: a sequence split in two sessions, each run on its own, merged without
+the scans, against one run over the whole sequence.
 
-    python -m benchmarks.bench_merge [--quick] [--scenario demo|generated-lidar ...]
+    python -m benchmarks.bench_merge [--quick] [--scenario demo kitti00 7scenes generated-lidar]
 
-Per scenario: ``slam.run`` on frames ``0:N/2`` and ``N/2:N`` (the second run knows nothing of
-where it starts) and on ``0:N``; then the data folder is deleted and ``slam.merge`` joins the two
-runs. Reported: combined ATE of the merge vs the full run's ATE, inter-session loops found and
-their error against the ground truth, merge wall time and peak RSS beside the full run's, the
-bytes the session section adds to ``map.npz``, and the merged map's mesh against (a) the raw
-points re-fused under the merged poses (a map encoded from the scans at the merged frame poses,
-which is what remapping must match) and (b) the full run's mesh (mean symmetric surface
-distance). Writes ``benchmarks/results/merge.md`` and ``.json``.
+Scenarios: ``demo`` (the generated room), ``kitti00`` (the generated 64-beam street along the real
+KITTI 00 trajectory, as ``slam.run kitti 00`` reads it: full mode frames 0-2269 / 2270-4540, quick
+mode the 550-scan quick window), ``7scenes`` (real redkitchen seq-01 frames 0-199 / 200-399;
+skipped without ``../shared/data``) and ``generated-lidar`` (the short street loop).
+
+Per scenario: ``slam.run`` on the two halves (the second run knows nothing of where it starts)
+and on the whole; then the data folder (a link to it, for data this benchmark does not own) is
+taken away and ``slam.merge`` joins the two runs. Reported: combined ATE of the merge vs the full
+run's ATE, inter-session loops found and their error against the ground truth (for 7-Scenes, the
+dataset's KinectFusion poses, themselves cm-level off), merge wall time and peak RSS beside the
+full run's, the bytes the session section adds to ``map.npz``, and the merged map's mesh against
+(a) the raw points re-fused under the merged poses (what remapping must match) and (b) the full
+run's mesh (mean symmetric surface distance). Writes ``benchmarks/results/merge.md`` and
+``.json``.
 """
 
 from __future__ import annotations
@@ -21,25 +27,68 @@ import os
 import shutil
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from benchmarks.harness.child import run_command
+from benchmarks.harness.kitti import FULL, QUICK, have_kitti, kitti_root, kitti_source
 from benchmarks.harness.machine import section_header
-from benchmarks.harness.paths import REPO, RESULTS_DIR
+from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
 from common.atomic_io import write_text_atomic
 
+SEVEN_SCENES = DATA / "7scenes_redkitchen"
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One split sequence: the ``slam.run`` arguments and where its data comes from."""
+
+    run_args: tuple[str, ...]
+    frames: int
+    quick_frames: int
+    #: "generated": ``slam.run`` generates it into the work folder; "kitti": the benchmarks'
+    #: cached KITTI 00 street (linked); "7scenes": the shared real frames (linked)
+    data: str
+
+
 SCENARIOS = {
-    "demo": {"dataset": "demo", "frames": 240, "quick_frames": 120, "extra": []},
-    "generated-lidar": {
-        "dataset": "generated-lidar",
-        "frames": 150,
-        "quick_frames": 150,
-        "extra": [],
-    },
+    "demo": Scenario(("demo",), 240, 120, "generated"),
+    "kitti00": Scenario(
+        ("kitti", "00", "--set", "source.kitti.correct_vertical_angle=false"),
+        FULL.num_frames,
+        QUICK.num_frames,
+        "kitti",
+    ),
+    "7scenes": Scenario(("7scenes", "seq-01"), 400, 400, "7scenes"),
+    "generated-lidar": Scenario(("generated-lidar",), 150, 150, "generated"),
 }
+
+
+KITTI_NOTE = (
+    "the generated 64-beam street along the real KITTI 00 trajectory read by `slam.run kitti 00` "
+    "with configs/kitti.yaml (vertical-angle correction off, as the scans are ideal); quick: "
+    + QUICK.describe()
+    + ", full: "
+    + FULL.describe()
+    + ". 7scenes: ground truth = the dataset's KinectFusion poses."
+)
+
+
+def _data_root(spec: Scenario, quick: bool) -> Path | None:
+    """The folder to link as the scenario's data, None where ``slam.run`` generates it, or
+    raise ``FileNotFoundError`` when the data is missing."""
+    if spec.data == "generated":
+        return None
+    if spec.data == "7scenes":
+        if not (SEVEN_SCENES / "seq-01").is_dir():
+            raise FileNotFoundError(f"no 7-Scenes frames at {SEVEN_SCENES}")
+        return SEVEN_SCENES
+    if not have_kitti():
+        raise FileNotFoundError("no KITTI 00 poses/calibration under ../shared/data/kitti")
+    return kitti_root(kitti_source(quick))
 
 
 def _child(module: str, args: list[str], log: Path) -> tuple[float, float]:
@@ -88,9 +137,11 @@ def _loop_errors(merged: Path, gt: np.ndarray) -> list[dict[str, float]]:
     return errors
 
 
-def _refused_map(run: Path, merged: Path, data_cfg: Path, work: Path) -> Any:
-    """The raw points of every frame, re-fused under the merged poses (one submap per
-    ``submaps.max_frames`` frames, encoded at identity)."""
+def _refused_map(merged: Path, data_cfg: Path) -> Any:
+    """The raw frames re-fused under the merged poses: the run's own keyframer groups them into
+    submaps (same ranges, voxels, normals) and every submap is encoded at its merged anchor pose;
+    no remapping is involved, so this is the map remapping must match."""
+    from slam.algorithm.submaps import Keyframer
     from slam.app.builders import build_map, build_source
     from slam.app.config import load_run_config
     from slam.app.trajectory_io import read_kitti
@@ -100,26 +151,18 @@ def _refused_map(run: Path, merged: Path, data_cfg: Path, work: Path) -> Any:
     source = build_source(cfg)
     poses = source.to_dataset_frame(read_kitti(merged / "poses_slam.kitti.txt"))
     neural_map = build_map(cfg)
-    step = cfg.submaps.max_frames
-    points, normals = [], []
-    for index in range(len(poses)):
-        frame = source[index]
-        if frame.normals is None:
-            from slam.algorithm.normals import estimate_normals
+    keyframer = Keyframer(cfg.submaps)
 
-            n, valid = estimate_normals(frame.points, np.zeros(3), num_neighbours=10,
-                                        max_radius_m=cfg.submaps.normal_radius_m)  # fmt: skip
-            p, n = frame.points[valid], n[valid]
-        else:
-            p, n = frame.points, frame.normals
-        T = poses[index]
-        points.append(p @ T[:3, :3].T + T[:3, 3])
-        normals.append(n @ T[:3, :3].T)
-        if len(points) == step or index == len(poses) - 1:
-            submap = neural_map.encode(index, np.concatenate(points), np.concatenate(normals),
-                                       np.eye(4))  # fmt: skip
-            neural_map.fuse(submap)
-            points, normals = [], []
+    def fuse(record) -> None:
+        if record is not None and len(record.points_A):
+            T_W_A = poses[record.frame_indices[0]]
+            neural_map.fuse(neural_map.encode(record.submap_id, record.points_A,
+                                              record.normals_A, T_W_A))  # fmt: skip
+
+    for index in range(len(poses)):
+        closed, _, _ = keyframer.add(source[index], poses[index])
+        fuse(closed)
+    fuse(keyframer.finish())
     return neural_map.extract_mesh()
 
 
@@ -139,20 +182,18 @@ def scenario(name: str, quick: bool, work: Path) -> dict[str, Any]:
     import trimesh
 
     spec = SCENARIOS[name]
-    n = spec["quick_frames"] if quick else spec["frames"]
+    n = spec.quick_frames if quick else spec.frames
     data = work / "data"
-    common = [
-        "--root",
-        str(data),
-        "--no-viz",
-        "--no-progress",
-        "--set",
-        f"generated.num_frames={n}",
-    ]
-    out: dict[str, Any] = {"frames": n}
+    source_root = _data_root(spec, quick)
+    if source_root is not None:
+        data.symlink_to(source_root, target_is_directory=True)
+    common = ["--root", str(data), "--no-viz", "--no-progress"]
+    if spec.data == "generated":
+        common += ["--set", f"generated.num_frames={n}"]
+    out: dict[str, Any] = {"frames": n, "split": n // 2}
     runs = {"full": f"0:{n}", "a": f"0:{n // 2}", "b": f"{n // 2}:{n}"}
     for key, frames in runs.items():
-        wall, rss = _child("slam.run", [spec["dataset"], "--frames", frames, *common,
+        wall, rss = _child("slam.run", [*spec.run_args, "--frames", frames, *common,
                                         "--out", str(work / key)], work / f"{key}.log")  # fmt: skip
         metrics = json.loads((work / key / "metrics.json").read_text())
         out[key] = {"wall_s": wall, "peak_rss_mb": rss,
@@ -161,9 +202,11 @@ def scenario(name: str, quick: bool, work: Path) -> dict[str, Any]:
                     "session_bytes": _session_bytes(work / key / "map.npz")}  # fmt: skip
     backup = work / "data-kept"
     shutil.move(data, backup)  # the merge runs without the scans
-    wall, rss = _child("slam.merge", [str(work / "a"), str(work / "b"), "--out",
-                                      str(work / "merged")], work / "merge.log")  # fmt: skip
-    shutil.move(backup, data)
+    try:
+        wall, rss = _child("slam.merge", [str(work / "a"), str(work / "b"), "--out",
+                                          str(work / "merged")], work / "merge.log")  # fmt: skip
+    finally:
+        shutil.move(backup, data)
     merged = json.loads((work / "merged" / "metrics.json").read_text())
     gt = np.concatenate([np.loadtxt(work / k / "poses_gt.kitti.txt").reshape(-1, 3, 4)
                          for k in ("a", "b")])  # fmt: skip
@@ -176,7 +219,7 @@ def scenario(name: str, quick: bool, work: Path) -> dict[str, Any]:
                     "seconds": merged["seconds"]}  # fmt: skip
     merged_mesh = trimesh.load(work / "merged" / "mesh.ply", force="mesh")
     full_mesh = trimesh.load(work / "full" / "mesh.ply", force="mesh")
-    refused = _refused_map(work / "a", work / "merged", work / "full" / "config.yaml", work)
+    refused = _refused_map(work / "merged", work / "full" / "config.yaml")
     out["mesh_vs_refused"] = _mesh_distance(merged_mesh, refused)
     out["mesh_vs_full_run"] = _mesh_distance(merged_mesh, full_mesh)
     return out
@@ -188,16 +231,21 @@ def _cm(v: float | None) -> str:
 
 def report(results: dict[str, Any], command: str) -> str:
     lines = [*section_header("Multi-session merge", command),
-             "- Two sessions (first and second half of one generated sequence), each run on its "
-             "own; the data folder is moved away before `slam.merge` runs.", ""]  # fmt: skip
+             "- Two sessions (first and second half of one sequence), each run on its own; the "
+             "data folder is taken away before `slam.merge` runs. kitti00: "
+             + KITTI_NOTE, ""]  # fmt: skip
     for name, r in results.items():
+        if "skipped" in r:
+            lines += [f"### {name}", "", f"Skipped: {r['skipped']}.", ""]
+            continue
         m = r["merge"]
         errors = m["loop_errors"]
         err_t = max((e["translation_m"] for e in errors), default=None)
         err_r = max((e["rotation_deg"] for e in errors), default=None)
         a = r["a"]
         lines += [
-            f"### {name} ({r['frames']} frames)", "",
+            f"### {name} ({r['frames']} frames: sessions 0-{r['split'] - 1} and "
+            f"{r['split']}-{r['frames'] - 1})", "",
             "| | value |", "|---|---:|",
             f"| ATE full run [cm] | {_cm(r['full']['ate_m'])} |",
             f"| ATE session A / B alone [cm] | {_cm(a['ate_m'])} / {_cm(r['b']['ate_m'])} |",
@@ -223,7 +271,9 @@ def report(results: dict[str, Any], command: str) -> str:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="shorter sequences")
-    parser.add_argument("--scenario", nargs="+", choices=sorted(SCENARIOS), default=["demo"])
+    parser.add_argument(
+        "--scenario", nargs="+", choices=sorted(SCENARIOS), default=["demo", "kitti00", "7scenes"]
+    )
     parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
     return parser
 
@@ -233,7 +283,10 @@ def main(argv: list[str] | None = None) -> None:
     results = {}
     for name in args.scenario:
         work = Path(tempfile.mkdtemp(prefix=f"merge-{name}-", dir=args.work))
-        results[name] = scenario(name, args.quick, work)
+        try:
+            results[name] = scenario(name, args.quick, work)
+        except FileNotFoundError as exc:
+            results[name] = {"skipped": str(exc)}
     command = "python -m benchmarks.bench_merge " + " ".join(argv or sys.argv[1:])
     write_text_atomic(RESULTS_DIR / "merge.json", json.dumps(results, indent=2) + "\n")
     write_text_atomic(RESULTS_DIR / "merge.md", report(results, command.strip()))
