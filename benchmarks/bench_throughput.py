@@ -1,6 +1,7 @@
 """LiDAR throughput: KISS-ICP alone, KISS-SLAM and ours on the same generated KITTI-00 scans.
 
     python -m benchmarks.bench_throughput [--frames N] [--before REV] [--skip-kiss-slam] [--quick]
+    python -m benchmarks.bench_throughput --only ours --frames 1000 --profile
     python -m benchmarks.bench_throughput --report-only
 
 The sequence is benchmarks.harness.kitti's generated KITTI-00 LiDAR (the full window: all 4,541
@@ -8,8 +9,12 @@ poses, 2048 firings per revolution; ``--quick``: the first 150 scans of the quic
 ``--frames N`` runs the first N scans (KISS-SLAM: ``--n-scans N``). Every method runs in its own
 process, one after the other, so its peak memory is its own. Ours runs as ``slam.app.runner``
 does with ``--no-viz``: configs/kitti.yaml, the whole pipeline, the final optimisation, the final
-mesh and ``map.npz``; RSS is sampled every 1,000 frames and at the end. ``--before REV`` also
-measures ours with revision REV, checked out beside this tree, in the same invocation.
+mesh and ``map.npz``; RSS is sampled every 1,000 frames and at the end, each sample with a
+per-object breakdown (:mod:`benchmarks.memory_breakdown`). ``--before REV`` also measures ours
+with revision REV, checked out beside this tree, in the same invocation. ``--profile`` runs ours
+under cProfile instead, with the workers inline (the same work, all on the profiled thread), and
+writes the top functions by CPU time of the process (KISS-ICP's thread pool included) to
+``benchmarks/results/throughput_profile.md``; its times are not comparable to unprofiled runs.
 
 Writes ``benchmarks/results/throughput.json`` (this invocation's runs only) and
 ``benchmarks/results/throughput.md``.
@@ -47,7 +52,7 @@ log = logging.getLogger("benchmarks.bench_throughput")
 
 
 def _rss_mb() -> tuple[float, float]:
-    """(current, peak) resident memory of this process in MB."""
+    """(current, peak) resident memory of this process in MB (MiB, as before)."""
     current = peak = float("nan")
     with open("/proc/self/status") as status:
         for line in status:
@@ -56,6 +61,41 @@ def _rss_mb() -> tuple[float, float]:
             elif line.startswith("VmHWM:"):
                 peak = int(line.split()[1]) / 1024
     return current, peak
+
+
+def _phase_peak() -> float:
+    """Peak RSS (MB) since the last call, then the peak counter reset (``clear_refs``; where
+    that is refused the peak stays cumulative, which only makes later phases read high)."""
+    peak = _rss_mb()[1]
+    with contextlib.suppress(OSError):
+        Path("/proc/self/clear_refs").write_text("5")
+    return peak
+
+
+def _breakdown(pipeline, baseline_mb: float) -> dict[str, float] | None:
+    """The per-object memory breakdown where this code has the module (not in old revisions)."""
+    try:
+        from benchmarks.memory_breakdown import memory_breakdown, trim_mb
+    except ImportError:
+        return None
+    out = memory_breakdown(pipeline, baseline_mb)
+    returned = trim_mb()
+    out["trim_returned"] = float("nan") if returned is None else returned
+    return out
+
+
+def _profile_summary(profile, top: int = 30) -> str:
+    """The top functions of a cProfile run by cumulative and by own time."""
+    import io
+    import pstats
+
+    out = []
+    for key in ("cumulative", "tottime"):
+        text = io.StringIO()
+        pstats.Stats(profile, stream=text).strip_dirs().sort_stats(key).print_stats(top)
+        body = text.getvalue()
+        out.append(f"### by {key} time\n\n```\n{body[body.index('ncalls') :].rstrip()}\n```")
+    return "\n\n".join(out)
 
 
 def _config(extra: dict[str, Any] | None = None):
@@ -85,7 +125,11 @@ def _apply_thread_budget(cfg) -> str:
 
 
 def scenario_ours(
-    quick: bool, num_frames: int, override: dict[str, Any] | None = None, relief_m: float = 0.0
+    quick: bool,
+    num_frames: int,
+    override: dict[str, Any] | None = None,
+    relief_m: float = 0.0,
+    profile: bool = False,
 ) -> dict:
     logging.basicConfig(level=logging.WARNING)
     from slam.algorithm.pipeline import SlamPipeline
@@ -94,36 +138,60 @@ def scenario_ours(
 
     cfg = _config(override)
     threads = _apply_thread_budget(cfg)
+    if profile:  # every stage on the profiled thread, with the threaded run's thread budget
+        cfg.map_worker = False
     source = kitti_source(quick, num_frames, relief_m)
     odometry = build_odometry(cfg, "lidar")
     neural_map = build_map(cfg)
     pipeline = SlamPipeline(cfg.pipeline_config(), "lidar", odometry, neural_map)
     rss: dict[str, float] = {}
+    memory: dict[str, dict[str, float] | None] = {}
+    baseline_mb = _rss_mb()[0] * 1024**2 / 1e6
+    profiler = None
+    if profile:
+        import cProfile
+
+        profiler = cProfile.Profile(time.process_time)  # CPU: steadier than wall under load
+        profiler.enable()
     start = time.perf_counter()
     cpu_start = time.process_time()
     main_cpu_start = time.thread_time()
     count = 0
+    instrument_s = 0.0  # the memory breakdowns' own time, left out of the wall time
     for frame in source.read_ahead():
         pipeline.process(frame)
         count += 1
         if count % RSS_EVERY == 0:
+            mark = time.perf_counter()
             rss[str(count)] = _rss_mb()[0]
+            memory[str(count)] = _breakdown(pipeline, baseline_mb)
+            instrument_s += time.perf_counter() - mark
+    phase_peaks = {"frames": _phase_peak()}
     pipeline.finish()
     main_cpu_s = time.thread_time() - main_cpu_start
+    phase_peaks["finish"] = _phase_peak()
+    mark = time.perf_counter()
+    memory["finished"] = _breakdown(pipeline, baseline_mb)
+    instrument_s += time.perf_counter() - mark
     mark = time.perf_counter()
     from slam.app.threads import plan_thread_budget
 
     mesh_threads = plan_thread_budget(cfg.threads, cfg.map_worker).mesh_threads
     mesh = neural_map.extract_mesh(threads=mesh_threads)
     final_mesh_s = time.perf_counter() - mark
+    phase_peaks["final_mesh"] = _phase_peak()
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "map.npz"
         neural_map.save(path, list(pipeline.submaps.values()))
         map_bytes = path.stat().st_size
-    wall = time.perf_counter() - start
+    phase_peaks["map_save"] = _phase_peak()
+    wall = time.perf_counter() - start - instrument_s
     cpu_s = time.process_time() - cpu_start
-    map_save_s = wall - final_mesh_s - (mark - start)
-    rss[str(count)], peak_rss_mb = _rss_mb()  # before scoring: the run's own peak
+    if profiler is not None:
+        profiler.disable()
+    map_save_s = wall - final_mesh_s - (mark - start - instrument_s)
+    rss[str(count)] = _rss_mb()[0]
+    peak_rss_mb = max(phase_peaks.values())  # before scoring: the run's own peak
     gt = source.gt_poses
     from slam.evaluation.metrics.trajectory import align_se3
     from slam.evaluation.run_metrics import mesh_errors
@@ -144,11 +212,17 @@ def scenario_ours(
         "cpu_s": cpu_s,
         # main thread up to the end of finish(); the map worker's thread; the rest is KISS-ICP's
         # thread pool, reading ahead, the final mesh and the map file
-        "cpu_threads_s": {"main": main_cpu_s, "map_worker": pipeline.worker.cpu_s},
+        "cpu_threads_s": {
+            "main": main_cpu_s,
+            "map_worker": pipeline.worker.cpu_s,
+            "submap_worker": getattr(getattr(pipeline, "submap_worker", None), "cpu_s", None),
+        },
         "fps": count / wall,
         "stage_s": stage,
         "stage_cpu_s": dict(pipeline.stage_cpu_s),
         "rss_mb": rss,
+        "memory_mb": memory,
+        "phase_peak_rss_mb": phase_peaks,
         "peak_rss_mb": peak_rss_mb,
         "peak_rss_with_scoring_mb": _rss_mb()[1],
         "map_npz_mb": map_bytes / 1e6,
@@ -162,6 +236,8 @@ def scenario_ours(
         "mesh_accuracy_m": errors["accuracy_m"],
         "mesh_faces": len(mesh.faces),
         "threads": threads,
+        "workers": "inline (profiled)" if profile else "threaded",
+        **({"profile": _profile_summary(profiler)} if profiler is not None else {}),
     }
 
 
@@ -221,6 +297,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="height of the hills beside the road, metres (generated.terrain_relief_m)",
     )
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="ours under cProfile, workers inline; writes results/throughput_profile.md",
+    )
     parser.add_argument("--report-only", action="store_true", help="rewrite from the .json")
     parser.add_argument(
         "--quick",
@@ -235,7 +316,10 @@ def _measure(name: str, args, code: Path | None) -> dict:
     if name == "kiss_slam":
         return scenario_kiss_slam(args.quick, args.frames, args.relief)
     calls = {
-        "ours": (scenario_ours, (args.quick, args.frames, args.override, args.relief)),
+        "ours": (
+            scenario_ours,
+            (args.quick, args.frames, args.override, args.relief, args.profile),
+        ),
         "kiss_icp": (scenario_kiss_icp, (args.quick, args.frames, args.relief)),
         "micro": (scenario_micro, ()),
         "rgbd": (scenario_rgbd, ()),

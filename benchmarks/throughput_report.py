@@ -9,9 +9,11 @@ from benchmarks.harness.paths import RESULTS_DIR
 from common.atomic_io import write_text_atomic
 
 REPORT = RESULTS_DIR / "throughput.md"
+PROFILE_REPORT = RESULTS_DIR / "throughput_profile.md"
 RSS_EVERY = 1000
 STAGES = (
     "odometry",
+    "submap_worker_wait",
     "keyframing",
     "mapping",
     "loop_detection",
@@ -80,12 +82,14 @@ def write_report(saved: dict) -> None:
         "Ours, per stage [s] (`map_logging` is the null logger's share; with the map worker, "
         "mapping and remap run on a second thread, overlapped with odometry, so the stages can "
         "add up to more than the whole run; CPU: the main thread's CPU time to the end of the "
-        "final remap, the map worker thread's, and the rest of the process (KISS-ICP's thread "
+        "final remap, the submap worker thread's (0 where it has none), the map worker "
+        "thread's (0 with the workers inline), and the rest of the process (KISS-ICP's thread "
         "pool, reading ahead, the final mesh, writing the map); `final_mesh` is the whole map "
         "meshed after the last remap (on the whole thread budget) and `map_save` writing "
         "`map.npz`, both after the last frame; n/a: not timed then), memory and map:",
         "",
-        "| run | " + " | ".join(STAGES) + " | whole run | CPU main / map worker / other [s] | "
+        "| run | " + " | ".join(STAGES) + " | whole run | "
+        "CPU main / submap worker / map worker / other [s] | "
         f"RSS at {RSS_EVERY:,}-frame steps [MB] | map.npz [MB] | voxels | mesh accuracy [cm] | "
         "threads |",
         "|---|" + "---|" * (len(STAGES) + 7),
@@ -98,8 +102,10 @@ def write_report(saved: dict) -> None:
         rss = ", ".join(f"{k}: {v:.0f}" for k, v in r["rss_mb"].items())
         threads = r.get("cpu_threads_s")
         if threads:
-            other = r["cpu_s"] - threads["main"] - threads["map_worker"]
-            cpu = f"{threads['main']:.0f} / {threads['map_worker']:.0f} / {other:.0f}"
+            main, worker = threads["main"], threads["map_worker"] or 0.0
+            submap = threads.get("submap_worker") or 0.0
+            other = r["cpu_s"] - main - worker - submap
+            cpu = f"{main:.0f} / {submap:.0f} / {worker:.0f} / {other:.0f}"
         else:
             cpu = "n/a"
         lines.append(
@@ -203,9 +209,87 @@ def write_report(saved: dict) -> None:
                 f"{m['encode_table_jacobian_rel_diff_median']:.1e} / "
                 f"{m['encode_table_jacobian_rel_diff_max']:.1e} | {m['load']:.1f} |"
             )
+    lines += _memory_lines(results)
     lines += _rgbd_lines(results)
     lines.append("")
     write_text_atomic(REPORT, "\n".join(lines))
+    _write_profiles(saved)
+
+
+MEMORY_PARTS = (
+    ("baseline", "baseline (code, torch, libraries; before the first frame)"),
+    ("kiss_icp_local_map", "KISS-ICP local map (24 B a point)"),
+    ("loop_clouds", "loop clouds kept for verification"),
+    ("place_descriptors", "place descriptors"),
+    ("submap_records", "submap records (points until encoded)"),
+    ("keyframer_buffers", "keyframer buffers (open submap)"),
+    ("neural_map_submaps", "neural map: submap originals (for remapping)"),
+    ("neural_map_store_and_mesh", "neural map: voxel store and mesh cache"),
+    ("per_frame_poses", "per-frame poses"),
+    ("pose_graph_and_remap_events", "pose graph and remap events (arrays)"),
+    ("unattributed", "unattributed (resident slack, Python objects, C++ containers)"),
+    ("allocator_free", "glibc free chunks (resident or not; in the line above where resident)"),
+    ("rss", "RSS"),
+    ("trim_returned", "of which malloc_trim(0) returned right after"),
+)
+
+
+def _memory_lines(results: dict) -> list[str]:
+    """Ours' per-object memory breakdown at each sample (``memory_mb``), where recorded."""
+    lines = []
+    for key in sorted(results):
+        memory = (results[key].get("ours") or {}).get("memory_mb") or {}
+        samples = [(k, v) for k, v in memory.items() if v]
+        if not samples:
+            continue
+        numbered = [(k, v) for k, v in samples if k.isdigit()]
+        growth = ""
+        if len(numbered) >= 2:
+            (k0, first), (k1, last) = numbered[0], numbered[-1]
+            per = (last["rss"] - first["rss"]) / ((int(k1) - int(k0)) / RSS_EVERY)
+            growth = f" RSS growth {per:.0f} MB per {RSS_EVERY:,} frames ({k0} to {k1})."
+        phases = (results[key].get("ours") or {}).get("phase_peak_rss_mb") or {}
+        if phases:
+            peaks = ", ".join(f"{k} {v:.0f}" for k, v in phases.items())
+            growth += f" Peak RSS [MiB] by phase: {peaks}."
+        lines += [
+            "",
+            f"Ours ({key}), memory by object [MB, 10^6 bytes] at frame N and after `finish()`"
+            f" (benchmarks/memory_breakdown.py).{growth}",
+            "",
+            "| part | " + " | ".join(k for k, _ in samples) + " |",
+            "|---|" + "---|" * len(samples),
+        ]
+        for part, label in MEMORY_PARTS:
+            cells = [_f(v.get(part), 1) for _, v in samples]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _write_profiles(saved: dict) -> None:
+    """``throughput_profile.md`` from the runs made with ``--profile`` (left alone otherwise)."""
+    sections = []
+    for key in sorted(saved["runs"]):
+        r = saved["runs"][key].get("ours") or {}
+        if r.get("profile"):
+            sections.append(
+                f"## {key}: {r['frames']} scans, wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s "
+                f"under cProfile (workers inline), load {_f(saved['runs'][key].get('load'), 1)}\n\n"
+                + r["profile"]
+            )
+    if not sections:
+        return
+    head = (
+        "# LiDAR profile (bench_throughput --profile)\n\n"
+        f"- Command: `{saved['command']}`\n- Machine: {saved['machine']}\n\n"
+        "cProfile of ours with the submap and map workers inline, so every stage runs on the "
+        "profiled thread, with the threaded run's thread budget (torch on one thread); times "
+        "are CPU seconds of the whole process (`time.process_time`: KISS-ICP's thread pool and "
+        "the read-ahead thread count towards the function running meanwhile), steadier than "
+        "wall time on a shared machine. Native code, e.g. KISS-ICP's registration, counts as the "
+        "own time of the Python function that called it.\n\n"
+    )
+    write_text_atomic(PROFILE_REPORT, head + "\n\n".join(sections) + "\n")
 
 
 def _per_axis_lines(results: dict) -> list[str]:

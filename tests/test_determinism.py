@@ -1,8 +1,10 @@
-"""Map work on the worker thread does not change results: same poses, loops and map.
+"""The worker threads do not change results: same poses, loops, map and per-frame results.
 
-Runs the LiDAR street loop (real keyframing, loop detection, pose graph, neural map and a remap
-on the worker) twice with ``map_worker`` on and once inline, and compares the written
-``poses_slam.kitti.txt`` and ``loops.csv`` byte for byte and a checksum of the map's arrays.
+Runs the LiDAR street loop (real keyframing, normals, loop detection and pose graph on the submap
+worker; neural map and a remap on the map worker) twice with ``map_worker`` on and once inline,
+and compares the written ``poses_slam.kitti.txt`` and ``loops.csv`` byte for byte, a checksum of
+the map's arrays and a checksum of every frame's :class:`FrameResult` (live pose, closed submap,
+loops that became known, loop added).
 
 The runs happen in a fresh process: kiss_icp fixes TBB's thread limit once per process, at its
 first ``Registration``, and an earlier test that built a KISS-ICP odometry on all cores leaves the
@@ -39,14 +41,23 @@ def _map_checksum(pipeline: SlamPipeline) -> str:
     return digest.hexdigest()
 
 
-def _run(map_worker: bool, folder: Path) -> tuple[bytes, bytes, str, int]:
+def _frame_digest(digest, result) -> None:
+    """Fold what a frame reports into ``digest``."""
+    digest.update(np.asarray(result.T_W_S).tobytes())
+    loops = [(c.reference_id, c.query_id, c.accepted) for c in result.loops]
+    digest.update(repr((result.submap_id, result.closed_submap_id, loops)).encode())
+    digest.update(repr(result.loop_added).encode())
+
+
+def _run(map_worker: bool, folder: Path) -> tuple[bytes, bytes, str, int, str]:
     cfg = street_config(map_worker=map_worker)
     source = make_source("generated", **STREET)
     odometry = DriftingOdometry(yaw_deg_per_frame=0.015, scale=1.0, up_axis=2)
     pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, build_map(cfg))
-    assert pipeline.worker.threaded == map_worker
+    assert pipeline.worker.threaded == pipeline.submap_worker.threaded == map_worker
+    frames = hashlib.sha256()
     for frame in source:
-        pipeline.process(frame)
+        _frame_digest(frames, pipeline.process(frame))
     pipeline.finish()
     outputs = RunOutputs(folder)
     outputs.write_poses(pipeline.odometry_poses(), pipeline.slam_poses(), pipeline.timestamps())
@@ -56,10 +67,11 @@ def _run(map_worker: bool, folder: Path) -> tuple[bytes, bytes, str, int]:
         (folder / "loops.csv").read_bytes(),
         _map_checksum(pipeline),
         pipeline.remapper.total_moved,
+        frames.hexdigest(),
     )
 
 
-def _three_runs(folder: str) -> list[tuple[bytes, bytes, str, int]]:
+def _three_runs(folder: str) -> list[tuple[bytes, bytes, str, int, str]]:
     """Worker, worker again, inline; in the calling (fresh) process, torch on one thread."""
     torch.set_num_threads(1)
     root = Path(folder)
@@ -73,3 +85,4 @@ def test_worker_thread_gives_identical_poses_loops_and_map(tmp_path: Path) -> No
     assert first[0] == second[0] == inline[0]
     assert first[1] == second[1] == inline[1]
     assert first[2] == second[2] == inline[2]
+    assert first[4] == second[4] == inline[4]

@@ -178,3 +178,33 @@ def test_point_ranges_are_the_euclidean_norms_of_the_rows() -> None:
     ranges = point_ranges_m(points)
     assert ranges.shape == (5000,) and ranges[0] == 13.0
     np.testing.assert_allclose(ranges, np.linalg.norm(points, axis=1), rtol=1e-15)
+
+
+def test_points_absorbed_after_every_decision_give_the_same_submaps() -> None:
+    """Without a surface budget the keyframer decides from poses alone, so the points can be
+    absorbed later (the pipeline's submap worker): deciding every frame first and absorbing
+    afterwards closes the same submaps with the same points, normals and loop clouds."""
+    cfg = _cfg(max_distance_m=0.3, map_voxel_m=0.05, loop_voxel_m=0.1)
+    views = [_wall_view(i, half_width_m=0.5 + 0.01 * i) for i in range(20)]
+    # LiDAR-like frames (no normals: the keyframer estimates them when a submap closes)
+    views = [Frame(index=v.index, timestamp=v.timestamp, points=v.points) for v in views]
+    frames = [(view, _pose(0.07 * view.index)) for view in views]
+    at_once, lagged = Keyframer(cfg), Keyframer(cfg)
+    assert lagged.decides_from_poses
+    expected = [closed for frame, T in frames if (closed := at_once.add(frame, T)[0])]
+    expected.append(at_once.finish())
+    steps = [lagged.decide(frame, T) for frame, T in frames]
+    got = [
+        closed
+        for step, (frame, _) in zip(steps, frames, strict=True)
+        if (closed := lagged.absorb(step, frame))
+    ]
+    final = lagged.decide_finish()
+    assert final is not None
+    got.append(lagged.absorb(final, None))
+    assert len(expected) >= 3
+    assert [r.frame_indices for r in got] == [r.frame_indices for r in expected]
+    for a, b in zip(got, expected, strict=True):
+        for name in ("points_A", "normals_A", "loop_points_A"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert not Keyframer(_cfg(max_surface_views=2.0)).decides_from_poses

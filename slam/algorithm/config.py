@@ -449,7 +449,8 @@ class PipelineConfig(Strict):
     remap: RemapConfig = Field(default_factory=RemapConfig, description="remapping")
     map_worker: bool = Field(
         True,
-        description="run encoding, fusion and remapping on a worker thread while the caller "
-        "runs odometry, keyframing and loop detection; results do not depend on it (the worker "
-        "applies map work in submap order)",
+        description="run keyframing, normals, loop detection and the pose graph on one worker "
+        "thread and encoding, fusion and remapping on another while the caller runs the "
+        "odometry; results do not depend on it (each worker applies its jobs in submission "
+        "order)",
     )

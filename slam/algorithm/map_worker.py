@@ -1,11 +1,12 @@
-"""Map work (encode, fuse, remap) on one worker thread, in submission order.
+"""Ordered work off the main thread: jobs run on one worker thread, in submission order.
 
-The pipeline's main thread runs odometry, keyframing, loop detection and the pose graph; every
-change to the neural map is submitted here as a job. Jobs run one at a time in the order they
-were submitted and take every pose they need as an argument (a snapshot taken by the main thread
-at submission), so the map is the same whatever the timing: threaded or inline, a run gives the
-same poses, loops and map. torch, KISS-ICP and numpy's large operations release the GIL, so on
-two cores the map work overlaps with the odometry of the next frames.
+The pipeline has two of them: the *submap worker* (keyframing, normals, loop detection and the
+pose graph) and the *map worker* (encode, fuse, remap), so its main thread runs little but the
+odometry. Jobs run one at a time in the order they were submitted and take every pose they need
+as an argument (a snapshot taken at submission), so the results are the same whatever the
+timing: threaded or inline, a run gives the same poses, loops and map. KISS-ICP, torch and
+numpy's large operations release the GIL, so on two cores the workers overlap with the odometry
+of the next frames.
 
 An exception in a job is raised again by the next :meth:`MapWorker.submit` or
 :meth:`MapWorker.drain`, so a failed map update ends the run.
@@ -29,23 +30,28 @@ class MapWorker:
             submaps waiting for the worker (and their points) stay bounded.
     """
 
-    def __init__(self, threaded: bool, max_pending: int = 2) -> None:
+    def __init__(self, threaded: bool, max_pending: int = 2, name: str = "map-worker") -> None:
         self.threaded = threaded
         self.max_pending = max(1, max_pending)
         self._pool = (
-            ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-worker") if threaded else None
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix=name) if threaded else None
         )
         self._pending: deque[Future] = deque()
         self.cpu_s: float | None = None  # CPU seconds of the worker thread, set by close()
 
-    def submit(self, job: Callable[..., Any], *args: Any) -> None:
-        """Queue ``job(*args)`` after every job submitted before it."""
+    def submit(self, job: Callable[..., Any], *args: Any) -> Future:
+        """Queue ``job(*args)`` after every job submitted before it; returns its future (done
+        already when not ``threaded``: the job ran inside this call, and its exception, if any,
+        was raised here)."""
         if self._pool is None:
-            job(*args)
-            return
+            done: Future = Future()
+            done.set_result(job(*args))
+            return done
         while self._pending and (self._pending[0].done() or len(self._pending) >= self.max_pending):
             self._pending.popleft().result()  # re-raises a failed job
-        self._pending.append(self._pool.submit(job, *args))
+        future = self._pool.submit(job, *args)
+        self._pending.append(future)
+        return future
 
     def drain(self) -> None:
         """Wait until every submitted job has run (re-raises the first failure)."""

@@ -10,16 +10,21 @@ The pipeline neither logs nor scores: each :meth:`SlamPipeline.process` returns 
 :class:`FrameResult` (what happened at that frame), :meth:`SlamPipeline.map_snapshot` gives what a
 viewer shows of the map, and :meth:`SlamPipeline.report` what metrics need at the end.
 
-Map work (encode, fuse, remap) runs on a :class:`~slam.algorithm.map_worker.MapWorker` (a worker
-thread when ``cfg.map_worker``), in submission order with pose snapshots taken here, so results do
-not depend on timing.
+Only the odometry and the keyframing *decision* (poses only) run in :meth:`SlamPipeline.process`'s
+thread. The rest runs on two :class:`~slam.algorithm.map_worker.MapWorker` s (threads when
+``cfg.map_worker``), each in submission order: the *submap worker* absorbs every frame's points
+into its submap, closes submaps (normals, loop cloud), detects and verifies loops and owns the
+pose graph; the *map worker* encodes, fuses and remaps. The main thread sees the graph through a
+:class:`~slam.algorithm.graph_view.GraphView`, updated at fixed frames, so results do not depend
+on timing.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,15 +32,20 @@ import numpy as np
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 from slam.algorithm.config import LoopClosureConfig, PipelineConfig
+from slam.algorithm.graph_view import GraphSnapshot, GraphView
 from slam.algorithm.loops import LoopCandidate, LoopDetector
 from slam.algorithm.map_worker import MapWorker
-from slam.algorithm.memory import release_freed_memory
+from slam.algorithm.memory import keep_large_allocations_apart, release_freed_memory
 from slam.algorithm.pose_graph import PoseGraph
 from slam.algorithm.remap import RemapEvent, Remapper
 from slam.algorithm.report import PipelineReport
-from slam.algorithm.submaps import Keyframer, SubmapRecord
+from slam.algorithm.submaps import Keyframer, KeyframeStep, SubmapRecord
 
 logger = logging.getLogger(__name__)
+
+SUBMAP_QUEUE_FRAMES = 8
+"""Frames (each holding its scan) that may wait for the submap worker before
+:meth:`SlamPipeline.process` waits for it."""
 
 
 def _clock() -> tuple[float, float]:
@@ -53,11 +63,13 @@ class FrameResult:
         T_W_S: the SLAM estimate at this time (anchor estimate composed with the relative pose).
         submap_id: the submap the frame belongs to.
         closed_submap_id: the submap this frame closed, or None.
-        loops: loop candidates examined at this frame.
-        remap: the remapping pass run at this frame, or None (also None while the map worker
-            has not run it yet: see :attr:`SlamPipeline.remapper` for every pass).
-        loop_added: an accepted loop went into the pose graph at this frame (every anchor, so
-            every frame's estimate, may have moved).
+        loops: loop candidates that became known at this frame (those of the submap closed
+            before ``closed_submap_id``: the main thread takes the submap worker's results one
+            submap later, see :mod:`slam.algorithm.graph_view`).
+        remap: the remapping pass that came with them, or None (always None with a threaded
+            map worker: see :attr:`SlamPipeline.remapper` for every pass).
+        loop_added: an accepted loop went into the pose graph and became known at this frame
+            (every anchor, so every frame's estimate, may have moved).
         frame_s: wall seconds the pipeline spent on this frame.
         odometry_s: of which the odometry's.
     """
@@ -99,6 +111,7 @@ class SlamPipeline:
         neural_map,
         loop_detector: LoopDetector | None = None,
     ) -> None:
+        keep_large_allocations_apart()
         self.cfg = cfg
         self.sensor = sensor
         self.odometry = odometry
@@ -113,15 +126,28 @@ class SlamPipeline:
         self.remapper = Remapper(cfg.remap, neural_map)
         self.submaps: dict[int, object] = {}
         self.records: dict[int, SubmapRecord] = {}
-        self.loop_candidates: list[LoopCandidate] = []
         self.timings_s: dict[str, list[float]] = defaultdict(list)
         # CPU seconds of the thread that ran each stage (the map worker's for mapping and
         # remap); odometry's own thread pool (KISS-ICP) is not counted
         self.stage_cpu_s: dict[str, float] = defaultdict(float)
-        for stage in ("mapping", "remap", "map_logging", "map_worker_wait"):  # worker writes too
+        for stage in (  # created here: worker threads write them too
+            "keyframing",
+            "loop_detection",
+            "pose_graph",
+            "mapping",
+            "remap",
+            "map_logging",
+            "map_worker_wait",
+            "submap_worker_wait",
+        ):
             self.timings_s[stage] = []
         self.worker = MapWorker(threaded=cfg.map_worker)
-        self._num_accepted = 0
+        self.submap_worker = MapWorker(
+            threaded=cfg.map_worker, max_pending=SUBMAP_QUEUE_FRAMES, name="submap-worker"
+        )
+        self.view = GraphView()
+        self._unsynced: deque[Future] = deque()  # close jobs whose snapshot is not taken yet
+        self._num_accepted = 0  # the submap worker's count
         self._last_remap_moved = False
         self._frame_submap: list[int] = []
         self._frames_of: dict[int, list[int]] = {}
@@ -167,17 +193,29 @@ class SlamPipeline:
         T_W_S_odometry = np.asarray(odometry.T_W_S, dtype=np.float64)
         t = self._timed("odometry", start)
 
-        closed, current, T_A_S = self.keyframer.add(
-            self._map_frame(frame, odometry), T_W_S_odometry
-        )
-        if current.submap_id not in self.graph:
-            self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, odometry.covariance)
+        map_frame = self._map_frame(frame, odometry)
+        step = self.keyframer.decide(map_frame, T_W_S_odometry)
+        current = step.current
+        assert current is not None and step.T_A_S is not None
+        covariance = None
+        if step.opened:
+            self.view.add_anchor(current.submap_id, current.T_W_A_odometry)
+            if odometry.covariance is not None:
+                covariance = np.array(odometry.covariance, dtype=np.float64)
             self.odometry.restart_covariance()
-        self._timed("keyframing", t)
+        job = self.submap_worker.submit(self._submap_job, step, map_frame, covariance, frame.index)
+        if not self.keyframer.decides_from_poses:
+            job.result()  # the next decision needs this frame's points
+        if step.closing is not None:
+            self._closed_count += 1
+            self._unsynced.append(job)
+            while len(self._unsynced) > 1:  # the snapshot of the submap closed before
+                self.view.apply(self._unsynced.popleft().result())
+        self._book_wait(t)
 
         self._frame_submap.append(current.submap_id)
         self._frames_of.setdefault(current.submap_id, []).append(len(self._frame_submap) - 1)
-        self._frame_T_A_S.append(T_A_S)
+        self._frame_T_A_S.append(step.T_A_S)
         self._odometry_poses.append(T_W_S_odometry)
         self._timestamps.append(float(frame.timestamp))
         self._record_gt(frame)
@@ -185,19 +223,42 @@ class SlamPipeline:
         result = FrameResult(
             index=frame.index,
             T_W_S_odometry=T_W_S_odometry,
-            T_W_S=self.graph.pose(current.submap_id) @ T_A_S,
+            T_W_S=self.view.pose(current.submap_id) @ step.T_A_S,
             submap_id=current.submap_id,
         )
-        if closed is not None:
-            result.closed_submap_id = closed.submap_id
-            result.loops, result.remap, result.loop_added = self._on_submap_closed(
-                closed, frame.index
-            )
-            result.T_W_S = self.graph.pose(current.submap_id) @ T_A_S
+        if step.closing is not None:
+            result.closed_submap_id = step.closing.submap_id
+        result.loops, result.remap, result.loop_added = self.view.take_news()
         result.odometry_s = self.timings_s["odometry"][-1]
         result.frame_s = time.perf_counter() - start[0]
         self.timings_s["frame"].append(result.frame_s)
         return result
+
+    def _book_wait(self, start: tuple[float, float]) -> None:
+        """Book the main thread's time since ``start`` as waiting for the submap worker (with a
+        threaded worker; inline, the jobs book their own stages)."""
+        if self.submap_worker.threaded:
+            self._timed("submap_worker_wait", start)
+
+    def _submap_job(
+        self,
+        step: KeyframeStep,
+        frame: Frame | None,
+        covariance: np.ndarray | None,
+        frame_index: int,
+    ) -> GraphSnapshot | None:
+        """One frame on the submap worker: its points into its submap, its anchor into the
+        graph when it opened one, and the submap it closed through loop detection to the map
+        worker."""
+        start = _clock()
+        closed = self.keyframer.absorb(step, frame)
+        current = step.current
+        if step.opened and current is not None and current.submap_id not in self.graph:
+            self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, covariance)
+        self._timed("keyframing", start)
+        if closed is None:
+            return None
+        return self._on_submap_closed(closed, frame_index)
 
     def _record_gt(self, frame: Frame) -> None:
         gt = None if frame.T_W_S_gt is None else np.asarray(frame.T_W_S_gt, dtype=np.float64)
@@ -205,10 +266,8 @@ class SlamPipeline:
 
     # --- submap boundaries --------------------------------------------------------------------
 
-    def _on_submap_closed(
-        self, record: SubmapRecord, frame_index: int
-    ) -> tuple[list[LoopCandidate], RemapEvent | None, bool]:
-        self._closed_count += 1
+    def _on_submap_closed(self, record: SubmapRecord, frame_index: int) -> GraphSnapshot:
+        """Loop detection, loop edges and the map job of a closed submap (submap worker)."""
         start = _clock()
         candidates: list[LoopCandidate] = []
         if self.loop_detector is not None:
@@ -228,7 +287,6 @@ class SlamPipeline:
                 candidate.graph_inlier = edge.inlier
                 added = True
                 self._num_accepted += 1
-        self.loop_candidates.extend(candidates)
         self._timed("pose_graph", t)
 
         # the keyframe's images were for loop detection; the map only needs the points
@@ -240,11 +298,18 @@ class SlamPipeline:
         self.worker.submit(self._map_job, record, T_W_A, remap_poses, frame_index)
         self._timed("map_worker_wait", t)  # only when the worker is two submaps behind
         remap = None
-        if added:
-            if not self.worker.threaded:
-                remap = self.remapper.events[-1] if self._last_remap_moved else None
-            self._refresh_graph_inliers()
-        return candidates, remap, added
+        if added and not self.worker.threaded and self._last_remap_moved:
+            remap = self.remapper.events[-1]
+        return self._snapshot(candidates, added, remap)
+
+    def _snapshot(
+        self, candidates: list[LoopCandidate], added: bool, remap: RemapEvent | None = None
+    ) -> GraphSnapshot:
+        """The graph as the main thread will see it (taken by the graph's owner)."""
+        inliers = {(e.i, e.j): e.inlier for e in self.graph.loops}
+        return GraphSnapshot(
+            self.graph.poses(), candidates, inliers, self._num_accepted, added, remap
+        )
 
     def _map_job(
         self,
@@ -283,15 +348,6 @@ class SlamPipeline:
             record.points_A = np.zeros((0, 3))
             record.normals_A = np.zeros((0, 3))
 
-    def _refresh_graph_inliers(self) -> None:
-        """Copy the pose graph's current inlier decision onto the accepted candidates."""
-        by_pair = {(e.i, e.j): e.inlier for e in self.graph.loops}
-        for candidate in self.loop_candidates:
-            if candidate.accepted:
-                candidate.graph_inlier = by_pair.get(
-                    (candidate.reference_id, candidate.query_id), candidate.graph_inlier
-                )
-
     # --- end of the sequence ------------------------------------------------------------------
 
     def finish(self) -> RemapEvent | None:
@@ -299,20 +355,31 @@ class SlamPipeline:
         if self._finished:
             return None
         last_index = len(self._frame_submap) - 1
-        closed = self.keyframer.finish()
-        if closed is not None:
-            self._on_submap_closed(closed, last_index)
-        start = _clock()
+        step = self.keyframer.decide_finish()
+        t = _clock()
+        if step is not None:
+            self._closed_count += 1
+            self._unsynced.append(
+                self.submap_worker.submit(self._submap_job, step, None, None, last_index)
+            )
+        self.submap_worker.close()
+        self._sync_all()
+        t = self._timed("submap_worker_wait", t)
         self.graph.optimize_batch()
-        t = self._timed("pose_graph", start)
+        t = self._timed("pose_graph", t)
         self.worker.close()
         t = self._timed("map_worker_wait", t)
         remap = self.remapper.apply(self.submaps, self.graph.poses(), -1)
         release_freed_memory()
         self._timed("remap", t)
-        self._refresh_graph_inliers()
+        self.view.apply(self._snapshot([], False))
         self._finished = True
         return remap
+
+    def _sync_all(self) -> None:
+        """Take the snapshots of every submitted close job (they must have run)."""
+        while self._unsynced:
+            self.view.apply(self._unsynced.popleft().result())
 
     # --- results ------------------------------------------------------------------------------
 
@@ -328,7 +395,7 @@ class SlamPipeline:
         """(N, 4, 4) current SLAM estimates of the frames processed so far."""
         if not self._frame_submap:
             return np.zeros((0, 4, 4))
-        anchors = self.graph.poses()
+        anchors = self.view.poses()
         T_W_A = np.array([anchors[s] for s in self._frame_submap])
         return T_W_A @ np.array(self._frame_T_A_S)
 
@@ -362,8 +429,16 @@ class SlamPipeline:
         return poses, mask
 
     def drain(self) -> None:
-        """Wait for the map worker (the map then reflects every submap closed so far)."""
+        """Wait for both workers: the graph view, the loop candidates and the map then reflect
+        every submap closed so far."""
+        self.submap_worker.drain()
         self.worker.drain()
+        self._sync_all()
+
+    @property
+    def loop_candidates(self) -> list[LoopCandidate]:
+        """Every loop candidate examined, as far as the main thread knows (see :attr:`view`)."""
+        return self.view.loop_candidates
 
     def accepted_loops(self) -> list[LoopCandidate]:
         return [c for c in self.loop_candidates if c.accepted]
@@ -375,12 +450,13 @@ class SlamPipeline:
 
     @property
     def num_accepted_loops(self) -> int:
-        """Loop edges added to the pose graph so far."""
-        return self._num_accepted
+        """Loop edges added to the pose graph, as far as the main thread knows."""
+        return self.view.num_accepted
 
     def anchor_poses(self) -> dict[int, np.ndarray]:
-        """Current estimate of every submap anchor, ``{submap_id: T_W_A}``."""
-        return self.graph.poses()
+        """Current estimate of every submap anchor, ``{submap_id: T_W_A}`` (the main thread's
+        :attr:`view`: exact after :meth:`drain` and :meth:`finish`)."""
+        return self.view.poses()
 
     @property
     def last_remap_moved(self) -> bool:
@@ -390,7 +466,7 @@ class SlamPipeline:
     def map_snapshot(self, with_mesh: bool) -> tuple[np.ndarray, np.ndarray, object | None]:
         """What a viewer shows of the map now: voxel centres, their weights and, when asked,
         a mesh (waits for the map worker; booked as the ``map_logging`` stage)."""
-        self.worker.drain()
+        self.drain()
         start = _clock()
         centers, weights = self.map.voxel_centers()
         mesh = self.map.extract_mesh() if with_mesh else None

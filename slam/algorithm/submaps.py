@@ -16,6 +16,7 @@ moves as a whole, and what loop closure matches.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from kiss_icp.voxelization import voxel_down_sample
@@ -132,6 +133,23 @@ class SubmapRecord:
     T_A_S: list[np.ndarray] = field(default_factory=list)
 
 
+class KeyframeStep(NamedTuple):
+    """A keyframing decision (:meth:`Keyframer.decide`).
+
+    Attributes:
+        closing: the submap the frame closes (its points still to be finished by
+            :meth:`Keyframer.absorb`), or None.
+        current: the submap the frame belongs to (None for the end of the sequence).
+        T_A_S: the frame's pose relative to that submap's anchor (None at the end).
+        opened: the frame opened ``current``.
+    """
+
+    closing: SubmapRecord | None
+    current: SubmapRecord | None
+    T_A_S: np.ndarray | None
+    opened: bool
+
+
 class Keyframer:
     """Groups frames into submaps and accumulates their points in the anchor frame."""
 
@@ -165,37 +183,74 @@ class Keyframer:
                 return True
         return np.degrees(rotation_angle_rad(T_A_S[:3, :3])) > c.max_rotation_deg
 
+    @property
+    def decides_from_poses(self) -> bool:
+        """Whether :meth:`decide` needs only poses: without ``max_surface_views`` a submap closes
+        by distance, rotation and frame count, so the points can be absorbed later (on a worker
+        thread); with it, every :meth:`absorb` must run before the next :meth:`decide`."""
+        return self.cfg.max_surface_views is None
+
     def add(
         self, frame: Frame, T_W_S: np.ndarray
     ) -> tuple[SubmapRecord | None, SubmapRecord, np.ndarray]:
-        """Add a frame with its odometry pose.
+        """Add a frame with its odometry pose (:meth:`decide`, then :meth:`absorb`).
 
         Returns ``(closed, current, T_A_S)``: the submap this frame closed (or None), the submap
         the frame now belongs to (a new one when it opened one), and the frame's pose relative
         to that submap's anchor.
         """
+        step = self.decide(frame, T_W_S)
+        return self.absorb(step, frame), step.current, step.T_A_S
+
+    def decide(self, frame: Frame, T_W_S: np.ndarray) -> KeyframeStep:
+        """The keyframing decision for a frame: whether it closes the open submap, which submap
+        it belongs to and its pose relative to that anchor. Poses only (see
+        :attr:`decides_from_poses`); the points follow with :meth:`absorb`."""
         T_W_S = np.asarray(T_W_S, dtype=np.float64)
         if self._last_T_W_S is not None:
             self._travelled_m += float(np.linalg.norm(T_W_S[:3, 3] - self._last_T_W_S[:3, 3]))
         self._last_T_W_S = T_W_S
-        closed = None
+        closing = None
         if self._current is not None:
             T_A_S = np.linalg.inv(self._current.T_W_A_odometry) @ T_W_S
             if self._should_close(T_A_S):
-                closed = self._close()
-        if self._current is None:
+                closing = self._current
+                self._current = None
+        opened = self._current is None
+        if opened:
             self._open(frame, T_W_S)
         sub = self._current
         assert sub is not None
         T_A_S = np.linalg.inv(sub.T_W_A_odometry) @ T_W_S
         sub.frame_indices.append(frame.index)
         sub.T_A_S.append(T_A_S)
-        self._accumulate(frame, T_A_S)
-        return closed, sub, T_A_S
+        return KeyframeStep(closing, sub, T_A_S, opened)
+
+    def decide_finish(self) -> KeyframeStep | None:
+        """The decision that closes the open submap at the end of the sequence (None when there
+        is none); :meth:`absorb` it without a frame."""
+        if self._current is None:
+            return None
+        closing, self._current = self._current, None
+        return KeyframeStep(closing, None, None, False)
+
+    def absorb(self, step: KeyframeStep, frame: Frame | None) -> SubmapRecord | None:
+        """Apply a :meth:`decide` step to the points: close the submap it closes (returned, with
+        its points, normals and loop cloud), then add the frame's points to its submap. Steps
+        must be absorbed in the order they were decided."""
+        closed = None
+        if step.closing is not None:
+            closed = self._close(step.closing)
+        if step.opened:
+            self._reset_points()
+        if frame is not None and step.T_A_S is not None:
+            self._accumulate(frame, step.T_A_S)
+        return closed
 
     def finish(self) -> SubmapRecord | None:
         """Close the open submap (end of the sequence)."""
-        return self._close() if self._current is not None else None
+        step = self.decide_finish()
+        return None if step is None else self.absorb(step, None)
 
     def _open(self, frame: Frame, T_W_S: np.ndarray) -> None:
         keep_images = frame.depth is not None and self.cfg.keep_keyframe_images
@@ -218,6 +273,9 @@ class Keyframer:
             keyframe=keyframe,
         )
         self._next_id += 1
+
+    def _reset_points(self) -> None:
+        """Empty the point buffers for a new submap."""
         self._chunks = []
         self._accumulated = 0
         self._has_normals = True
@@ -278,9 +336,7 @@ class Keyframer:
         self._chunks = [merged]
         self._accumulated = len(merged[0])
 
-    def _close(self) -> SubmapRecord:
-        sub = self._current
-        assert sub is not None
+    def _close(self, sub: SubmapRecord) -> SubmapRecord:
         self._compact()
         if self._chunks:
             points_A, normals_A, viewpoint_A = self._chunks[0]
@@ -307,5 +363,4 @@ class Keyframer:
             sub.points_A = points_A
             sub.normals_A = normals_A
         self._chunks = []
-        self._current = None
         return sub

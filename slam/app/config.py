@@ -287,9 +287,10 @@ class RunConfig(_Strict):
     )
     map_worker: bool = Field(
         True,
-        description="run encoding, fusion, remapping and map logging on a worker thread while "
-        "the main thread runs odometry, keyframing and loop detection; results do not depend on "
-        "it (the worker applies map work in submap order)",
+        description="run keyframing, normals, loop detection and the pose graph on one worker "
+        "thread and encoding, fusion, remapping and map logging on another while the main "
+        "thread runs the odometry; results do not depend on it (each worker applies its jobs in "
+        "submission order)",
     )
 
     def pipeline_config(self) -> PipelineConfig:

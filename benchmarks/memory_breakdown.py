@@ -1,0 +1,156 @@
+"""Where a running LiDAR pipeline's memory is: a per-object breakdown next to the RSS.
+
+:func:`memory_breakdown` sums the bytes of the arrays (numpy) and tensors (torch) each part of a
+:class:`~slam.algorithm.pipeline.SlamPipeline` holds, found by walking its attributes, each
+buffer counted once; KISS-ICP's local map is counted from its points (24 bytes each, the
+``Eigen::Vector3d`` of its voxel hash map, without the hash table). What glibc's allocator holds
+free inside the process (``mallinfo2``: free chunks in its arenas) is the allocator slack, and
+``malloc_trim(0)`` shows how much of the RSS goes back to the OS (free chunks that were already
+handed back with ``madvise`` still count as free but are not resident, so the slack is not
+subtracted from the RSS). The rest of the RSS is the code and libraries (torch, GTSAM, KISS-ICP)
+measured before the first frame (``baseline``), and what no walk reaches (``unattributed``:
+resident allocator slack, Python objects, C++ containers such as map_closures' database).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import sys
+from typing import Any
+
+import numpy as np
+
+MB = 1e6
+
+
+def rss_mb() -> tuple[float, float]:
+    """(current, peak) resident memory of this process in MB."""
+    current = peak = float("nan")
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                current = int(line.split()[1]) * 1024 / MB
+            elif line.startswith("VmHWM:"):
+                peak = int(line.split()[1]) * 1024 / MB
+    return current, peak
+
+
+class _Mallinfo2(ctypes.Structure):
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in (
+            "arena",
+            "ordblks",
+            "smblks",
+            "hblks",
+            "hblkhd",
+            "usmblks",
+            "fsmblks",
+            "uordblks",
+            "fordblks",
+            "keepcost",
+        )
+    ]
+
+
+def _libc():
+    name = ctypes.util.find_library("c")
+    return None if name is None else ctypes.CDLL(name)
+
+
+def allocator_free_mb() -> float | None:
+    """Bytes glibc holds free in its arenas (``mallinfo2().fordblks``), MB; None elsewhere."""
+    libc = _libc()
+    if libc is None or not hasattr(libc, "mallinfo2"):
+        return None
+    libc.mallinfo2.restype = _Mallinfo2
+    return libc.mallinfo2().fordblks / MB
+
+
+def trim_mb() -> float | None:
+    """RSS that ``malloc_trim(0)`` gives back now, MB (None without glibc)."""
+    libc = _libc()
+    if libc is None or not hasattr(libc, "malloc_trim"):
+        return None
+    before = rss_mb()[0]
+    libc.malloc_trim(0)
+    return before - rss_mb()[0]
+
+
+def buffer_bytes(obj: Any, seen: set[int] | None = None, depth: int = 6) -> int:
+    """Bytes of the numpy arrays and torch tensors reachable from ``obj`` through attributes,
+    dicts, lists and tuples (``depth`` levels), each underlying buffer once."""
+    seen = set() if seen is None else seen
+    if depth < 0 or obj is None or isinstance(obj, (str, bytes, int, float, bool)):
+        return 0
+    if isinstance(obj, np.ndarray):
+        base = obj
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        if id(base) in seen:
+            return 0
+        seen.add(id(base))
+        return base.nbytes
+    if type(obj).__module__.startswith("torch") and hasattr(obj, "untyped_storage"):
+        storage = obj.untyped_storage()
+        key = storage.data_ptr()
+        if key in seen:
+            return 0
+        seen.add(key)
+        return storage.nbytes()
+    if id(obj) in seen:
+        return 0
+    seen.add(id(obj))
+    if isinstance(obj, dict):
+        items = list(obj.values())
+    elif isinstance(obj, (list, tuple, set, frozenset)):
+        items = list(obj)
+    elif hasattr(obj, "__dict__"):
+        items = list(vars(obj).values())
+    elif hasattr(obj, "__slots__"):
+        items = [getattr(obj, name, None) for name in obj.__slots__]
+    else:
+        return 0
+    return sum(buffer_bytes(item, seen, depth - 1) for item in items)
+
+
+def _list_of_arrays_bytes(arrays: list) -> int:
+    """An (N, 4, 4) pose list's arrays with their Python object headers."""
+    return sum(sys.getsizeof(a) for a in arrays if a is not None)
+
+
+def memory_breakdown(pipeline, baseline_mb: float) -> dict[str, float]:
+    """MB held by each part of ``pipeline`` (call between frames), with the RSS, the baseline
+    (RSS before the first frame), the allocator's free bytes and the unattributed rest."""
+    seen: set[int] = set()
+    parts: dict[str, float] = {}
+    kiss = getattr(pipeline.odometry, "_kiss", None)
+    if kiss is not None:
+        parts["kiss_icp_local_map"] = len(kiss.local_map.point_cloud()) * 24 / MB
+    detector = pipeline.loop_detector
+    parts["loop_clouds"] = buffer_bytes(getattr(detector, "_clouds", {}), seen) / MB
+    parts["place_descriptors"] = buffer_bytes(getattr(detector, "descriptors", {}), seen) / MB
+    parts["submap_records"] = buffer_bytes(pipeline.records, seen) / MB
+    parts["keyframer_buffers"] = buffer_bytes(pipeline.keyframer, seen) / MB
+    parts["neural_map_submaps"] = buffer_bytes(pipeline.submaps, seen) / MB
+    model = getattr(pipeline.map, "model", None)
+    if model is not None:
+        buffer_bytes(model, seen)  # the network is part of the baseline
+    parts["neural_map_store_and_mesh"] = buffer_bytes(pipeline.map, seen) / MB
+    parts["per_frame_poses"] = (
+        sum(
+            _list_of_arrays_bytes(values)
+            for values in (pipeline._frame_T_A_S, pipeline._odometry_poses, pipeline._gt)
+        )
+        / MB
+    )
+    parts["pose_graph_and_remap_events"] = (
+        buffer_bytes(pipeline.graph, seen) + buffer_bytes(pipeline.remapper.events, seen)
+    ) / MB
+    current = rss_mb()[0]
+    free = allocator_free_mb()
+    out = {"rss": current, "baseline": baseline_mb, **parts}
+    out["allocator_free"] = float("nan") if free is None else free
+    out["unattributed"] = current - baseline_mb - sum(parts.values())
+    return out

@@ -1,0 +1,94 @@
+"""The pipeline's main-thread view of the pose graph, which the submap worker owns.
+
+The submap worker (:mod:`slam.algorithm.map_worker`) closes submaps, detects loops and updates
+the pose graph; after each closed submap it publishes a :class:`GraphSnapshot`. The main thread
+takes the snapshot of a submap's job when the *next* submap closes (or when it drains the
+workers), a point fixed by the frames, not by the timing, so every :class:`FrameResult` is the
+same whether the workers run on threads or inline. Anchors opened since the snapshot are
+predicted the way the graph initialises them: the last known anchor composed with the odometry
+motion between the two anchors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.algorithm.loops import LoopCandidate
+from slam.algorithm.remap import RemapEvent
+
+
+@dataclass
+class GraphSnapshot:
+    """What a submap job leaves for the main thread after closing a submap.
+
+    Attributes:
+        anchors: every anchor's estimate after the job's loop edges, ``{submap_id: T_W_A}``.
+        candidates: the loop candidates the job examined.
+        inliers: the graph's inlier decision of every loop edge so far, by ``(i, j)``.
+        num_accepted: loop edges added to the graph so far.
+        loop_added: the job added a loop edge.
+        remap: the remapping pass the job ran when it moved a submap (inline map worker only).
+    """
+
+    anchors: dict[int, np.ndarray]
+    candidates: list[LoopCandidate]
+    inliers: dict[tuple[int, int], bool]
+    num_accepted: int
+    loop_added: bool
+    remap: RemapEvent | None = None
+
+
+@dataclass
+class GraphView:
+    """The anchors, loop candidates and counters as of the last snapshot taken."""
+
+    anchors: dict[int, np.ndarray] = field(default_factory=dict)
+    odometry_anchors: dict[int, np.ndarray] = field(default_factory=dict)
+    loop_candidates: list[LoopCandidate] = field(default_factory=list)
+    num_accepted: int = 0
+    _last_known: int | None = None
+    _new_loops: list[LoopCandidate] = field(default_factory=list)
+    _loop_added: bool = False
+    _remap: RemapEvent | None = None
+
+    def add_anchor(self, submap_id: int, T_W_A_odometry: np.ndarray) -> None:
+        """A submap opened (its anchor reaches the graph with the submap worker's next job)."""
+        self.odometry_anchors[submap_id] = T_W_A_odometry
+
+    def apply(self, snapshot: GraphSnapshot) -> None:
+        """Take a submap job's snapshot (in job order)."""
+        self.anchors = snapshot.anchors
+        if snapshot.anchors:
+            self._last_known = max(snapshot.anchors)
+        self.loop_candidates.extend(snapshot.candidates)
+        for candidate in self.loop_candidates:
+            if candidate.accepted:
+                key = (candidate.reference_id, candidate.query_id)
+                candidate.graph_inlier = snapshot.inliers.get(key, candidate.graph_inlier)
+        self.num_accepted = snapshot.num_accepted
+        self._new_loops.extend(snapshot.candidates)
+        self._loop_added |= snapshot.loop_added
+        self._remap = snapshot.remap if snapshot.remap is not None else self._remap
+
+    def take_news(self) -> tuple[list[LoopCandidate], RemapEvent | None, bool]:
+        """Loop candidates, remap and whether a loop was added since the last call."""
+        news = (self._new_loops, self._remap, self._loop_added)
+        self._new_loops, self._remap, self._loop_added = [], None, False
+        return news
+
+    def pose(self, submap_id: int) -> np.ndarray:
+        """The anchor's estimate: the snapshot's, or predicted from the last known anchor."""
+        known = self.anchors.get(submap_id)
+        if known is not None:
+            return known
+        T_W_A = self.odometry_anchors[submap_id]
+        if self._last_known is None:  # the first anchor is the odometry's pose
+            return T_W_A
+        last = self._last_known
+        return self.anchors[last] @ np.linalg.inv(self.odometry_anchors[last]) @ T_W_A
+
+    def poses(self) -> dict[int, np.ndarray]:
+        """Every opened anchor's estimate (see :meth:`pose`)."""
+        return {i: self.pose(i) for i in self.odometry_anchors}
