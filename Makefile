@@ -11,8 +11,9 @@ TORCH_INDEX_ARG := $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX),)
 # KISS-SLAM, the benchmarks' reference system, lives in its own environment (it pins its own
 # kiss-icp and needs open3d); benchmarks find it through BENCH_KISS_SLAM_VENV.
 KISS_SLAM_VENV ?= .venv-kiss-slam
-# kiss-slam 0.0.2 imports PIL without declaring it, hence pillow.
-KISS_SLAM_SPEC ?= kiss-slam==0.0.2 pillow
+# kiss-slam 0.0.2 imports PIL, and kiss-icp's pipeline matplotlib at the end of a run, without
+# declaring them.
+KISS_SLAM_SPEC ?= kiss-slam==0.0.2 pillow matplotlib
 KISS_SLAM_LOG := benchmarks/out/kiss-slam-env.log
 # `make bench BEFORE=REV`: the benchmarks that can also measure REV (checked out beside this tree)
 # put it in the same tables, in the same invocation.
