@@ -36,9 +36,12 @@ setup: $(VENV)/.installed
 demo: setup
 	$(PY) -m slam.run demo
 
+# pytest-xdist: one test file per worker (module fixtures are built once); CI has 2 cores.
+TEST_WORKERS ?= 2
+
 test: setup
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 $(KISS_SLAM_VENV)/.installed:
 	mkdir -p $(dir $(KISS_SLAM_LOG))
