@@ -203,6 +203,14 @@ def _traj_row(name: str, s: dict, run: dict | None) -> str:
     )
 
 
+def _traj_header(first_column: str) -> list[str]:
+    return [
+        f"| {first_column} | poses | ATE (m) | x / y / z RMSE (m) | path est / ref (m) | "
+        "steps off by > 1 m | wall (s) | peak RSS (MB) | load |",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|",
+    ]
+
+
 def _mesh_row(name: str, m: dict) -> str:
     return (
         f"| {name} | {m['vertices']} | {m['vertex_to_points_median_m']:.3f} | "
@@ -230,9 +238,7 @@ def write_report(path: Path, results: dict, command: str) -> None:
         "(scale derived from the first scan), one process each; wall time and peak RSS of that "
         "process, load = 1-minute load average during the run.",
         "",
-        "| MulRan trajectory | poses | ATE (m) | x / y / z RMSE (m) | "
-        "path est / ref (m) | steps off by > 1 m | wall (s) | peak RSS (MB) | load |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|",
+        *_traj_header("MulRan trajectory"),
         _traj_row("`--odometry gt` (reference poses), SLAM", gt["slam"], gt),
         _traj_row("KISS-ICP odometry", kiss["odometry"], kiss),
         _traj_row(f"KISS-ICP + loops, SLAM ({kiss['loops_kept']} loops kept)", kiss["slam"], None),
@@ -250,9 +256,7 @@ def write_report(path: Path, results: dict, command: str) -> None:
         f"{diag['frames']} keyframes, once with its constant-velocity prediction (the run) and "
         "once predicted with the reference's own motion:",
         "",
-        "| first keyframes | poses | ATE (m) | x / y / z RMSE (m) | "
-        "path est / ref (m) | steps off by > 1 m | wall (s) | peak RSS (MB) | load |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|",
+        *_traj_header("first keyframes"),
         _traj_row("constant-velocity prediction (the run)", diag["constant_velocity"], None),
         _traj_row("prediction = reference motion", diag["reference_prediction"], None),
         "",
