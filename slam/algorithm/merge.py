@@ -126,6 +126,10 @@ class SurfaceDecoder:
         return self._cache[key]
 
 
+LATENT_STORAGE_FIELDS = ("storage_dtype", "jacobian_storage", "latent_rank", "jacobian_rank")
+"""Mapping settings that fix how latents are stored: maps differing in one cannot share a grid."""
+
+
 def check_compatible(inputs: list[SessionInput], maps: list[NeuralMap]) -> None:
     """Refuse maps that cannot share one grid: voxel size, prior, storage or sensor differ."""
     first, reference = inputs[0], maps[0]
@@ -142,8 +146,7 @@ def check_compatible(inputs: list[SessionInput], maps: list[NeuralMap]) -> None:
                 "same mapping.weights_path"
             )
         cfg_a, cfg_b = reference.cfg, other.cfg
-        storage = ("storage_dtype", "jacobian_storage", "latent_rank", "jacobian_rank")
-        if any(getattr(cfg_a, k) != getattr(cfg_b, k) for k in storage):
+        if any(getattr(cfg_a, k) != getattr(cfg_b, k) for k in LATENT_STORAGE_FIELDS):
             raise MergeError(
                 f"{item.name}: latent storage differs from {first.name}'s; re-run it with the "
                 "same mapping settings"

@@ -27,9 +27,9 @@ from pathlib import Path
 from typing import Any
 
 from frontends.errors import DatasetError
+from slam.algorithm.merge import LATENT_STORAGE_FIELDS
 
 SESSION_FOLDER = "session"
-_STORAGE = ("storage_dtype", "jacobian_storage", "latent_rank", "jacobian_rank")
 
 
 def load_map_folder(folder: Path, cfg) -> tuple:
@@ -54,10 +54,10 @@ def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None
             f"{neural_map.voxel_size_m}"
         )
     stored = neural_map.cfg
-    if any(getattr(stored, key) != getattr(mapping, key) for key in _STORAGE):
+    if any(getattr(stored, key) != getattr(mapping, key) for key in LATENT_STORAGE_FIELDS):
         raise DatasetError(
-            f"--map {folder}: latent storage ({', '.join(_STORAGE)}) differs from this run's; "
-            "run with the map's mapping settings"
+            f"--map {folder}: latent storage ({', '.join(LATENT_STORAGE_FIELDS)}) differs from "
+            "this run's; run with the map's mapping settings"
         )
 
 
