@@ -120,7 +120,22 @@ def test_continuing_a_map_places_the_run_in_its_frame(runs):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["inter_session_loops_kept"] >= 1
     assert metrics["combined_ate_rmse_m"] < COMBINED_ATE_BOUND_M
-    assert json.loads((runs["b"] / "metrics.json").read_text())["input"]["frames_total"] == 60
+    session = json.loads((runs["b"] / "metrics.json").read_text())
+    assert session["input"]["frames_total"] == 60
+
+
+def test_continuing_a_map_relocalises_live(runs):
+    """The continuation was placed in the map while it ran: its own run folder's poses are
+    already in the map's frame, where the final merge puts them."""
+    session = json.loads((runs["b"] / "metrics.json").read_text())["relocalisation"]
+    assert session["relocalised"], session
+    assert session["submaps_tried"] >= 1
+    assert session["scores"]["inlier_fraction"] >= 0.4
+    live = read_kitti(runs["b"] / "poses_slam.kitti.txt")
+    merged = read_kitti(runs["continued"] / "poses_slam.kitti.txt")[60:]
+    assert np.abs(live[:, :3, 3] - merged[:, :3, 3]).max() < COMBINED_ATE_BOUND_M
+    placed = f"submap {session['submap']} on the map's submap {session['map_submap']}"
+    assert placed in (runs["continued"] / "run.log").read_text()
 
 
 def test_two_sessions_merge_without_scans(runs, tmp_path: Path):

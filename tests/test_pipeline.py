@@ -56,6 +56,8 @@ class FalseLoopInjector(LoopDetector):
     """Passes the real detector's candidates through and adds one wrong 'verified' edge."""
 
     def __init__(self, inner: LoopDetector, at_submap: int, wrong_by_m: float) -> None:
+        super().__init__()
+        self.descriptors = inner.descriptors
         self.inner = inner
         self.at_submap = at_submap
         self.wrong_by_m = wrong_by_m

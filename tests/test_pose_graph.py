@@ -83,6 +83,31 @@ def test_world_frame_is_the_first_anchor(scenario):
 
 
 @pytest.mark.parametrize("online_gnc", [True, False])
+def test_reframe_moves_the_whole_graph_rigidly(scenario, online_gnc):
+    """A session relocalised in a stored map: reframing half way, then adding the rest of the
+    anchors and loops, gives the graph built in the new frame from the start."""
+    _, odometry, loops = scenario
+    T_M_W = np.eye(4)
+    T_M_W[:3, :3] = Rotation.from_euler("zyx", [130, -7, 4], degrees=True).as_matrix()
+    T_M_W[:3, 3] = [12.0, -3.0, 0.5]
+    cfg = PoseGraphConfig(online_gnc=online_gnc)
+    half = 26  # after the first loop (5-25), before the second (0-40)
+    graph = build(cfg, odometry[:half], [lp for lp in loops if max(lp[:2]) < half])
+    before = graph.poses()
+    graph.reframe(T_M_W)
+    for node, T in before.items():
+        np.testing.assert_allclose(graph.pose(node), T_M_W @ T, atol=1e-6)
+    for k in range(half, len(odometry)):
+        graph.add_anchor(k, odometry[k])
+    graph.add_loop(*loops[0])
+    expected = build(cfg, np.array([T_M_W @ T for T in odometry]), loops)
+    reframed = graph.optimize_batch()
+    for node, T in expected.optimize_batch().items():
+        np.testing.assert_allclose(reframed[node], T, atol=1e-4)
+    assert [e.inlier for e in graph.loops] == [e.inlier for e in expected.loops]
+
+
+@pytest.mark.parametrize("online_gnc", [True, False])
 def test_false_loop_is_rejected_or_down_weighted(scenario, online_gnc):
     gt, odometry, loops = scenario
     wrong = relative(gt, 10, 30)

@@ -12,11 +12,15 @@ motion between the two anchors.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from slam.algorithm.loops import LoopCandidate
 from slam.algorithm.remap import RemapEvent
+
+if TYPE_CHECKING:
+    from slam.algorithm.relocalise import Relocalisation
 
 
 @dataclass
@@ -28,8 +32,9 @@ class GraphSnapshot:
         candidates: the loop candidates the job examined.
         inliers: the graph's inlier decision of every loop edge so far, by ``(i, j)``.
         num_accepted: loop edges added to the graph so far.
-        loop_added: the job added a loop edge.
+        loop_added: the job added a loop edge or relocalised the session (the anchors moved).
         remap: the remapping pass the job ran when it moved a submap (inline map worker only).
+        relocalised: the session's placement in a stored map, when this job found it.
     """
 
     anchors: dict[int, np.ndarray]
@@ -38,6 +43,7 @@ class GraphSnapshot:
     num_accepted: int
     loop_added: bool
     remap: RemapEvent | None = None
+    relocalised: Relocalisation | None = None
 
 
 @dataclass
@@ -48,10 +54,12 @@ class GraphView:
     odometry_anchors: dict[int, np.ndarray] = field(default_factory=dict)
     loop_candidates: list[LoopCandidate] = field(default_factory=list)
     num_accepted: int = 0
+    relocalisation: Relocalisation | None = None
     _last_known: int | None = None
     _new_loops: list[LoopCandidate] = field(default_factory=list)
     _loop_added: bool = False
     _remap: RemapEvent | None = None
+    _relocalised: Relocalisation | None = None
 
     def add_anchor(self, submap_id: int, T_W_A_odometry: np.ndarray) -> None:
         """A submap opened (its anchor reaches the graph with the submap worker's next job)."""
@@ -71,11 +79,16 @@ class GraphView:
         self._new_loops.extend(snapshot.candidates)
         self._loop_added |= snapshot.loop_added
         self._remap = snapshot.remap if snapshot.remap is not None else self._remap
+        if snapshot.relocalised is not None:
+            self.relocalisation = self._relocalised = snapshot.relocalised
 
-    def take_news(self) -> tuple[list[LoopCandidate], RemapEvent | None, bool]:
-        """Loop candidates, remap and whether a loop was added since the last call."""
-        news = (self._new_loops, self._remap, self._loop_added)
-        self._new_loops, self._remap, self._loop_added = [], None, False
+    def take_news(
+        self,
+    ) -> tuple[list[LoopCandidate], RemapEvent | None, bool, Relocalisation | None]:
+        """Loop candidates, remap, whether the anchors moved (a loop was added or the session
+        relocalised) and the relocalisation, each since the last call."""
+        news = (self._new_loops, self._remap, self._loop_added, self._relocalised)
+        self._new_loops, self._remap, self._loop_added, self._relocalised = [], None, False, None
         return news
 
     def pose(self, submap_id: int) -> np.ndarray:

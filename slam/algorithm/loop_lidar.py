@@ -52,7 +52,7 @@ from slam.algorithm.loops import (
     relative_motion,
 )
 from slam.algorithm.normals import estimate_normals
-from slam.algorithm.place import PlaceDescriptor, bev_descriptor
+from slam.algorithm.place import bev_descriptor
 from slam.algorithm.submaps import SubmapRecord
 
 logger = logging.getLogger(__name__)
@@ -258,6 +258,7 @@ class LidarLoopDetector(LoopDetector):
         from map_closures.config import MapClosuresConfig
         from map_closures.map_closures import MapClosures
 
+        super().__init__()
         self.cfg = cfg
         lidar = cfg.lidar
         self._closures = MapClosures(
@@ -271,8 +272,6 @@ class LidarLoopDetector(LoopDetector):
         self._verifier = IcpVerifier(lidar)
         self._clouds: dict[int, np.ndarray] = {}
         self._travelled: dict[int, float] = {}
-        # each submap's place descriptor, kept in the session for a later merge
-        self.descriptors: dict[int, PlaceDescriptor] = {}
 
     def _eligible(self, i: int, submap: SubmapRecord) -> bool:
         return (

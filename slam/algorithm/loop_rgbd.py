@@ -58,7 +58,7 @@ from slam.algorithm.loop_keyframes import (
 )
 from slam.algorithm.loop_refine import RefineCloud, refine_scores
 from slam.algorithm.loops import LoopCandidate, LoopDetector, Verification, relative_motion
-from slam.algorithm.place import PlaceDescriptor, keyframe_descriptor
+from slam.algorithm.place import keyframe_descriptor
 from slam.algorithm.submaps import SubmapRecord
 
 logger = logging.getLogger(__name__)
@@ -407,12 +407,11 @@ class RgbdLoopDetector(LoopDetector):
     """
 
     def __init__(self, cfg: LoopClosureConfig) -> None:
+        super().__init__()
         self.cfg = cfg
         self._verifier = RgbdVerifier(cfg.rgbd)
         self._features: dict[int, KeyframeFeatures] = {}
         self._travelled: dict[int, float] = {}
-        # each submap's place descriptor, kept in the session for a later merge
-        self.descriptors: dict[int, PlaceDescriptor] = {}
 
     def process(
         self,

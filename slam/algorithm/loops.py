@@ -10,6 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from common.geometry import rotation_angle_rad
+from slam.algorithm.place import PlaceDescriptor
 from slam.algorithm.submaps import SubmapRecord
 
 RelativeCovariance = Callable[[int, int], np.ndarray]
@@ -78,7 +79,15 @@ class Verification(NamedTuple):
 
 
 class LoopDetector(ABC):
-    """Finds and verifies loops of a newly closed submap against the older ones."""
+    """Finds and verifies loops of a newly closed submap against the older ones.
+
+    Attributes:
+        descriptors: the place descriptor of every submap processed, ``{submap_id: descriptor}``
+            (kept in the run's session for a later merge, and matched by a relocalisation).
+    """
+
+    def __init__(self) -> None:
+        self.descriptors: dict[int, PlaceDescriptor] = {}
 
     @abstractmethod
     def process(

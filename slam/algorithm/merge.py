@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -35,7 +37,7 @@ from frontends.odometry.point_to_plane import point_to_plane_icp
 from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.loops import relative_motion
 from slam.algorithm.merge_config import MergeConfig
-from slam.algorithm.place import fit_matches, ratio_matches
+from slam.algorithm.place import PlaceDescriptor, fit_matches, ratio_matches
 from slam.algorithm.session import Edge, SessionRecord
 
 logger = logging.getLogger(__name__)
@@ -164,7 +166,7 @@ def check_compatible(inputs: list[SessionInput], maps: list[NeuralMap]) -> None:
             )
 
 
-def _icp_covariance(result, cfg: MergeConfig) -> np.ndarray:
+def icp_covariance(result, cfg: MergeConfig) -> np.ndarray:
     floor = np.array([cfg.loop_min_sigma_rad] * 3 + [cfg.loop_min_sigma_m] * 3) ** 2
     return result.covariance(cfg.covariance_factor) + np.diag(floor)
 
@@ -224,6 +226,33 @@ class _Ids:
             self.of.append(mapping)
 
 
+def rank_matches(
+    query: PlaceDescriptor,
+    references: Iterable[tuple[Any, PlaceDescriptor]],
+    voxel_size_m: float,
+    cfg: MergeConfig,
+) -> list[tuple[int, Any, np.ndarray]]:
+    """Descriptor matches of a query submap, best first: ``(RANSAC inliers, key, T_ref_query
+    guess)`` for at most ``cfg.max_candidates_per_submap`` of the ``(key, descriptor)``
+    references. Every reference gets a ratio-test match (a brute-force Hamming match, cheap);
+    only the ``cfg.max_fits_per_submap`` with the most matches get a RANSAC fit."""
+    shortlist = []
+    for key, reference in references:
+        index = ratio_matches(reference, query, cfg.ratio_test)
+        if len(index) >= cfg.min_descriptor_inliers:
+            shortlist.append((len(index), key, reference, index))
+    shortlist.sort(key=lambda item: -item[0])
+    ranked = []
+    for _, key, reference, index in shortlist[: cfg.max_fits_per_submap]:
+        guess, inliers = fit_matches(
+            reference, query, index, cfg.descriptor_inlier_vu * voxel_size_m
+        )
+        if guess is not None and inliers >= cfg.min_descriptor_inliers:
+            ranked.append((inliers, key, guess))
+    ranked.sort(key=lambda item: -item[0])
+    return ranked[: cfg.max_candidates_per_submap]
+
+
 def _find_inter_loops(
     inputs: list[SessionInput], ids: _Ids, decoder: SurfaceDecoder, V: float, cfg: MergeConfig
 ) -> list[InterLoop]:
@@ -233,22 +262,13 @@ def _find_inter_loops(
         for q_local, q_desc in inputs[k].session.descriptors.items():
             if q_local not in submap_of[k] or q_local not in ids.of[k]:
                 continue
-            shortlist = []  # every earlier submap by its ratio-test matches: cheap, no fit
-            for m in range(k):
-                for r_local, r_desc in inputs[m].session.descriptors.items():
-                    if r_local not in submap_of[m] or r_local not in ids.of[m]:
-                        continue
-                    index = ratio_matches(r_desc, q_desc, cfg.ratio_test)
-                    if len(index) >= cfg.min_descriptor_inliers:
-                        shortlist.append((len(index), m, r_local, r_desc, index))
-            shortlist.sort(key=lambda item: -item[0])
-            ranked = []
-            for _, m, r_local, r_desc, index in shortlist[: cfg.max_fits_per_submap]:
-                guess, inliers = fit_matches(r_desc, q_desc, index, cfg.descriptor_inlier_vu * V)
-                if guess is not None and inliers >= cfg.min_descriptor_inliers:
-                    ranked.append((inliers, m, r_local, guess))
-            ranked.sort(key=lambda item: -item[0])
-            for inliers, m, r_local, guess in ranked[: cfg.max_candidates_per_submap]:
+            references = [
+                ((m, r_local), r_desc)
+                for m in range(k)
+                for r_local, r_desc in inputs[m].session.descriptors.items()
+                if r_local in submap_of[m] and r_local in ids.of[m]
+            ]
+            for inliers, (m, r_local), guess in rank_matches(q_desc, references, V, cfg):
                 i, j = ids.of[m][r_local], ids.of[k][q_local]
                 # keyed by run folder: a run given twice is decoded once
                 reference = decoder((inputs[m].name, r_local), submap_of[m][r_local])
@@ -257,7 +277,7 @@ def _find_inter_loops(
                 scores["descriptor_inliers"] = float(inliers)
                 loop = InterLoop(i, j, m, k, accepted, reason, T, scores)
                 if accepted:
-                    loop.covariance = _icp_covariance(result, cfg)
+                    loop.covariance = icp_covariance(result, cfg)
                 logger.info("inter-session %d-%d: %s", i, j, reason)
                 loops.append(loop)
                 if accepted:  # one edge per query submap: its best verified match

@@ -17,6 +17,10 @@ into its submap, closes submaps (normals, loop cloud), detects and verifies loop
 pose graph; the *map worker* encodes, fuses and remaps. The main thread sees the graph through a
 :class:`~slam.algorithm.graph_view.GraphView`, updated at fixed frames, so results do not depend
 on timing.
+
+With a :class:`~slam.algorithm.relocalise.Relocaliser` (``slam.run --map``), each closed submap is
+also tried against a stored map until one verifies; the graph is then re-expressed in the map's
+frame, and every later result is in that frame.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import time
 from collections import defaultdict, deque
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +45,9 @@ from slam.algorithm.pose_graph import PoseGraph
 from slam.algorithm.remap import RemapEvent, Remapper
 from slam.algorithm.report import PipelineReport
 from slam.algorithm.submaps import Keyframer, KeyframeStep, SubmapRecord
+
+if TYPE_CHECKING:
+    from slam.algorithm.relocalise import Relocalisation, Relocaliser
 
 logger = logging.getLogger(__name__)
 
@@ -68,8 +76,10 @@ class FrameResult:
             submap later, see :mod:`slam.algorithm.graph_view`).
         remap: the remapping pass that came with them, or None (always None with a threaded
             map worker: see :attr:`SlamPipeline.remapper` for every pass).
-        loop_added: an accepted loop went into the pose graph and became known at this frame
-            (every anchor, so every frame's estimate, may have moved).
+        loop_added: an accepted loop went into the pose graph, or the session was relocalised,
+            and it became known at this frame (every anchor, so every frame's estimate, may have
+            moved).
+        relocalised: the session's placement in a stored map, at the frame it became known.
         frame_s: wall seconds the pipeline spent on this frame.
         odometry_s: of which the odometry's.
     """
@@ -82,6 +92,7 @@ class FrameResult:
     loops: list[LoopCandidate] = field(default_factory=list)
     remap: RemapEvent | None = None
     loop_added: bool = False
+    relocalised: Relocalisation | None = None
     frame_s: float = 0.0
     odometry_s: float = 0.0
 
@@ -110,6 +121,7 @@ class SlamPipeline:
         odometry: Odometry,
         neural_map,
         loop_detector: LoopDetector | None = None,
+        relocaliser: Relocaliser | None = None,
     ) -> None:
         keep_large_allocations_apart()
         self.cfg = cfg
@@ -124,6 +136,8 @@ class SlamPipeline:
             else make_loop_detector(cfg.loop_closure, sensor)
         )
         self.remapper = Remapper(cfg.remap, neural_map)
+        self.relocaliser = relocaliser if self.loop_detector is not None else None
+        self._relocalisation: Relocalisation | None = None  # the submap worker's
         self.submaps: dict[int, object] = {}
         self.records: dict[int, SubmapRecord] = {}
         self.timings_s: dict[str, list[float]] = defaultdict(list)
@@ -141,6 +155,8 @@ class SlamPipeline:
             "submap_worker_wait",
         ):
             self.timings_s[stage] = []
+        if self.relocaliser is not None:
+            self.timings_s["relocalisation"] = []
         self.worker = MapWorker(threaded=cfg.map_worker)
         self.submap_worker = MapWorker(
             threaded=cfg.map_worker, max_pending=SUBMAP_QUEUE_FRAMES, name="submap-worker"
@@ -228,7 +244,7 @@ class SlamPipeline:
         )
         if step.closing is not None:
             result.closed_submap_id = step.closing.submap_id
-        result.loops, result.remap, result.loop_added = self.view.take_news()
+        result.loops, result.remap, result.loop_added, result.relocalised = self.view.take_news()
         result.odometry_s = self.timings_s["odometry"][-1]
         result.frame_s = time.perf_counter() - start[0]
         self.timings_s["frame"].append(result.frame_s)
@@ -288,6 +304,8 @@ class SlamPipeline:
                 added = True
                 self._num_accepted += 1
         self._timed("pose_graph", t)
+        relocalised = self._relocalise(record)
+        added |= relocalised is not None
 
         # the keyframe's images were for loop detection; the map only needs the points
         record.keyframe = None
@@ -300,15 +318,39 @@ class SlamPipeline:
         remap = None
         if added and not self.worker.threaded and self._last_remap_moved:
             remap = self.remapper.events[-1]
-        return self._snapshot(candidates, added, remap)
+        return self._snapshot(candidates, added, remap, relocalised)
+
+    def _relocalise(self, record: SubmapRecord) -> Relocalisation | None:
+        """Try to place the session in the stored map by a closed submap, until one verifies;
+        on success the graph moves into the map's frame (submap worker)."""
+        if self.relocaliser is None or self._relocalisation is not None:
+            return None
+        assert self.loop_detector is not None
+        start = _clock()
+        found = self.relocaliser.locate(
+            record.submap_id,
+            (int(record.frame_indices[0]), int(record.frame_indices[-1])),
+            self.loop_detector.descriptors.get(record.submap_id),
+            record.points_A,
+            self.graph.pose(record.submap_id),
+        )
+        if found is not None:
+            self.graph.reframe(found.T_M_W)
+            self._relocalisation = found
+        self._timed("relocalisation", start)
+        return found
 
     def _snapshot(
-        self, candidates: list[LoopCandidate], added: bool, remap: RemapEvent | None = None
+        self,
+        candidates: list[LoopCandidate],
+        added: bool,
+        remap: RemapEvent | None = None,
+        relocalised: Relocalisation | None = None,
     ) -> GraphSnapshot:
         """The graph as the main thread will see it (taken by the graph's owner)."""
         inliers = {(e.i, e.j): e.inlier for e in self.graph.loops}
         return GraphSnapshot(
-            self.graph.poses(), candidates, inliers, self._num_accepted, added, remap
+            self.graph.poses(), candidates, inliers, self._num_accepted, added, remap, relocalised
         )
 
     def _map_job(
@@ -457,6 +499,12 @@ class SlamPipeline:
         """Current estimate of every submap anchor, ``{submap_id: T_W_A}`` (the main thread's
         :attr:`view`: exact after :meth:`drain` and :meth:`finish`)."""
         return self.view.poses()
+
+    @property
+    def relocalisation(self) -> Relocalisation | None:
+        """Where the session was placed in the stored map, as far as the main thread knows
+        (None without a relocaliser, or before a submap verified)."""
+        return self.view.relocalisation
 
     @property
     def last_remap_moved(self) -> bool:

@@ -216,6 +216,26 @@ class PoseGraph:
             self._update_cauchy_weights()
         return edge
 
+    def reframe(self, T_New_W: np.ndarray) -> None:
+        """Express the whole graph in another world frame: every anchor becomes
+        ``T_New_W @ T_W_A`` and the first anchor's prior moves with it.
+
+        A rigid change of frame leaves every relative measurement, hence every odometry and
+        loop factor and the GNC inlier decisions, as they are; only the prior and the estimate
+        change. Used when a session is relocalised in a stored map (``slam.run --map``).
+        """
+        if not self._node_ids:
+            raise ValueError("reframe() before the first anchor")
+        T_New_W = orthonormalize(np.asarray(T_New_W, dtype=np.float64))
+        first = self._node_ids[0]
+        prior = self._chain[0]
+        T_W_A0 = prior.prior().matrix()
+        self._chain[0] = gtsam.PriorFactorPose3(first, _pose3(T_New_W @ T_W_A0), prior.noiseModel())
+        moved = gtsam.Values()
+        for node in self._node_ids:
+            moved.insert(node, _pose3(T_New_W @ self.pose(node)))
+        self._reseed(moved)
+
     # --- solving ------------------------------------------------------------------------------
 
     def _gaussian_graph(self) -> gtsam.NonlinearFactorGraph:
@@ -253,10 +273,23 @@ class PoseGraph:
                 graph.add(self._loop_factor(edge, robust=False))
         return graph
 
+    def _online_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The problem the online back-end solves: with ``online_gnc`` the chain and the
+        GNC-inlier loops (Gaussian), otherwise every loop under the Cauchy kernel."""
+        if self.cfg.online_gnc:
+            return self._inlier_graph()
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._chain:
+            graph.add(factor)
+        for edge in self.loops:
+            graph.add(self._loop_factor(edge, robust=True))
+        return graph
+
     def _reseed(self, values: gtsam.Values) -> None:
-        """Restart iSAM2 at the GNC optimum ``values`` with the chain and the inlier loops."""
+        """Restart iSAM2 at ``values`` (the GNC optimum, or a reframed estimate) with the
+        online problem."""
         self._isam = self._new_isam()
-        self._isam.update(self._inlier_graph(), values)
+        self._isam.update(self._online_graph(), values)
         self._estimate = values
 
     def _update_cauchy_weights(self) -> None:
@@ -282,14 +315,7 @@ class PoseGraph:
         if self.cfg.final_optimizer == "gnc":
             self._solve_gnc()
             return self.poses()
-        if self.cfg.online_gnc:
-            graph = self._inlier_graph()
-        else:
-            graph = gtsam.NonlinearFactorGraph()
-            for factor in self._chain:
-                graph.add(factor)
-            for edge in self.loops:
-                graph.add(self._loop_factor(edge, robust=True))
+        graph = self._online_graph()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.cfg.batch_max_iterations)
         self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate, params).optimize()

@@ -185,7 +185,7 @@ def session_from_pipeline(
     loops = [Edge(e.i, e.j, e.T_Ai_Aj, graph.loop_covariance(e)) for e in graph.loops if e.inlier]
     frame_submap, frame_T_A_S = pipeline.frame_anchors()
     detector = pipeline.loop_detector
-    descriptors = dict(getattr(detector, "descriptors", {}) or {})
+    descriptors = {} if detector is None else dict(detector.descriptors)
     return SessionRecord(
         setup=dict(setup),
         node_ids=node_ids,

@@ -2,22 +2,22 @@
 
 The map folder's ``map.npz`` (its latents and session section; never its scans) is loaded and
 checked against the run's config before any frame is read (voxel size and latent storage; a
-LiDAR run whose voxel size comes from its first scan is checked after that scan). The run then
-goes as usual into ``OUT/session`` (a complete run folder of its own), and the new session is
-relocalised against the stored submaps and merged by :func:`slam.algorithm.merge.merge_sessions`:
-descriptor candidates of the new run's submaps (its first submap first) against every stored
-submap, each verified on surface points decoded from both submaps' neural maps; the new session
-is placed by its best verified edge, then one pose graph over all sessions and the remap. ``OUT``
-receives what ``slam.merge`` writes: poses of every session in the map's frame, ``sessions.csv``
-(the map's sessions, then the new one), ``loops.csv``, ``map.npz``, ``mesh.ply``,
-``metrics.json`` and the recording.
+LiDAR run whose voxel size comes from its first scan is checked after that scan). The run goes
+into ``OUT/session`` (a complete run folder of its own) and is relocalised live
+(:mod:`slam.algorithm.relocalise`): its first submap, and each later one until one verifies, is
+matched against the stored submaps and registered to the surface decoded from their latents.
+From then on the run's pose graph, poses and map are in the map's frame (``metrics.json`` of the
+session says where it was placed). A run that starts outside the stored map joins it when it
+enters it.
 
-Relocalisation runs after the last frame rather than when the first submap closes: the pipeline
-is unchanged (its keyframing and loop detection run on their own threads) and a run that starts
-outside the stored map but enters it later still joins it. When no submap of the new run verifies
-against the map, the run ends with one line saying so and exit status 1; its own run folder
-``OUT/session`` is kept (nothing is lost: ``python -m slam.merge`` can join it later, e.g. with a
-run linking both).
+After the last frame the session and the map are merged by
+:func:`slam.algorithm.merge.merge_sessions` (every submap of the session against every stored
+one, one pose graph over all sessions, the remap), and ``OUT`` receives what ``slam.merge``
+writes: poses of every session in the map's frame, ``sessions.csv`` (the map's sessions, then
+the new one), ``loops.csv``, ``map.npz``, ``mesh.ply``, ``metrics.json`` and the recording. When
+no submap of the new run verifies against the map, the run ends with one line saying so and exit
+status 1; its own run folder ``OUT/session`` is kept (nothing is lost: ``python -m slam.merge``
+can join it later, e.g. with a run linking both).
 """
 
 from __future__ import annotations
@@ -39,6 +39,14 @@ def load_map_folder(folder: Path, cfg) -> tuple:
     previous = load_run(folder)
     check_config(previous[1], cfg, folder, before_first_scan=True)
     return previous
+
+
+def make_relocaliser(previous: tuple):
+    """The live relocaliser of a ``--map`` run against the loaded map folder."""
+    from slam.algorithm.relocalise import Relocaliser
+
+    stored, stored_map = previous
+    return Relocaliser(stored, stored_map)
 
 
 def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None:

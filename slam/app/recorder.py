@@ -63,6 +63,7 @@ class RunRecorder(Recorder):
         self.cfg = cfg
         self._tracks = {"odometry": _Track(), "optimized": _Track(), "gt": _Track()}
         self._T_W_Wgt: np.ndarray | None = None
+        self._T_W_O = np.eye(4)  # the odometry's frame in the shown world (moves at relocalisation)
         self._num_frames = 0
 
     def frame(self, frame: Frame, result: FrameResult) -> None:
@@ -101,7 +102,9 @@ class RunRecorder(Recorder):
         self.viz.log_metrics_from(self._errors_so_far)
 
     def _track(self, frame: Frame, result: FrameResult) -> None:
-        self._tracks["odometry"].append(result.T_W_S_odometry[:3, 3])
+        if result.relocalised is not None:
+            self._move_to_map(result.relocalised.T_M_W)
+        self._tracks["odometry"].append((self._T_W_O @ result.T_W_S_odometry)[:3, 3])
         if result.loop_added:  # a loop moved the anchors: every frame's estimate changed
             self._tracks["optimized"].replace(self.pipeline.slam_poses()[:, :3, 3])
         else:
@@ -113,6 +116,15 @@ class RunRecorder(Recorder):
             if self._T_W_Wgt is not None:
                 self._tracks["gt"].append((self._T_W_Wgt @ gt)[:3, 3])
         self._num_frames += 1
+
+    def _move_to_map(self, T_M_W: np.ndarray) -> None:
+        """The run was placed in a stored map: its odometry and ground-truth tracks follow the
+        optimised one into the map's frame."""
+        self._T_W_O = T_M_W @ self._T_W_O
+        self._tracks["odometry"].replace(transform_points(T_M_W, self._tracks["odometry"].view()))
+        self._tracks["gt"].replace(transform_points(T_M_W, self._tracks["gt"].view()))
+        if self._T_W_Wgt is not None:
+            self._T_W_Wgt = T_M_W @ self._T_W_Wgt
 
     def _log_trajectories(self) -> None:
         for name in ("odometry", "optimized"):

@@ -58,12 +58,14 @@ def execute(
     progress: bool,
     announce=None,
     check_config=None,
+    relocaliser=None,
 ) -> dict[str, Any]:
     """Run the pipeline on the configured sequence and write the run folder; returns metrics.
 
     ``announce(line)`` receives what the user must see while the run goes on (the viewer URL of
     ``viz.mode: serve``, and the summary before serving on after the run). ``check_config(cfg)``
-    may refuse the final config (after the first scan set its scale) by raising.
+    may refuse the final config (after the first scan set its scale) by raising. A
+    :class:`~slam.algorithm.relocalise.Relocaliser` places the run in a stored map (``--map``).
 
     ``run_status.json`` says whether the run finished (see :data:`RUN_STATUS_FILE`): it is
     ``running`` until the end (so a killed run stays ``running``), and ``interrupted``,
@@ -83,7 +85,7 @@ def execute(
     state = _RunState(frames_total=len(source))
     outputs.write_status("running", 0, state.frames_total)
     try:
-        return _run(entry, cfg, folder, progress, announce, outputs, source, state)
+        return _run(entry, cfg, folder, progress, announce, outputs, source, state, relocaliser)
     except BaseException as exc:
         _record_failure(outputs, state, exc)
         if state.viz is not None:
@@ -118,7 +120,7 @@ def _record_failure(outputs, state: _RunState, exc: BaseException) -> None:
         logger.warning("could not write the run status: %s", write_exc)
 
 
-def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunState):
+def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunState, relocaliser):
     from slam.algorithm.pipeline import SlamPipeline
     from slam.app.builders import build_logger, build_map, build_odometry
     from slam.app.recorder import make_recorder
@@ -143,7 +145,9 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     viewer_url = viz.viewer_url
     if viewer_url:
         say(f"viewer: {viewer_url}")
-    pipeline = SlamPipeline(cfg.pipeline_config(), sensor, odometry, neural_map)
+    pipeline = SlamPipeline(
+        cfg.pipeline_config(), sensor, odometry, neural_map, relocaliser=relocaliser
+    )
     recorder = make_recorder(pipeline, viz, cfg.viz)
     logger.info("%s: %d frames, sensor %s", source.name, len(source), sensor)
 
@@ -176,6 +180,11 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
                 continue
             result = pipeline.process(frame)
             recorder.frame(frame, result)
+            if result.relocalised is not None:
+                line = _relocalised_line(frame.index, result.relocalised)
+                logger.info("%s", line)
+                if announce is not None:
+                    (bar.write if bar is not None else announce)(line)
             if intrinsics is None and frame.intrinsics is not None:
                 intrinsics = frame.intrinsics
             if result.closed_submap_id is not None:
@@ -241,6 +250,8 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         "skipped_frames": skipped,
         "tracking_failures": odometry.num_failures,
     }
+    if relocaliser is not None:
+        metrics["relocalisation"] = _relocalisation_metrics(pipeline, relocaliser)
     metrics["warnings"] = input_warnings(metrics, cfg.source.min_points)
     for warning in metrics["warnings"]:
         logger.warning("%s", warning)
@@ -260,6 +271,35 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         _linger(cfg.viz.serve_linger_s, say)
     viz.close()
     return metrics
+
+
+def _relocalised_line(frame_index: int, found) -> str:
+    scores = found.scores
+    return (
+        f"relocalised in the map at frame {frame_index}: submap {found.submap_id} on the map's "
+        f"submap {found.map_submap_id} (inlier fraction {scores['inlier_fraction']:.2f}, "
+        f"residual {100 * scores['residual_sigma_m']:.1f} cm; {found.attempts} submaps tried); "
+        "poses and map from here on are in the map's frame"
+    )
+
+
+def _relocalisation_metrics(pipeline, relocaliser) -> dict[str, Any]:
+    """``metrics.json``'s ``relocalisation``: where and how the run was placed in the map."""
+    found = pipeline.relocalisation
+    out: dict[str, Any] = {
+        "relocalised": found is not None,
+        "submaps_tried": relocaliser.attempts,
+        "seconds": relocaliser.seconds,
+    }
+    if found is not None:
+        out.update(
+            submap=found.submap_id,
+            submap_frames=list(found.frames),
+            map_submap=found.map_submap_id,
+            T_M_W=found.T_M_W.tolist(),
+            scores={k: float(v) for k, v in found.scores.items()},
+        )
+    return out
 
 
 def input_warnings(metrics: dict[str, Any], min_points: int) -> list[str]:
