@@ -21,7 +21,9 @@ rebuilt on load (equal to the saved one up to float32 rounding of the fusion ord
 
 Version 3 adds an optional *session* section (DESIGN section 10): ``header["session"]`` (JSON)
 and arrays named ``session_*``, written and read opaquely here (the SLAM layer defines them; see
-``slam.algorithm.session``). Version 2 files still load as maps; :func:`load_session` refuses them.
+``slam.algorithm.session``). Version 4 changes only that section (frames' anchor-relative poses
+as float32 quaternion and translation instead of float64 matrices). Version 2 and 3 files still
+load as maps; :func:`load_session` reads only the current version's section and refuses theirs.
 
 Files are written to a temporary file in the target folder and moved into place.
 """
@@ -48,8 +50,8 @@ if TYPE_CHECKING:
     from mapping.neural_map import NeuralMap, Submap
 
 FORMAT = "neural-remap-slam/map"
-VERSION = 3
-READABLE_VERSIONS = (2, 3)
+VERSION = 4
+READABLE_VERSIONS = (2, 3, 4)
 SESSION_PREFIX = "session_"
 _PER_VOXEL = ("keys", "weights", "latent_coeffs", "jacobian_coeffs")
 _PER_SUBMAP = ("latent_basis", "jacobian_basis", "jacobian_scales")
@@ -261,16 +263,17 @@ def load_map(
 def load_session(path: str | Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
     """``(map header, session header, session arrays)`` of a map file with a session section.
 
-    A file without one (version 2, or saved without a session) is a one-line
-    :class:`MapFileError` saying to re-run ``slam.run``.
+    A file without one (saved without a session) or with an older version's (2 has none, 3 an
+    older layout) is a one-line :class:`MapFileError` saying to re-run ``slam.run``.
     """
     path = Path(path)
     data = _read_npz(path)
     header = _header(path, data)
     if header.get("version") != VERSION or not isinstance(header.get("session"), dict):
         raise MapFileError(
-            f"{path}: map format version {header.get('version')} without session data cannot be "
-            f"merged; re-run `python -m slam.run` on the sequence to write a version {VERSION} map"
+            f"{path}: map format version {header.get('version')} holds no session data of version "
+            f"{VERSION} and cannot be merged; re-run `python -m slam.run` on the sequence to write "
+            f"a version {VERSION} map"
         )
     arrays = {
         name[len(SESSION_PREFIX) :]: value

@@ -240,3 +240,56 @@ def test_bev_descriptor_recovers_a_planar_motion():
     assert T is not None and inliers >= 20
     assert np.linalg.norm(T[:3, 3] - t) < 0.2
     assert np.abs(T[:3, :3] - R).max() < 0.02
+
+
+def _planes(rng, ghost: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A room corner with a box (points, normals); ``ghost`` adds a surface 5 cm above part of
+    the floor, which the other side does not have, and a wall beyond the other's surfaces."""
+    X, Y, Z = np.eye(3)
+    O = np.zeros(3)
+    specs = [(O, X, Y, Z, 2.0, 2.0), (O, Y, Z, X, 2.0, 1.0), (O, X, Z, Y, 2.0, 1.0),
+             (np.array([1.2, 1.2, 0]), X, Z, -Y, 0.6, 0.5)]  # fmt: skip
+    if ghost:
+        specs += [(np.array([0.8, 0.2, 0.05]), X, Y, Z, 0.9, 0.9),
+                  (np.array([2.5, 0.0, 0.0]), Y, Z, -X, 2.0, 1.0)]  # fmt: skip
+    points, normals = [], []
+    for origin, u, v, n, size_u, size_v in specs:
+        a, b = (g.reshape(-1, 1) for g in np.meshgrid(np.arange(0, size_u, 0.03),
+                                                      np.arange(0, size_v, 0.03)))  # fmt: skip
+        points.append(origin + a * u + b * v + rng.normal(0, 0.002, (len(a), 3)))
+        normals.append(np.tile(n, (len(a), 1)))
+    return np.concatenate(points), np.concatenate(normals)
+
+
+def test_merge_verification_is_not_pulled_by_surfaces_one_side_lacks():
+    """Decoded surfaces of two sessions overlap only in part: the ICP's last gate is fine enough
+    that a surface only one side has (5 cm off the other's) does not bias the edge, while the
+    overlap that decides acceptance is measured at its own gate, whatever the ICP's gates."""
+    from scipy.spatial.transform import Rotation
+
+    from slam.algorithm.loops import relative_motion
+    from slam.algorithm.merge import verify
+    from slam.algorithm.merge_config import MergeConfig
+
+    rng = np.random.default_rng(0)
+    reference = _planes(rng, ghost=False)
+    points, normals = _planes(rng, ghost=True)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.02, -0.03, 0.3]).as_matrix()
+    T[:3, 3] = [0.3, -0.2, 0.05]
+    R_inv = T[:3, :3].T
+    query = ((points - T[:3, 3]) @ R_inv.T, normals @ R_inv.T)
+    guess = T.copy()
+    guess[:3, :3] = Rotation.from_rotvec([0, 0, 0.03]).as_matrix() @ T[:3, :3]
+    guess[:3, 3] += [0.05, -0.04, 0.06]
+    errors, overlaps = {}, {}
+    coarse = MergeConfig(icp_gates_vu=(3.0, 1.5, 0.75))
+    for name, cfg in (("default", MergeConfig()), ("coarse", coarse)):
+        accepted, reason, T_found, scores, _ = verify(reference, query, guess, 0.1, cfg)
+        assert accepted, reason
+        errors[name] = relative_motion(T, T_found)
+        overlaps[name] = scores["inlier_fraction"]
+    assert errors["default"][0] < 0.002 and errors["default"][1] < 0.05
+    assert errors["coarse"][0] > 3 * errors["default"][0]  # what a wide last gate costs
+    assert 0.6 < overlaps["default"] < 0.95  # the extra wall overlaps nothing
+    assert abs(overlaps["default"] - overlaps["coarse"]) < 0.02

@@ -35,13 +35,24 @@ class MergeConfig(BaseModel):
         2, ge=1, description="lattice cells per voxel edge when decoding a submap's surface"
     )
     icp_gates_vu: tuple[float, ...] = Field(
-        (3.0, 1.5, 0.75), description="point-to-plane ICP correspondence gates, voxel units"
+        (3.0, 1.5, 0.75, 0.4, 0.25),
+        description="point-to-plane ICP correspondence gates, voxel units (the last sets the "
+        "pose's accuracy)",
+    )
+    overlap_gate_vu: float = Field(
+        0.75,
+        gt=0,
+        description="after ICP, a query surface point within this distance of the reference "
+        "surface counts as overlapping (inlier fraction, residual), voxel units",
     )
     min_inlier_fraction: float = Field(
-        0.4, ge=0, le=1, description="query surface points within the last gate after ICP"
+        0.4, ge=0, le=1, description="overlapping query surface points (overlap_gate_vu) after ICP"
     )
     max_residual_vu: float = Field(
-        0.25, gt=0, description="robust point-to-plane residual sigma allowed, voxel units"
+        0.25,
+        gt=0,
+        description="robust point-to-plane residual sigma of the overlapping points allowed, "
+        "voxel units",
     )
     min_eigenvalue: float = Field(
         0.01, ge=0, description="smallest normalised ICP Hessian eigenvalue (not degenerate)"

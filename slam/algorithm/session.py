@@ -11,9 +11,13 @@ other runs without the raw data (DESIGN section 10).
   (``dataset_mirror``), so merged trajectories are written in the dataset's frames.
 
 :meth:`SessionRecord.to_arrays` / :meth:`SessionRecord.from_arrays` turn it into named numpy arrays
-and a JSON-able header; :mod:`mapping.map_io` stores them opaquely in the map file. Poses stay
-float64 (a merge of a run with itself must reproduce its poses); covariances are float32 and
-descriptor positions float16 (they only seed a verification).
+and a JSON-able header; :mod:`mapping.map_io` stores them opaquely in the map file. Anchor poses
+and factors stay float64 (the graph a merge optimises is the run's own); a frame's pose relative to
+its anchor is a float32 unit quaternion and translation (``frame_pose_A_S``: ``[qx, qy, qz, qw,
+tx, ty, tz]``; rounding moves a frame by about 1e-7 of its distance from the anchor and turns it
+by about 1e-7 rad, far below what a run measures, so a merge of a run with itself reproduces its
+poses to that); covariances are float32 and descriptor positions float16 (they only seed a
+verification).
 """
 
 from __future__ import annotations
@@ -21,8 +25,34 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from slam.algorithm.place import PlaceDescriptor
+
+
+def pack_relative_poses(T: np.ndarray) -> np.ndarray:
+    """(N, 7) float32 ``[qx, qy, qz, qw, tx, ty, tz]`` of (N, 4, 4) rigid transforms (qw >= 0)."""
+    T = np.asarray(T, np.float64).reshape(-1, 4, 4)
+    if len(T) == 0:
+        return np.zeros((0, 7), np.float32)
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+    q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
+    return np.hstack([q, T[:, :3, 3]]).astype(np.float32)
+
+
+def unpack_relative_poses(packed: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) float64 transforms of :func:`pack_relative_poses` rows (quaternions normalised)."""
+    packed = np.asarray(packed, np.float64)
+    if packed.ndim != 2 or packed.shape[1] != 7:
+        raise ValueError("session frame poses must be (N, 7) quaternion and translation rows")
+    T = np.tile(np.eye(4), (len(packed), 1, 1))
+    if len(packed):
+        norms = np.linalg.norm(packed[:, :4], axis=1)
+        if not np.all(np.isfinite(packed)) or np.any(norms < 0.5):
+            raise ValueError("session frame poses hold invalid quaternions")
+        T[:, :3, :3] = Rotation.from_quat(packed[:, :4]).as_matrix()
+        T[:, :3, 3] = packed[:, 4:]
+    return T
 
 
 @dataclass
@@ -101,7 +131,7 @@ class SessionRecord:
             "node_ids": np.asarray(self.node_ids, np.int64),
             "T_W_A": np.asarray(self.T_W_A, np.float64).reshape(-1, 4, 4),
             "frame_submap": np.asarray(self.frame_submap, np.int64),
-            "frame_T_A_S": np.asarray(self.frame_T_A_S, np.float64).reshape(-1, 4, 4)[:, :3],
+            "frame_pose_A_S": pack_relative_poses(self.frame_T_A_S),
             "timestamps": np.asarray(self.timestamps, np.float64),
             "dataset_mirror": np.asarray(self.dataset_mirror, np.float64),
             "descriptor_ids": np.asarray(ids, np.int64),
@@ -128,13 +158,11 @@ class SessionRecord:
         if T_W_A.shape != (len(node_ids), 4, 4):
             raise ValueError("session anchors and their poses disagree")
         frame_submap = arrays["frame_submap"].astype(np.int64)
-        rows = arrays["frame_T_A_S"].astype(np.float64)
-        if rows.shape != (len(frame_submap), 3, 4) or not set(frame_submap.tolist()) <= set(
+        frame_T_A_S = unpack_relative_poses(arrays["frame_pose_A_S"])
+        if len(frame_T_A_S) != len(frame_submap) or not set(frame_submap.tolist()) <= set(
             node_ids.tolist()
         ):
             raise ValueError("session frames refer to unknown anchors")
-        frame_T_A_S = np.tile(np.eye(4), (len(rows), 1, 1))
-        frame_T_A_S[:, :3] = rows
 
         def edges(name: str) -> list[Edge]:
             ij, T, cov = (arrays[f"{name}_{k}"] for k in ("ij", "T", "cov"))
