@@ -15,7 +15,9 @@ run's ATE, inter-session loops found and their error against the ground truth (f
 dataset's KinectFusion poses, themselves cm-level off), merge wall time and peak RSS beside the
 full run's, the bytes the session section adds to ``map.npz``, and the merged map's mesh against
 (a) the raw points re-fused under the merged poses (what remapping must match) and (b) the full
-run's mesh (mean symmetric surface distance). Writes ``benchmarks/results/merge.md`` and
+run's mesh (mean symmetric surface distance). Then the second half once more as ``slam.run
+--map`` of the first: where it was relocalised while it ran, and how far its live poses are from
+where the final merge puts them. Writes ``benchmarks/results/merge.md`` and
 ``.json``.
 """
 
@@ -222,7 +224,30 @@ def scenario(name: str, quick: bool, work: Path) -> dict[str, Any]:
     refused = _refused_map(work / "merged", work / "full" / "config.yaml")
     out["mesh_vs_refused"] = _mesh_distance(merged_mesh, refused)
     out["mesh_vs_full_run"] = _mesh_distance(merged_mesh, full_mesh)
+    out["continued"] = _continued(spec, runs["b"], common, work)
     return out
+
+
+def _continued(spec, frames: str, common: list[str], work: Path) -> dict[str, Any]:
+    """Session B again, as ``slam.run --map A``: where it was relocalised live, how far its
+    live poses (in its own run folder) are from where the final merge puts them, and the
+    continued map's combined ATE."""
+    from slam.app.trajectory_io import read_kitti
+
+    out_dir = work / "continued"
+    wall, rss = _child("slam.run", [*spec.run_args, "--frames", frames, *common, "--map",
+                                    str(work / "a"), "--out", str(out_dir)],
+                       work / "continued.log")  # fmt: skip
+    live = json.loads((out_dir / "session" / "metrics.json").read_text())["relocalisation"]
+    merged = json.loads((out_dir / "metrics.json").read_text())
+    own = read_kitti(out_dir / "session" / "poses_slam.kitti.txt")
+    final = read_kitti(out_dir / "poses_slam.kitti.txt")[-len(own) :]
+    gap = np.linalg.norm(own[:, :3, 3] - final[:, :3, 3], axis=1)
+    return {"wall_s": wall, "peak_rss_mb": rss, "relocalised": live["relocalised"],
+            "submap_frames": live.get("submap_frames"), "submaps_tried": live["submaps_tried"],
+            "relocalisation_s": live["seconds"],
+            "live_vs_merged_max_m": float(gap.max()), "live_vs_merged_mean_m": float(gap.mean()),
+            "combined_ate_m": merged.get("combined_ate_rmse_m")}  # fmt: skip
 
 
 def _cm(v: float | None) -> str:
@@ -263,9 +288,26 @@ def report(results: dict[str, Any], command: str) -> str:
             f"{_cm(r['mesh_vs_refused']['symmetric_m'])} |",
             f"| merged mesh vs full run's mesh [cm] | "
             f"{_cm(r['mesh_vs_full_run']['symmetric_m'])} |",
+            *_continued_rows(r["continued"]),
             "",
         ]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def _continued_rows(c: dict[str, Any]) -> list[str]:
+    placed = (
+        f"frames {c['submap_frames'][0]}-{c['submap_frames'][1]} "
+        f"({c['submaps_tried']} submap(s) tried, {c['relocalisation_s']:.1f} s)"
+        if c["relocalised"]
+        else f"not placed ({c['submaps_tried']} submaps tried)"
+    )
+    return [
+        f"| `--map A` on session B: relocalised live by | {placed} |",
+        f"| `--map A`: live poses vs merged, mean / max [cm] | "
+        f"{_cm(c['live_vs_merged_mean_m'])} / {_cm(c['live_vs_merged_max_m'])} |",
+        f"| `--map A`: combined ATE [cm] / wall [s] / peak RSS [MB] | "
+        f"{_cm(c['combined_ate_m'])} / {c['wall_s']:.1f} / {c['peak_rss_mb']:.0f} |",
+    ]
 
 
 def build_parser() -> argparse.ArgumentParser:

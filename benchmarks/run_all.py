@@ -42,6 +42,9 @@ BENCH_DIR = REPO / "benchmarks"
 LOG_DIR = WORK_DIR / "logs"
 STATUS_NAME = "run_all.json"
 OUTPUT_FILE = REPO / "BENCHMARKS.md"
+ARCHIVE_DIR = BENCH_DIR / "archive" / "full-runs"
+"""Full-length runs (longer than a quick invocation allows), each a section written by its own
+script; :func:`assemble` appends them after this invocation's sections, marked as such."""
 
 BENCHMARKS = (
     "odometry",
@@ -172,8 +175,15 @@ def header_lines(record: dict) -> list[str]:
     ]
 
 
-def assemble(record: dict, *, results_dir: Path = RESULTS_DIR, output: Path = OUTPUT_FILE) -> Path:
-    """Write ``output`` from an invocation ``record`` and the sections in ``results_dir``."""
+def assemble(
+    record: dict,
+    *,
+    results_dir: Path = RESULTS_DIR,
+    output: Path = OUTPUT_FILE,
+    archive_dir: Path | None = ARCHIVE_DIR,
+) -> Path:
+    """Write ``output`` from an invocation ``record`` and the sections in ``results_dir``, then
+    the full-length runs kept in ``archive_dir`` (see :func:`archived_lines`)."""
     statuses = record.get("benchmarks", [])
     lines = header_lines(record)
     lines += ["| benchmark | status | wall time [s] | command |", "|---|---|---:|---|"]
@@ -192,8 +202,34 @@ def assemble(record: dict, *, results_dir: Path = RESULTS_DIR, output: Path = OU
             lines += ["", "```text", state["detail"].strip(), "```", ""]
         elif section.is_file():
             lines += [section.read_text().rstrip(), ""]
+    if archive_dir is not None:
+        lines += archived_lines(archive_dir)
     write_text_atomic(output, "\n".join(lines).rstrip() + "\n")
     return output
+
+
+def archived_lines(archive_dir: Path) -> list[str]:
+    """The archived full-length sections, after a heading that says they are not this
+    invocation's: each states its own command, revision, date and machine."""
+    sections = sorted(p for p in archive_dir.glob("*.md") if p.name != "README.md")
+    if not sections:
+        return []
+    where = archive_dir.relative_to(REPO) if archive_dir.is_relative_to(REPO) else archive_dir
+    lines = [
+        '<a id="full-length-runs"></a>',
+        "",
+        "# Full-length runs (not part of the invocation above)",
+        "",
+        f"Kept in `{where}`: runs longer than a quick invocation allows, each made by the script",
+        "and command its section names, on the machine and at the revision it states.",
+        "",
+    ]
+    for path in sections:
+        text = path.read_text().rstrip()
+        if text.startswith("# "):  # one level below this heading
+            text = "#" + text
+        lines += [f'<a id="full-{path.stem}"></a>', "", text, ""]
+    return lines
 
 
 def clear_results(results_dir: Path = RESULTS_DIR) -> None:

@@ -89,6 +89,30 @@ def test_assembled_report_names_command_revision_and_only_this_invocations_secti
     assert "Stale prior section" not in text
 
 
+def test_archived_full_runs_follow_the_invocation_marked_as_such(tmp_path):
+    results, archive = tmp_path / "results", tmp_path / "archive"
+    results.mkdir()
+    archive.mkdir()
+    (results / "odometry.md").write_text("## Odometry\n")
+    (archive / "README.md").write_text("# why each run is kept\n")
+    (archive / "merge-full.md").write_text("## Multi-session merge\n\n- Command: `x`\n")
+    (archive / "profile.md").write_text("# Profile\n")
+    record = _record("python -m benchmarks.run_all --quick")
+    text = run_all.assemble(
+        record, results_dir=results, output=tmp_path / "B.md", archive_dir=archive
+    ).read_text()
+    invocation, archived = text.split("# Full-length runs (not part of the invocation above)")
+    assert "## Odometry" in invocation and "Multi-session merge" not in invocation
+    assert "## Multi-session merge" in archived and "\n## Profile" in archived
+    assert "why each run is kept" not in text
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    text = run_all.assemble(
+        record, results_dir=results, output=tmp_path / "C.md", archive_dir=empty
+    ).read_text()
+    assert "Full-length runs" not in text
+
+
 def test_clear_results_leaves_nothing_from_an_earlier_invocation(tmp_path):
     (tmp_path / "throughput.json").write_text("{}")
     (tmp_path / "slam.md").write_text("old")
