@@ -244,6 +244,7 @@ def _continued(spec, frames: str, common: list[str], work: Path) -> dict[str, An
     final = read_kitti(out_dir / "poses_slam.kitti.txt")[-len(own) :]
     gap = np.linalg.norm(own[:, :3, 3] - final[:, :3, 3], axis=1)
     return {"wall_s": wall, "peak_rss_mb": rss, "relocalised": live["relocalised"],
+            "frames": len(own),
             "submap_frames": live.get("submap_frames"), "submaps_tried": live["submaps_tried"],
             "relocalisation_s": live["seconds"],
             "live_vs_merged_max_m": float(gap.max()), "live_vs_merged_mean_m": float(gap.mean()),
@@ -296,7 +297,7 @@ def report(results: dict[str, Any], command: str) -> str:
 
 def _continued_rows(c: dict[str, Any]) -> list[str]:
     placed = (
-        f"frames {c['submap_frames'][0]}-{c['submap_frames'][1]} "
+        f"frames {c['submap_frames'][0]}-{c['submap_frames'][1]} of its {c['frames']} "
         f"({c['submaps_tried']} submap(s) tried, {c['relocalisation_s']:.1f} s)"
         if c["relocalised"]
         else f"not placed ({c['submaps_tried']} submaps tried)"
