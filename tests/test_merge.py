@@ -183,7 +183,7 @@ def test_run_merged_with_itself_is_unchanged(runs, tmp_path: Path):
     np.testing.assert_allclose(after.latents.numpy(), before.latents.numpy(), atol=1e-5)
 
 
-def test_different_voxel_size_is_refused(runs, tmp_path: Path):
+def test_different_voxel_size_or_no_descriptors_is_refused(runs, tmp_path: Path):
     out = tmp_path / "out"
     result = _python("slam.merge", str(runs["a"]), str(runs["coarse"]), "--out", str(out))
     _one_line_error(result, "voxel size", str(runs["coarse"]))
@@ -195,6 +195,12 @@ def test_different_voxel_size_is_refused(runs, tmp_path: Path):
         "--map", str(runs["coarse"]), *ROOM,
     )  # fmt: skip
     _one_line_error(result, "voxel size", str(runs["coarse"]), "mapping.voxel_size_m=0.15")
+    assert not out.exists() and not data.exists()
+    result = _python(
+        "slam.run", "demo", "--root", str(data), "--no-viz", "--no-progress", "--out", str(out),
+        "--map", str(runs["a"]), "--set", "loop_closure.enabled=false", *ROOM,
+    )  # fmt: skip
+    _one_line_error(result, "loop closure is off", "loop_closure.enabled=true")
     assert not out.exists() and not data.exists()
 
 

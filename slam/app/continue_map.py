@@ -50,7 +50,13 @@ def make_relocaliser(previous: tuple):
 
 
 def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None:
-    """One-line :class:`DatasetError` when the run's map settings differ from the stored map's."""
+    """One-line :class:`DatasetError` when the run's map settings differ from the stored map's,
+    or when it would make no place descriptors (loop closure off) to be relocalised by."""
+    if not cfg.loop_closure.enabled:
+        raise DatasetError(
+            f"--map {folder}: loop closure is off, so this run has no place descriptors to be "
+            "relocalised in the map; run with loop_closure.enabled=true"
+        )
     mapping = cfg.mapping
     scaled = cfg.source.lidar.scale_from_first_scan and (
         "voxel_size_m" not in mapping.model_fields_set
