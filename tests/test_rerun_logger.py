@@ -245,3 +245,21 @@ def test_mesh_decimation_keeps_the_surface_within_budget() -> None:
     assert np.abs(np.linalg.norm(vertices, axis=1) - 1.0).max() < 0.1
     same = decimate_mesh(sphere.vertices, sphere.faces, 30000)
     assert same[1] is not None and len(same[1]) == len(sphere.faces)
+
+
+def test_stored_map_of_a_continued_run_is_shown_once(tmp_path: Path) -> None:
+    import trimesh
+
+    mesh_path = tmp_path / "mesh.ply"
+    trimesh.creation.box(extents=(2.0, 1.0, 0.5)).export(mesh_path)
+    shown = RerunLogger(rrd_path=tmp_path / "shown.rrd")
+    shown.log_stored_map(mesh_path)
+    shown.close()
+    missing = RerunLogger(rrd_path=tmp_path / "missing.rrd")
+    missing.log_stored_map(tmp_path / "no-such-mesh.ply")  # a warning, not an error
+    missing.set_time(0, 0.0)
+    missing.log_scan(np.zeros((10, 3)))
+    missing.close()
+    summary = summarize_recording(tmp_path / "shown.rrd")
+    assert "world/stored_map/mesh" in summary.entities
+    assert "world/stored_map/mesh" not in summarize_recording(tmp_path / "missing.rrd").entities

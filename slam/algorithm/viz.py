@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -76,6 +77,11 @@ class Logger(ABC):
     def log_metrics_from(self, scalars: Callable[[], dict[str, float]]) -> None:
         """:meth:`log_metrics` of what ``scalars()`` returns (e.g. the error so far)."""
         self.log_metrics(**scalars())
+
+    def log_stored_map(self, mesh_path: Path) -> None:  # noqa: B027 - optional hook
+        """The mesh of the map a run continues (``slam.run --map``), in the map's frame: the
+        run appears on it once it is relocalised. Read from ``mesh_path`` by a logger that
+        shows it, so a logger recording nothing never pays for it."""
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Flush and close the recording."""

@@ -376,12 +376,12 @@ def _main(argv: list[str], debug: bool) -> int:
     try:
         args = build_parser().parse_args(argv)
         entry, cfg = resolve_config(args)
-        previous = relocaliser = None
+        previous = continued = None
         if args.map is not None:  # refuse a map the run cannot join before reading a frame
-            from slam.app.continue_map import load_map_folder, make_relocaliser
+            from slam.app.continue_map import continued_map, load_map_folder
 
             previous = load_map_folder(args.map, cfg)
-            relocaliser = make_relocaliser(previous)
+            continued = continued_map(previous, args.map)
         folder, created = run_folder(cfg, args)
         _setup_logging(folder / "run.log", args.verbose)
         from slam.app.runner import execute
@@ -393,7 +393,7 @@ def _main(argv: list[str], debug: bool) -> int:
             progress=not args.no_progress,
             announce=lambda line: print(line, file=sys.stderr, flush=True),
             check_config=None if previous is None else _map_check(previous, args.map),
-            relocaliser=relocaliser,
+            continued=continued,
         )
         if previous is not None:
             from slam.app.continue_map import merge_into

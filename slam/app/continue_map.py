@@ -23,11 +23,15 @@ can join it later, e.g. with a run linking both).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from frontends.errors import DatasetError
 from slam.algorithm.merge import LATENT_STORAGE_FIELDS
+
+if TYPE_CHECKING:
+    from slam.algorithm.relocalise import Relocaliser
 
 SESSION_FOLDER = "session"
 
@@ -41,12 +45,25 @@ def load_map_folder(folder: Path, cfg) -> tuple:
     return previous
 
 
-def make_relocaliser(previous: tuple):
-    """The live relocaliser of a ``--map`` run against the loaded map folder."""
+@dataclass
+class ContinuedMap:
+    """What a ``--map`` run needs of the map it continues while it runs.
+
+    Attributes:
+        relocaliser: places the run's submaps in the map (:mod:`slam.algorithm.relocalise`).
+        mesh_path: the map's mesh, shown beneath the run in its recording.
+    """
+
+    relocaliser: Relocaliser
+    mesh_path: Path
+
+
+def continued_map(previous: tuple, folder: Path) -> ContinuedMap:
+    """The :class:`ContinuedMap` of the loaded map folder ``folder``."""
     from slam.algorithm.relocalise import Relocaliser
 
     stored, stored_map = previous
-    return Relocaliser(stored, stored_map)
+    return ContinuedMap(Relocaliser(stored, stored_map), folder / "mesh.ply")
 
 
 def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None:

@@ -14,6 +14,7 @@ Entities follow the frame tree (all in the world frame ``world``)::
     world/loop_closures_rejected   LineStrips3D, rejected candidates
     world/map/voxels               Points3D, voxel centres coloured by weight
     world/map/mesh                 Mesh3D
+    world/stored_map/mesh          Mesh3D, static: the map a ``--map`` run continues
     metrics/{timing,error,counts}/<name>   Scalars
 
 Timelines: ``frame`` (sequence) and ``sensor_time`` (a duration, or a timestamp when the source
@@ -362,6 +363,21 @@ class RerunLogger(Logger):
     def log_mesh(self, mesh: trimesh.Trimesh) -> None:
         """Log ``mesh`` at ``world/map/mesh`` (also called by :meth:`log_map`), decimated by
         vertex clustering to at most ``mesh_max_faces`` faces."""
+        self._log_mesh("world/map/mesh", mesh, (200, 200, 210, 255))
+
+    def log_stored_map(self, mesh_path: Path) -> None:
+        """The continued map's ``mesh.ply`` at ``world/stored_map/mesh`` (static, tinted apart
+        from the run's own map); a missing file is logged as a warning, not an error."""
+        if not mesh_path.is_file():
+            log.warning("%s not found: the continued map is not shown", mesh_path)
+            return
+        mesh = trimesh.load(mesh_path, force="mesh", process=False)
+        mesh.visual = trimesh.visual.ColorVisuals(mesh)  # one tint, not the stored colours
+        self._log_mesh("world/stored_map/mesh", mesh, (150, 170, 215, 255), static=True)
+
+    def _log_mesh(
+        self, entity: str, mesh: trimesh.Trimesh, albedo: tuple[int, ...], static: bool = False
+    ) -> None:
         import rerun as rr
 
         vertex_colors = None
@@ -375,14 +391,15 @@ class RerunLogger(Logger):
             shown = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
             normals = np.asarray(shown.vertex_normals, dtype=np.float32)
         self.rec.log(
-            "world/map/mesh",
+            entity,
             rr.Mesh3D(
                 vertex_positions=vertices.astype(np.float32),
                 triangle_indices=faces.astype(np.uint32),
                 vertex_normals=normals,
                 vertex_colors=vertex_colors,
-                albedo_factor=None if vertex_colors is not None else (200, 200, 210, 255),
+                albedo_factor=None if vertex_colors is not None else albedo,
             ),
+            static=static,
         )
 
     # -- metrics ------------------------------------------------------------------------------

@@ -58,14 +58,14 @@ def execute(
     progress: bool,
     announce=None,
     check_config=None,
-    relocaliser=None,
+    continued=None,
 ) -> dict[str, Any]:
     """Run the pipeline on the configured sequence and write the run folder; returns metrics.
 
     ``announce(line)`` receives what the user must see while the run goes on (the viewer URL of
     ``viz.mode: serve``, and the summary before serving on after the run). ``check_config(cfg)``
-    may refuse the final config (after the first scan set its scale) by raising. A
-    :class:`~slam.algorithm.relocalise.Relocaliser` places the run in a stored map (``--map``).
+    may refuse the final config (after the first scan set its scale) by raising. ``continued``
+    (a :class:`~slam.app.continue_map.ContinuedMap`, ``--map``) places the run in a stored map.
 
     ``run_status.json`` says whether the run finished (see :data:`RUN_STATUS_FILE`): it is
     ``running`` until the end (so a killed run stays ``running``), and ``interrupted``,
@@ -85,7 +85,7 @@ def execute(
     state = _RunState(frames_total=len(source))
     outputs.write_status("running", 0, state.frames_total)
     try:
-        return _run(entry, cfg, folder, progress, announce, outputs, source, state, relocaliser)
+        return _run(entry, cfg, folder, progress, announce, outputs, source, state, continued)
     except BaseException as exc:
         _record_failure(outputs, state, exc)
         if state.viz is not None:
@@ -120,7 +120,7 @@ def _record_failure(outputs, state: _RunState, exc: BaseException) -> None:
         logger.warning("could not write the run status: %s", write_exc)
 
 
-def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunState, relocaliser):
+def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunState, continued):
     from slam.algorithm.pipeline import SlamPipeline
     from slam.app.builders import build_logger, build_map, build_odometry
     from slam.app.recorder import make_recorder
@@ -145,6 +145,10 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     viewer_url = viz.viewer_url
     if viewer_url:
         say(f"viewer: {viewer_url}")
+    relocaliser = None
+    if continued is not None:
+        relocaliser = continued.relocaliser
+        viz.log_stored_map(continued.mesh_path)
     pipeline = SlamPipeline(
         cfg.pipeline_config(), sensor, odometry, neural_map, relocaliser=relocaliser
     )

@@ -24,6 +24,15 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         f"remapping: {remap['submaps_moved']} submap moves in {remap['events']} passes, "
         f"{remap['seconds_total']:.2f} s; map {metrics['map']['voxels']} voxels",
     ]
+    placed = metrics.get("relocalisation")
+    if placed is not None:
+        lines.append(
+            f"relocalised in the map by frames {placed['submap_frames'][0]}-"
+            f"{placed['submap_frames'][1]} ({placed['submaps_tried']} submaps tried, "
+            f"{placed['seconds']:.1f} s)"
+            if placed["relocalised"]
+            else f"not relocalised in the map ({placed['submaps_tried']} submaps tried)"
+        )
     trajectory = metrics.get("trajectory")
     if trajectory:
         lines.append(
