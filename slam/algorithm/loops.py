@@ -103,6 +103,12 @@ class LoopDetector(ABC):
         anchors, for detectors that check an edge against it (None: no such check).
         """
 
+    def release(self) -> None:
+        """Drop what only the verification of later submaps needs (after the last submap: the
+        pipeline's :meth:`~slam.algorithm.pipeline.SlamPipeline.finish`); the place descriptors
+        stay for the session. Nothing by default."""
+        return
+
 
 def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""

@@ -219,7 +219,8 @@ class SlamPipeline:
             if odometry.covariance is not None:
                 covariance = np.array(odometry.covariance, dtype=np.float64)
             self.odometry.restart_covariance()
-        job = self.submap_worker.submit(self._submap_job, step, map_frame, covariance, frame.index)
+        queued = map_frame.without_images()  # the submap worker absorbs points and normals
+        job = self.submap_worker.submit(self._submap_job, step, queued, covariance, frame.index)
         if not self.keyframer.decides_from_poses:
             job.result()  # the next decision needs this frame's points
         if step.closing is not None:
@@ -406,6 +407,8 @@ class SlamPipeline:
             )
         self.submap_worker.close()
         self._sync_all()
+        if self.loop_detector is not None:  # no submap is left to verify
+            self.loop_detector.release()
         t = self._timed("submap_worker_wait", t)
         self.graph.optimize_batch()
         t = self._timed("pose_graph", t)
