@@ -15,8 +15,8 @@ from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 from frontends.odometry.ground_truth import GroundTruthOdometry
 from frontends.sources import make_source
-from slam.algorithm.loops import LoopCandidate, LoopDetector
-from slam.algorithm.pipeline import SlamPipeline, make_loop_detector
+from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
+from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.submaps import SubmapRecord
 from slam.app.builders import build_map
 from slam.app.config import RunConfig
