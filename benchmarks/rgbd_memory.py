@@ -9,7 +9,8 @@ optimisation and the final mesh. The RSS is broken down (:mod:`benchmarks.memory
 every 100 frames, after the last frame and at the end; the report shows the sample with the
 highest RSS, the last frame's and the end's. ``--before REV`` runs revision REV's code (checked
 out beside this tree) first, in the same invocation. The final mesh runs on the thread budget's
-mesh threads, as in ``slam.run``. Writes ``benchmarks/results/rgbd_memory.json`` and prints a table.
+mesh threads, as in ``slam.run``. Writes ``benchmarks/results/rgbd_memory.json`` and ``.md``
+(``--report-only``: the ``.md`` again from the ``.json``).
 """
 
 from __future__ import annotations
@@ -196,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--report-only", action="store_true", help="print the table of the .json")
     args = parser.parse_args(argv)
     if args.report_only:
-        print(table(json.loads(RESULTS.read_text())))
+        _write(json.loads(RESULTS.read_text()))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     shown = sys.argv[1:] if argv is None else argv
@@ -215,8 +216,20 @@ def main(argv: list[str] | None = None) -> int:
                 log.info("%s (%s)", name, label)
                 saved["runs"].setdefault(label, {})[name] = in_child(scenario, name, code=code)
     write_text_atomic(RESULTS, json.dumps(saved, indent=2, default=str))
-    print(table(saved))
+    _write(saved)
     return 0
+
+
+def _write(saved: dict) -> None:
+    """The Markdown section (``rgbd_memory.md`` beside the JSON), also printed."""
+    text = "\n".join([
+        "## RGB-D memory and throughput (issue 25, item 3)", "",
+        f"- Command: `{saved['command']}`", f"- Machine: {saved['machine']}",
+        "- Each run in its own process; peak RSS includes the final optimisation and mesh. The "
+        "breakdown tables give the sample with the highest RSS, the last frame's and the end's.",
+        "", table(saved)])  # fmt: skip
+    write_text_atomic(RESULTS.with_suffix(".md"), text.rstrip() + "\n")
+    print(text)
 
 
 if __name__ == "__main__":
