@@ -1,4 +1,4 @@
-"""Where a running LiDAR pipeline's memory is: a per-object breakdown next to the RSS.
+"""Where a running pipeline's memory is (LiDAR or RGB-D): a per-object breakdown next to the RSS.
 
 :func:`memory_breakdown` sums the bytes of the arrays (numpy) and tensors (torch) each part of a
 :class:`~slam.algorithm.pipeline.SlamPipeline` holds, found by walking its attributes, each
@@ -10,6 +10,12 @@ handed back with ``madvise`` still count as free but are not resident, so the sl
 subtracted from the RSS). The rest of the RSS is the code and libraries (torch, GTSAM, KISS-ICP)
 measured before the first frame (``baseline``), and what no walk reaches (``unattributed``:
 resident allocator slack, Python objects, C++ containers such as map_closures' database).
+
+RGB-D runs add the loop detector's kept keyframes (:class:`~slam.algorithm.loop_keyframes.
+KeyframeFeatures`, one per closed submap: images, ORB features, refinement cloud and its k-d tree),
+the odometry's state (its keyframe, previous frame and clouds) and, when the caller passes them,
+the frames in hand and read ahead. The frames waiting in the submap worker's queue are out of
+reach (the executor's queue cannot be walked); they are part of ``unattributed``.
 """
 
 from __future__ import annotations
@@ -115,14 +121,64 @@ def buffer_bytes(obj: Any, seen: set[int] | None = None, depth: int = 6) -> int:
     return sum(buffer_bytes(item, seen, depth - 1) for item in items)
 
 
+def kdtree_bytes(tree: Any) -> int:
+    """Bytes a ``scipy.spatial.cKDTree`` holds besides the points it was built on (shared when
+    they are float64 and C-contiguous): its index array and its nodes (~72 bytes each, about
+    ``2 n / leafsize``)."""
+    if tree is None:
+        return 0
+    indices = getattr(tree, "indices", None)
+    n = int(getattr(tree, "n", 0))
+    leafsize = max(int(getattr(tree, "leafsize", 16)), 1)
+    return (0 if indices is None else indices.nbytes) + 72 * (2 * n // leafsize + 1)
+
+
+def keyframe_bytes(detector: Any, seen: set[int]) -> dict[str, float]:
+    """MB of an RGB-D loop detector's kept keyframes, by kind: images (grey + depth), ORB
+    features (pixels, descriptors, lifted points), refinement clouds (points, normals, k-d tree),
+    and anything else a kept keyframe holds. Empty for detectors without kept keyframes."""
+    features = getattr(detector, "_features", None)
+    if not isinstance(features, dict):
+        return {}
+    out = dict.fromkeys(("images", "orb", "cloud", "other"), 0)
+    for kf in features.values():
+        if hasattr(kf, "__dict__"):
+            fields = dict(vars(kf))
+        else:
+            fields = {name: getattr(kf, name, None) for name in getattr(kf, "__slots__", ())}
+        for name in ("gray", "depth", "_depth"):  # the stored images, not a decoded copy
+            out["images"] += buffer_bytes(fields.pop(name, None), seen)
+        for name in ("pixels", "descriptors", "points_S"):
+            out["orb"] += buffer_bytes(fields.pop(name, None), seen)
+        cloud = fields.pop("cloud", None)
+        if cloud is not None:
+            out["cloud"] += buffer_bytes(
+                [getattr(cloud, "points", None), getattr(cloud, "normals", None)], seen
+            )
+            tree = getattr(cloud, "tree", None)
+            out["cloud"] += buffer_bytes(getattr(tree, "data", None), seen) + kdtree_bytes(tree)
+        out["other"] += buffer_bytes(fields, seen)
+    return {f"loop_keyframes_{k}": v / MB for k, v in out.items()}
+
+
 def _list_of_arrays_bytes(arrays: list) -> int:
     """An (N, 4, 4) pose list's arrays with their Python object headers."""
     return sum(sys.getsizeof(a) for a in arrays if a is not None)
 
 
-def memory_breakdown(pipeline, baseline_mb: float) -> dict[str, float]:
+def memory_breakdown(
+    pipeline,
+    baseline_mb: float,
+    pending: Any = None,
+    source: Any = None,
+    extra_mb: dict[str, float] | None = None,
+) -> dict[str, float]:
     """MB held by each part of ``pipeline`` (call between frames), with the RSS, the baseline
-    (RSS before the first frame), the allocator's free bytes and the unattributed rest."""
+    (RSS before the first frame), the allocator's free bytes and the unattributed rest.
+
+    ``pending``: frames the caller holds (the frame in hand), counted as ``source_read_ahead``;
+    ``source``: the data source (its caches); ``extra_mb``: parts the caller measured itself
+    (e.g. the frames loaded ahead, which the source's generator holds out of reach)."""
     seen: set[int] = set()
     parts: dict[str, float] = {}
     kiss = getattr(pipeline.odometry, "_kiss", None)
@@ -130,6 +186,15 @@ def memory_breakdown(pipeline, baseline_mb: float) -> dict[str, float]:
         parts["kiss_icp_local_map"] = len(kiss.local_map.point_cloud()) * 24 / MB
     detector = pipeline.loop_detector
     parts["loop_clouds"] = buffer_bytes(getattr(detector, "_clouds", {}), seen) / MB
+    parts.update(keyframe_bytes(detector, seen))
+    open_submap = getattr(pipeline.keyframer, "current", None)
+    parts["open_submap_keyframe"] = buffer_bytes(getattr(open_submap, "keyframe", None), seen) / MB
+    if pending is not None:
+        parts["source_read_ahead"] = buffer_bytes(pending, seen) / MB
+    if source is not None:
+        parts["source"] = buffer_bytes(source, seen) / MB
+    if kiss is None:
+        parts["odometry_state"] = buffer_bytes(pipeline.odometry, seen) / MB
     parts["place_descriptors"] = buffer_bytes(getattr(detector, "descriptors", {}), seen) / MB
     parts["submap_records"] = buffer_bytes(pipeline.records, seen) / MB
     parts["keyframer_buffers"] = buffer_bytes(pipeline.keyframer, seen) / MB
@@ -148,6 +213,7 @@ def memory_breakdown(pipeline, baseline_mb: float) -> dict[str, float]:
     parts["pose_graph_and_remap_events"] = (
         buffer_bytes(pipeline.graph, seen) + buffer_bytes(pipeline.remapper.events, seen)
     ) / MB
+    parts.update(extra_mb or {})
     current = rss_mb()[0]
     free = allocator_free_mb()
     out = {"rss": current, "baseline": baseline_mb, **parts}

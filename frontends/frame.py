@@ -54,6 +54,10 @@ class Frame:
         rgb: (H, W, 3) uint8 colour image registered to ``depth``, RGB-D only.
         intrinsics: intrinsics of ``depth``/``rgb``.
         T_W_S_gt: 4x4 float64 ground-truth sensor pose, or None.
+        depth_scale: units per metre of the integer image ``depth`` was read from
+            (``depth == raw.astype(float32) / float32(depth_scale)`` where ``raw`` is valid), or
+            None when depth has no integer origin; lets a stored depth image go back to its
+            integers (:class:`~slam.algorithm.loop_keyframes.KeyframeFeatures`).
     """
 
     index: int
@@ -66,3 +70,19 @@ class Frame:
     rgb: np.ndarray | None = None
     intrinsics: Intrinsics | None = None
     T_W_S_gt: np.ndarray | None = None
+    depth_scale: float | None = None
+
+    def without_images(self) -> Frame:
+        """This frame without its images and per-point colours (the same point, normal and
+        time arrays), for work that uses only the points: a 640x480 7-Scenes frame holds 3.0 MB
+        instead of 5.3 MB. The frame itself when it has none."""
+        if self.depth is None and self.rgb is None and self.colors is None:
+            return self
+        return Frame(
+            index=self.index,
+            timestamp=self.timestamp,
+            points=self.points,
+            normals=self.normals,
+            point_times=self.point_times,
+            T_W_S_gt=self.T_W_S_gt,
+        )

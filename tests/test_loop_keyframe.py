@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from common.geometry import transform_points
 from frontends.sources import make_source
 from slam.algorithm.config import RgbdLoopConfig
+from slam.algorithm.loop_keyframes import compact_depth
 from slam.algorithm.loop_rgbd import RgbdVerifier
 from slam.algorithm.loops import relative_motion
 
@@ -141,3 +142,49 @@ def test_keyframe_refinement_rejects_keyframes_whose_depth_cannot_fix_the_pose(r
     accepted, reason, _, scores, covariance = results[True]
     assert covariance is None
     assert not accepted and reason.startswith("keyframe: degenerate"), (reason, scores)
+
+
+def test_kept_keyframe_stores_depth_as_its_source_integers(room):
+    """A kept keyframe holds its depth as the uint16 PNG units it was read from (grey uint8 +
+    depth uint16: 3 bytes a pixel instead of 5), and gives back the float32 image bit for bit."""
+    frame = room[REFERENCE]
+    features = RgbdVerifier(RgbdLoopConfig()).features(frame)
+    h, w = frame.depth.shape
+    assert features.gray.dtype == np.uint8
+    assert features.image_bytes <= 3 * h * w
+    assert features.depth.dtype == np.float32
+    assert np.array_equal(features.depth, frame.depth)
+
+
+def test_compact_depth_is_exact_or_keeps_float32():
+    rng = np.random.default_rng(0)
+    raw = rng.integers(0, 8000, (48, 64)).astype(np.uint16)
+    depth = raw.astype(np.float32) / np.float32(1000.0)
+    stored, scale = compact_depth(depth, 1000.0)
+    assert stored.dtype == np.uint16 and scale == 1000.0
+    assert np.array_equal(stored.astype(np.float32) / np.float32(scale), depth)
+    # depth that no integer image gives (rendered, noisy, NaN) stays float32, unchanged
+    for other in (depth + np.float32(1e-4), np.where(raw > 7000, np.nan, depth), depth):
+        kept, none = compact_depth(other, None if other is depth else 1000.0)
+        assert kept.dtype == np.float32 and none is None
+        assert np.array_equal(kept, other, equal_nan=True)
+
+
+def test_loop_verifies_identically_from_compact_keyframes(room):
+    """The whole verification (PnP, cv2.Odometry, submap and keyframe ICP, depth agreement) of
+    the loop pair gives the same edge and scores from compact keyframes as from float32 ones."""
+    verifier = RgbdVerifier(RgbdLoopConfig())
+    results = []
+    for compact in (True, False):
+        reference, query = _pair(verifier, room, drift_deg=0.5, drift_m=0.005)
+        assert reference.image_bytes < reference.gray.nbytes + 4 * reference.depth.size
+        if not compact:  # the float32 images, as stored before
+            reference.depth, query.depth = reference.depth.copy(), query.depth.copy()
+            assert reference.image_bytes == reference.gray.nbytes + 4 * reference.depth.size
+        matches = verifier.match(reference, query)
+        results.append(verifier.verify(reference, query, matches))
+    compact, plain = results
+    assert compact.accepted, (compact.reason, compact.scores)
+    assert compact.reason == plain.reason
+    assert np.array_equal(compact.T_ref_query, plain.T_ref_query)
+    assert compact.scores == plain.scores

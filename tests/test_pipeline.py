@@ -15,8 +15,8 @@ from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 from frontends.odometry.ground_truth import GroundTruthOdometry
 from frontends.sources import make_source
-from slam.algorithm.loops import LoopCandidate, LoopDetector
-from slam.algorithm.pipeline import SlamPipeline, make_loop_detector
+from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
+from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.submaps import SubmapRecord
 from slam.app.builders import build_map
 from slam.app.config import RunConfig
@@ -147,6 +147,15 @@ def test_rgbd_loop_is_closed_and_lowers_ate(room, room_run):
     assert all(s.fused for s in pipeline.submaps.values())
 
 
+def test_finish_releases_the_kept_keyframes_but_not_the_descriptors(room_run):
+    """After the last submap no loop can use the kept keyframes (images, features, clouds): the
+    final mesh runs without them; the place descriptors stay for the session."""
+    _, pipeline = room_run
+    detector = pipeline.loop_detector
+    assert detector._features == {}
+    assert sorted(detector.descriptors) == sorted(pipeline.records)
+
+
 def test_remapped_map_matches_a_map_encoded_at_the_final_poses(room_run):
     cfg, pipeline = room_run
     scratch = build_map(cfg)
@@ -218,3 +227,25 @@ def test_lidar_loop_is_closed_and_lowers_ate():
     ate_slam = ate_rmse(pipeline.slam_poses(), gt)
     assert ate_slam < 0.5 * ate_odometry, (ate_slam, ate_odometry)
     assert pipeline.remapper.total_moved > 0
+
+
+def test_frames_wait_for_the_submap_worker_without_their_images() -> None:
+    """The submap worker absorbs points and normals only; a queued RGB-D frame drops its images
+    and colours and shares the rest (the same arrays, so the same submap points)."""
+    rng = np.random.default_rng(0)
+    points, normals = rng.normal(size=(100, 3)), rng.normal(size=(100, 3))
+    frame = Frame(
+        index=3,
+        timestamp=0.1,
+        points=points,
+        normals=normals,
+        colors=np.zeros((100, 3), np.uint8),
+        depth=np.ones((48, 64), np.float32),
+        rgb=np.zeros((48, 64, 3), np.uint8),
+    )
+    queued = frame.without_images()
+    assert queued.depth is None and queued.rgb is None and queued.colors is None
+    assert queued.points is points and queued.normals is normals
+    assert (queued.index, queued.timestamp) == (3, 0.1)
+    lidar = Frame(index=0, timestamp=0.0, points=points)
+    assert lidar.without_images() is lidar

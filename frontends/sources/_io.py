@@ -312,6 +312,7 @@ class RgbdSource(Source):
             rgb=rgb,
             intrinsics=self.intrinsics,
             T_W_S_gt=T_W_S_gt,
+            depth_scale=float(self.depth_scale),
         )
 
     def _check_shape(self, path: Path, shape: tuple[int, ...]) -> None:

@@ -104,7 +104,9 @@ class RgbdVerifier:
             cloud = RefineCloud.build(
                 points_A, normals_A, self.cfg.refine_voxel_m, self.cfg.refine_max_points
             )
-        return KeyframeFeatures(pixels, descriptors, points, gray, depth, K, cloud)
+        return KeyframeFeatures(
+            pixels, descriptors, points, gray, depth, K, cloud, depth_scale=frame.depth_scale
+        )
 
     def match(self, reference: KeyframeFeatures, query: KeyframeFeatures) -> np.ndarray:
         """(M, 2) index pairs (reference, query) passing the ratio test."""
@@ -239,12 +241,13 @@ class RgbdVerifier:
     def keyframe_cloud(self, features: KeyframeFeatures) -> RefineCloud | None:
         """The keyframe's own depth image as a refinement cloud (None: too few points)."""
         c = self.cfg
-        h, w = features.depth.shape
+        depth = features.depth
+        h, w = depth.shape
         K = features.K
         fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
         intrinsics = Intrinsics(fx, fy, cx, cy, w, h)
         lifted = depth_to_points(
-            features.depth,
+            depth,
             intrinsics,
             min_depth_m=c.min_depth_m,
             max_depth_m=c.max_depth_m,
@@ -452,6 +455,10 @@ class RgbdLoopDetector(LoopDetector):
         self._features[j] = query
         self._travelled[j] = submap.travelled_m
         return candidates
+
+    def release(self) -> None:
+        """The kept keyframes (images, features, clouds) go: no later submap can use them."""
+        self._features.clear()
 
     def _proximity(
         self,

@@ -29,16 +29,16 @@ import logging
 import time
 from collections import defaultdict, deque
 from concurrent.futures import Future
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
-from slam.algorithm.config import LoopClosureConfig, PipelineConfig
+from slam.algorithm.config import PipelineConfig
+from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.graph_view import GraphSnapshot, GraphView
-from slam.algorithm.loops import LoopCandidate, LoopDetector
+from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
 from slam.algorithm.map_worker import MapWorker
 from slam.algorithm.memory import keep_large_allocations_apart, release_freed_memory
 from slam.algorithm.pose_graph import PoseGraph
@@ -59,56 +59,6 @@ SUBMAP_QUEUE_FRAMES = 8
 def _clock() -> tuple[float, float]:
     """(wall, CPU time of the calling thread) in seconds."""
     return time.perf_counter(), time.thread_time()
-
-
-@dataclass
-class FrameResult:
-    """What happened at one frame.
-
-    Attributes:
-        index: frame index.
-        T_W_S_odometry: odometry pose.
-        T_W_S: the SLAM estimate at this time (anchor estimate composed with the relative pose).
-        submap_id: the submap the frame belongs to.
-        closed_submap_id: the submap this frame closed, or None.
-        loops: loop candidates that became known at this frame (those of the submap closed
-            before ``closed_submap_id``: the main thread takes the submap worker's results one
-            submap later, see :mod:`slam.algorithm.graph_view`).
-        remap: the remapping pass that came with them, or None (always None with a threaded
-            map worker: see :attr:`SlamPipeline.remapper` for every pass).
-        loop_added: an accepted loop went into the pose graph, or the session was relocalised,
-            and it became known at this frame (every anchor, so every frame's estimate, may have
-            moved).
-        relocalised: the session's placement in a stored map, at the frame it became known.
-        frame_s: wall seconds the pipeline spent on this frame.
-        odometry_s: of which the odometry's.
-    """
-
-    index: int
-    T_W_S_odometry: np.ndarray
-    T_W_S: np.ndarray
-    submap_id: int
-    closed_submap_id: int | None = None
-    loops: list[LoopCandidate] = field(default_factory=list)
-    remap: RemapEvent | None = None
-    loop_added: bool = False
-    relocalised: Relocalisation | None = None
-    frame_s: float = 0.0
-    odometry_s: float = 0.0
-
-
-def make_loop_detector(lc: LoopClosureConfig, sensor: str) -> LoopDetector | None:
-    """The loop detector for a sensor (None when loop closure is off)."""
-    if not lc.enabled:
-        return None
-    method = sensor if lc.method == "auto" else lc.method
-    if method == "lidar":
-        from slam.algorithm.loop_lidar import LidarLoopDetector
-
-        return LidarLoopDetector(lc)
-    from slam.algorithm.loop_rgbd import RgbdLoopDetector
-
-    return RgbdLoopDetector(lc)
 
 
 class SlamPipeline:
@@ -219,7 +169,8 @@ class SlamPipeline:
             if odometry.covariance is not None:
                 covariance = np.array(odometry.covariance, dtype=np.float64)
             self.odometry.restart_covariance()
-        job = self.submap_worker.submit(self._submap_job, step, map_frame, covariance, frame.index)
+        queued = map_frame.without_images()  # the submap worker absorbs points and normals
+        job = self.submap_worker.submit(self._submap_job, step, queued, covariance, frame.index)
         if not self.keyframer.decides_from_poses:
             job.result()  # the next decision needs this frame's points
         if step.closing is not None:
@@ -406,6 +357,8 @@ class SlamPipeline:
             )
         self.submap_worker.close()
         self._sync_all()
+        if self.loop_detector is not None:  # no submap is left to verify
+            self.loop_detector.release()
         t = self._timed("submap_worker_wait", t)
         self.graph.optimize_batch()
         t = self._timed("pose_graph", t)

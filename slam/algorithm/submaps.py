@@ -264,6 +264,7 @@ class Keyframer:
                 rgb=frame.rgb,
                 intrinsics=frame.intrinsics,
                 T_W_S_gt=frame.T_W_S_gt,
+                depth_scale=frame.depth_scale,
             )
         self._current = SubmapRecord(
             submap_id=self._next_id,

@@ -16,7 +16,8 @@ import numpy as np
 
 from common.geometry import transform_points
 from frontends.frame import Frame
-from slam.algorithm.pipeline import FrameResult, SlamPipeline
+from slam.algorithm.frame_result import FrameResult
+from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.viz import Logger, NullLogger
 from slam.app.config import VizConfig
 
