@@ -226,8 +226,10 @@ def archived_lines(archive_dir: Path) -> list[str]:
     ]
     for path in sections:
         text = path.read_text().rstrip()
-        if text.startswith("# "):  # one level below this heading
-            text = "#" + text
+        if text.startswith("# "):  # every heading one level below this one
+            text = "\n".join(
+                "#" + line if line.startswith("#") else line for line in text.split("\n")
+            )
         lines += [f'<a id="full-{path.stem}"></a>', "", text, ""]
     return lines
 

@@ -96,7 +96,7 @@ def test_archived_full_runs_follow_the_invocation_marked_as_such(tmp_path):
     (results / "odometry.md").write_text("## Odometry\n")
     (archive / "README.md").write_text("# why each run is kept\n")
     (archive / "merge-full.md").write_text("## Multi-session merge\n\n- Command: `x`\n")
-    (archive / "profile.md").write_text("# Profile\n")
+    (archive / "profile.md").write_text("# Profile\n\n## after\n")
     record = _record("python -m benchmarks.run_all --quick")
     text = run_all.assemble(
         record, results_dir=results, output=tmp_path / "B.md", archive_dir=archive
@@ -104,6 +104,7 @@ def test_archived_full_runs_follow_the_invocation_marked_as_such(tmp_path):
     invocation, archived = text.split("# Full-length runs (not part of the invocation above)")
     assert "## Odometry" in invocation and "Multi-session merge" not in invocation
     assert "## Multi-session merge" in archived and "\n## Profile" in archived
+    assert "\n### after" in archived
     assert "why each run is kept" not in text
     empty = tmp_path / "empty"
     empty.mkdir()
