@@ -34,7 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common.geometry import orthonormalize, transform_points
-from frontends.odometry.point_to_plane import point_to_plane_icp
+from frontends.odometry.point_to_plane import point_to_plane_hessian, point_to_plane_icp
 from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.loops import relative_motion
 from slam.algorithm.merge_config import MergeConfig
@@ -180,16 +180,12 @@ def _overlap(
     tree: cKDTree,
 ) -> tuple[float, float]:
     """Fraction of ``query`` within ``gate_m`` of the reference surface under ``T``, and the
-    robust spread (1.4826 x median absolute value) of those points' point-to-plane residuals."""
+    robust spread of those points' point-to-plane residuals (the cost seen at ``T``,
+    :func:`~frontends.odometry.point_to_plane.point_to_plane_hessian`)."""
     if not np.all(np.isfinite(T)):
         return 0.0, float("inf")
-    moved = transform_points(T, query)
-    distance, index = tree.query(moved, distance_upper_bound=gate_m)
-    ok = np.isfinite(distance)
-    if ok.sum() < 6:
-        return float(ok.mean()), float("inf")
-    r = np.einsum("ij,ij->i", moved[ok] - reference[0][index[ok]], reference[1][index[ok]])
-    return float(ok.mean()), float(1.4826 * np.median(np.abs(r)))
+    seen = point_to_plane_hessian(reference[0], reference[1], query, T, gate_m, tree=tree)
+    return seen.inlier_fraction, seen.robust_sigma_m
 
 
 def verify(
