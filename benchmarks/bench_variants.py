@@ -9,8 +9,12 @@ street (one identical building every 16 m), 1,024 vs 2,048 firings, range noise 
 vertical-angle correction (``source.kitti.correct_vertical_angle``, on in configs/kitti.yaml):
 what ``slam.run kitti`` does to a KITTI-layout simulation whose scans lack the HDL-64E's
 0.205 deg beam error. configs/kitti.yaml with KISS-ICP odometry; the odometry
-columns are KISS-ICP alone on the same scans. KISS-SLAM is not run on the variants yet (its
-runner is benchmarks.harness.reference.kiss_slam, used by bench_throughput).
+columns are KISS-ICP alone on the same scans. KISS-SLAM (0.0.2, default config, its own process,
+benchmarks.harness.reference.kiss_slam) runs on the same scans in the same invocation, read as
+ours reads them (with the KITTI correction only in that variant); ``--no-kiss-slam`` skips it.
+``--before-set KEY=VALUE`` runs every variant a second time with those overrides (e.g.
+``pose_graph.gravity.enabled=false``: the configuration before the gravity factors), shown as a
+"before" row under each variant.
 Default: the full 4,541 scans; ``--quick``: every 3rd of frames 0-1647 (550 scans, the window
 of benchmarks.bench_slam, which includes the first revisit). In that window '1024 firings'
 is 'standard, seed 0' (the quick window has 1,024 firings). ``--set`` overrides the run config
@@ -156,13 +160,30 @@ def run_ours(quick: bool, name: str, sets: list[str]) -> dict:
     }
 
 
+def run_kiss_slam(quick: bool, name: str) -> dict:
+    """KISS-SLAM on one variant's scans (its own process, see the module docstring)."""
+    from benchmarks.harness.reference import kiss_slam
+
+    return kiss_slam(kitti_source(quick, **VARIANTS[name]))
+
+
 def _fmt_xyz(v: list[float]) -> str:
     return " / ".join(f"{x:.2f}" for x in v)
 
 
-def _row(name: str, r: dict) -> str:
+def _kiss_slam_cells(r: dict | None) -> str:
+    if r is None:
+        return "| not run | | "
+    if "skipped" in r:
+        return "| skipped | | "
+    closures = "?" if r.get("closures") is None else f"{r['closures']:.0f}"
+    return f"| {r['ate_slam_m']:.2f} | {_fmt_xyz(r['ate_xyz_slam_m'])} | {closures} "
+
+
+def _row(name: str, r: dict, kiss_slam: dict | None = None) -> str:
     return (
         f"| {name} | {r['frames']} | {r['kiss_icp_ate_m']:.2f} | {_fmt_xyz(r['kiss_icp_xyz_m'])} "
+        f"{_kiss_slam_cells(kiss_slam)}"
         f"| {r['slam_ate_m']:.2f} | {_fmt_xyz(r['slam_xyz_m'])} | {r['verified']} | {r['kept']} "
         f"| {r['worst_kept_m']:.2f} / {r['worst_kept_deg']:.2f} "
         f"| {r['slam_xyz_m'][2] / max(r['kiss_icp_xyz_m'][2], 1e-9):.2f} "
@@ -186,14 +207,26 @@ def write_report(path: Path, results: dict) -> None:
         "per world axis (z up). 'worst kept loop': the largest translation / rotation error vs "
         "the truth of the loops the pose graph kept. 'z ratio': SLAM z RMSE / KISS-ICP z RMSE "
         "(target <= 0.5). 'pitch bias': KISS-ICP's mean pitch error between consecutive submap "
-        "anchors (each anchor's frame, nose up positive) per 100 m travelled.",
+        "anchors (each anchor's frame, nose up positive) per 100 m travelled. KISS-SLAM: "
+        "0.0.2 with its default config on the same scans; 'closures': the loop closures it "
+        "reports. "
+        + (
+            f"A 'before' row is ours with `{' '.join(results['before_sets'])}`."
+            if results.get("before_sets")
+            else ""
+        ),
         "",
-        "| variant | scans | KISS-ICP ATE [m] | KISS-ICP x / y / z [m] | SLAM ATE [m] "
+        "| variant | scans | KISS-ICP ATE [m] | KISS-ICP x / y / z [m] | KISS-SLAM ATE [m] "
+        "| KISS-SLAM x / y / z [m] | KISS-SLAM closures | SLAM ATE [m] "
         "| SLAM x / y / z [m] | verified | kept | worst kept loop [m / deg] | z ratio "
         "| pitch bias [mrad / 100 m] | wall [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    lines += [_row(name, r) for name, r in runs.items()]
+    kiss = results.get("kiss_slam", {})
+    for name, r in runs.items():
+        lines.append(_row(name, r, kiss.get(name)))
+        if name in results.get("before", {}):
+            lines.append(_row(f"{name}, before", results["before"][name], kiss.get(name)))
     if runs:
         lines += ["", "Worst variant per column:", ""]
         columns = {
@@ -225,6 +258,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--set", dest="sets", action="append", default=[], help="run config override KEY=VALUE"
     )
+    parser.add_argument(
+        "--before-set",
+        dest="before_sets",
+        action="append",
+        default=[],
+        help="also run every variant with this override (KEY=VALUE), as its 'before' row",
+    )
+    parser.add_argument(
+        "--no-kiss-slam", action="store_true", help="do not run KISS-SLAM on the variants"
+    )
     parser.add_argument("--jobs", type=int, default=2, help="variants run at a time")
     parser.add_argument("--out", type=Path, default=RESULTS_DIR / "variants.md")
     return parser
@@ -240,6 +283,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     command = "python -m benchmarks.bench_variants" + (" --quick" if args.quick else "")
     command += "".join(f" --set {s}" for s in args.sets)
+    command += "".join(f" --before-set {s}" for s in args.before_sets)
+    command += " --no-kiss-slam" if args.no_kiss_slam else ""
     if args.variants != list(QUICK_VARIANTS if args.quick else VARIANTS):
         command += " --variants " + " ".join(f"'{v}'" for v in args.variants)
     results: dict = {
@@ -247,14 +292,25 @@ def main(argv: list[str] | None = None) -> int:
         "date": dt.datetime.now().isoformat(timespec="seconds"),
         "quick": args.quick,
         "command": command,
+        "before_sets": args.before_sets,
         "runs": {},
+        "before": {},
+        "kiss_slam": {},
     }
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
-        futures = {v: pool.submit(run_ours, args.quick, v, args.sets) for v in args.variants}
-        for name, future in futures.items():
-            results["runs"][name] = future.result()
-            log.info("%s", _row(name, results["runs"][name]))
+        futures = {}
+        for v in args.variants:
+            futures[("runs", v)] = pool.submit(run_ours, args.quick, v, args.sets)
+            if args.before_sets:
+                before = args.sets + args.before_sets
+                futures[("before", v)] = pool.submit(run_ours, args.quick, v, before)
+            if not args.no_kiss_slam:
+                futures[("kiss_slam", v)] = pool.submit(run_kiss_slam, args.quick, v)
+        for (kind, name), future in futures.items():
+            results[kind][name] = future.result()
+            if kind != "kiss_slam":
+                log.info("%s %s", kind, _row(name, results[kind][name]))
     write_text_atomic(args.out.with_suffix(".json"), json.dumps(results, indent=2, default=str))
     write_report(args.out, results)
     log.info("wrote %s", args.out)

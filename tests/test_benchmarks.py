@@ -144,3 +144,25 @@ def test_missing_kiss_slam_environment_gives_a_reason(tmp_path, monkeypatch):
     reason = kiss_slam_unavailable()
     assert reason is not None
     assert str(tmp_path / "nowhere") in reason and "make kiss-slam-env" in reason
+
+
+@pytest.mark.parametrize("corrected", [False, True])
+def test_kiss_slam_reads_the_scans_as_ours_does(corrected):
+    """KISS-SLAM's ``kitti`` dataloader bends every scan by KISS-ICP's KITTI correction; it may
+    only be used where our loader applies it too, else the comparison is on other points."""
+    from benchmarks.harness.reference import _kiss_slam_input
+    from frontends.sources import make_source
+
+    source = make_source(
+        "generated",
+        kind="lidar",
+        num_frames=150,
+        seed=0,
+        azimuth_steps=1024,
+        loader_options={"correct_vertical_angle": corrected},
+    )
+    args, T_cam_lidar = _kiss_slam_input(source)
+    assert args[args.index("--dataloader") + 1] == ("kitti" if corrected else "generic")
+    assert (T_cam_lidar is not None) == corrected
+    if not corrected:
+        assert Path(args[0]) == Path(source.sequence_dir) / "velodyne"

@@ -21,16 +21,19 @@ from slam.algorithm.submaps import SubmapRecord
 from slam.app.builders import build_map
 from slam.app.config import RunConfig
 from slam.evaluation.metrics.mesh import mesh_metrics
-from slam.evaluation.metrics.trajectory import ate_rmse
+from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
 ROOM = {"kind": "rgbd", "num_frames": 240, "seed": 0, "width": 320, "height": 240}
 STREET = {"kind": "lidar", "num_frames": 150, "seed": 0, "azimuth_steps": 1024}
 
 
 class DriftingOdometry(Odometry):
-    """Ground-truth increments with a constant yaw bias and a scale error per frame."""
+    """Ground-truth increments with a constant yaw bias and a scale error per frame, and
+    optionally a pitch bias (nose up about the sensor's y axis, for a z-up LiDAR)."""
 
-    def __init__(self, yaw_deg_per_frame: float, scale: float, up_axis: int) -> None:
+    def __init__(
+        self, yaw_deg_per_frame: float, scale: float, up_axis: int, pitch_deg_per_frame: float = 0.0
+    ) -> None:
         self._gt = GroundTruthOdometry()
         self._previous: np.ndarray | None = None
         self._pose = np.eye(4)
@@ -40,6 +43,11 @@ class DriftingOdometry(Odometry):
         self._bias[axes[0], axes[0]] = self._bias[axes[1], axes[1]] = np.cos(angle)
         self._bias[axes[0], axes[1]] = -np.sin(angle)
         self._bias[axes[1], axes[0]] = np.sin(angle)
+        pitch = np.radians(pitch_deg_per_frame)
+        nose_up = np.eye(4)
+        nose_up[0, 0] = nose_up[2, 2] = np.cos(pitch)
+        nose_up[0, 2], nose_up[2, 0] = -np.sin(pitch), np.sin(pitch)
+        self._bias = self._bias @ nose_up
         self._scale = scale
 
     def register(self, frame: Frame) -> OdometryResult:
@@ -227,6 +235,31 @@ def test_lidar_loop_is_closed_and_lowers_ate():
     ate_slam = ate_rmse(pipeline.slam_poses(), gt)
     assert ate_slam < 0.5 * ate_odometry, (ate_slam, ate_odometry)
     assert pipeline.remapper.total_moved > 0
+
+
+def test_gravity_factors_take_out_a_pitch_drift():
+    """A steady nose-up bias bends the lap into a bowl that its own loop agrees with; the up
+    directions measured on the anchor scans' walls flatten it."""
+    street = make_source("generated", **STREET)
+    gt = street.gt_poses
+    runs = {}
+    for enabled in (False, True):
+        cfg = street_config()
+        cfg.pose_graph.gravity.enabled = enabled
+        # what generated walls measure (1-2 mrad); the default is looser, tuned on longer runs
+        cfg.pose_graph.gravity.sigma_rad = 0.005
+        odometry = DriftingOdometry(0.0, 1.0, up_axis=2, pitch_deg_per_frame=0.1)
+        pipeline = run(cfg, street, odometry)
+        runs[enabled] = (
+            ate_per_axis_rmse(pipeline.slam_poses(), gt),
+            pipeline.graph.num_gravity_factors,
+            len(pipeline.graph.node_ids),
+        )
+    (xyz_off, factors_off, _), (xyz_on, factors_on, anchors) = runs[False], runs[True]
+    assert factors_off == 0 and factors_on >= anchors - 1, (factors_on, anchors)
+    assert xyz_off[2] > 0.1, xyz_off
+    assert xyz_on[2] < 0.5 * xyz_off[2], (xyz_on, xyz_off)
+    assert np.hypot(*xyz_on[:2]) <= 1.2 * np.hypot(*xyz_off[:2]) + 0.02, (xyz_on, xyz_off)
 
 
 def test_frames_wait_for_the_submap_worker_without_their_images() -> None:

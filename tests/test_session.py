@@ -16,6 +16,7 @@ from mapping.errors import MapFileError
 from mapping.map_io import VERSION, load_session
 from mapping.networks import PriorModel
 from mapping.neural_map import NeuralMap
+from slam.algorithm.gravity import UpMeasurement
 from slam.algorithm.place import PlaceDescriptor
 from slam.algorithm.session import Edge, SessionRecord
 
@@ -84,6 +85,22 @@ def test_session_round_trip_keeps_what_a_merge_needs():
     for n, d in session.descriptors.items():
         np.testing.assert_array_equal(back.descriptors[n].bits, d.bits)
         np.testing.assert_allclose(back.descriptors[n].positions_A, d.positions_A, atol=2e-3)
+
+
+def test_up_directions_round_trip_and_are_optional():
+    session = _session(np.random.default_rng(2))
+    up_A = np.array([0.01, -0.02, 1.0]) / np.linalg.norm([0.01, -0.02, 1.0])
+    information = np.diag([1e4, 2e4, 0.0])
+    session.up = {7: UpMeasurement(up_A, information, 900)}
+    header, arrays = session.to_arrays()
+    back = SessionRecord.from_arrays(header, arrays)
+    assert list(back.up) == [7]
+    np.testing.assert_array_equal(back.up[7].up_A, up_A)
+    np.testing.assert_array_equal(back.up[7].information_A, information)
+    older = {k: v for k, v in arrays.items() if not k.startswith("up_")}
+    assert SessionRecord.from_arrays(header, older).up == {}
+    with pytest.raises(ValueError, match="up directions"):
+        SessionRecord.from_arrays(header, {**arrays, "up_ids": np.array([5])})
 
 
 def test_inconsistent_frame_poses_are_refused():

@@ -76,6 +76,24 @@ def _reported(output: str, label: str) -> float | None:
     return None
 
 
+def _kiss_slam_input(source) -> tuple[list[str], np.ndarray | None]:
+    """KISS-SLAM's data arguments for a generated KITTI-layout source, reading the scans as ours
+    does, and the ``Tr`` that its poses file is expressed with (None: the LiDAR frame).
+
+    Its ``kitti`` dataloader applies KISS-ICP's 0.205 deg KITTI correction and writes camera-frame
+    poses (``Tr @ T @ inv(Tr)``). It is used only where our loader applies the correction too;
+    otherwise the ``generic`` dataloader reads the same ``.bin`` files untouched, in the LiDAR
+    frame, so both systems get the same points.
+    """
+    from frontends.sources.kitti import KittiSource
+
+    inner = source.inner
+    if isinstance(inner, KittiSource) and inner.correct_vertical_angle:
+        args = [str(kitti_root(source)), "--dataloader", "kitti", "--sequence", "00"]
+        return args, inner.T_cam_lidar
+    return [str(Path(source.sequence_dir) / "velodyne"), "--dataloader", "generic"], None
+
+
 def kiss_slam(source, num_frames: int | None = None) -> dict[str, Any]:
     """KISS-SLAM's ``kiss_slam_pipeline`` (default config) on a generated KITTI-layout source, as
     its own measured process; ``{"skipped": reason}`` when it cannot run."""
@@ -85,13 +103,10 @@ def kiss_slam(source, num_frames: int | None = None) -> dict[str, Any]:
     from slam.app.trajectory_io import read_kitti
     from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
+    data_args, T_cam_lidar = _kiss_slam_input(source)
     command = [
         str(kiss_slam_venv() / "bin" / "kiss_slam_pipeline"),
-        str(kitti_root(source)),
-        "--dataloader",
-        "kitti",
-        "--sequence",
-        "00",
+        *data_args,
         *(["--n-scans", str(num_frames)] if num_frames else []),
     ]
     with tempfile.TemporaryDirectory(prefix="kiss-slam-") as work:
@@ -103,6 +118,8 @@ def kiss_slam(source, num_frames: int | None = None) -> dict[str, Any]:
         if not found:
             return {"skipped": "KISS-SLAM wrote no poses file"}
         poses = read_kitti(found[0])
+    if T_cam_lidar is not None:
+        poses = np.linalg.inv(T_cam_lidar) @ poses @ T_cam_lidar
     gt = source.gt_poses[: len(poses)]
     return {
         "frames": len(poses),

@@ -39,6 +39,7 @@ from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.loops import relative_motion
 from slam.algorithm.merge_config import MergeConfig
 from slam.algorithm.place import PlaceDescriptor, fit_matches, ratio_matches
+from slam.algorithm.pose_graph import GRAVITY_KEY, gravity_factor, gravity_frame_prior
 from slam.algorithm.session import Edge, SessionRecord
 
 logger = logging.getLogger(__name__)
@@ -378,6 +379,7 @@ def _solve(
             measured = gtsam.Pose3(orthonormalize(edge.T_Ai_Aj))
             graph.add(gtsam.BetweenFactorPose3(i, j, measured, _noise(edge.covariance)))
         intra += [(k, ids.of[k][e.i], ids.of[k][e.j]) for e in item.session.loops]
+    _add_gravity(graph, values, inputs, ids)
     known = graph.size()
     accepted = [c for c in loops if c.accepted]
     for c in accepted:
@@ -394,6 +396,21 @@ def _solve(
         c.graph_inlier = bool(weight > 0.5)
     poses = {g: result.atPose3(g).matrix() for g in ids.session_of}
     return poses, intra
+
+
+def _add_gravity(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, inputs: list[SessionInput], ids: _Ids
+) -> None:
+    """Every run's gravity factors against one gravity frame: gravity is the same for all."""
+    measured = [(ids.of[k][n], m) for k, it in enumerate(inputs) for n, m in it.session.up.items()]
+    if not measured:
+        return
+    first, measurement = measured[0]
+    prior, T_W_G = gravity_frame_prior(GRAVITY_KEY, values.atPose3(first).matrix(), measurement)
+    graph.add(prior)
+    values.insert(GRAVITY_KEY, gtsam.Pose3(T_W_G))
+    for node, m in measured:
+        graph.add(gravity_factor(GRAVITY_KEY, node, T_W_G, values.atPose3(node).matrix(), m))
 
 
 def merge_sessions(
@@ -447,7 +464,7 @@ def _merged_session(
 ) -> SessionRecord:
     """The merged run as a session of its own (global ids; inter-session inliers as loops)."""
     node_ids = np.array(sorted(ids.session_of), dtype=np.int64)
-    odometry, intra_loops, descriptors, parts = [], [], {}, []
+    odometry, intra_loops, descriptors, parts, up = [], [], {}, [], {}
     frame_submap, frame_T_A_S, timestamps = [], [], []
     row = 0
     for k, item in enumerate(inputs):
@@ -456,6 +473,7 @@ def _merged_session(
         odometry += [Edge(mapping[e.i], mapping[e.j], e.T_Ai_Aj, e.covariance) for e in s.odometry]
         intra_loops += [Edge(mapping[e.i], mapping[e.j], e.T_Ai_Aj, e.covariance) for e in s.loops]
         descriptors.update({mapping[n]: d for n, d in s.descriptors.items() if n in mapping})
+        up.update({mapping[n]: m for n, m in s.up.items()})
         frame_submap.append(np.array([mapping[int(n)] for n in s.frame_submap], dtype=np.int64))
         frame_T_A_S.append(s.frame_T_A_S)
         timestamps.append(s.timestamps)
@@ -478,4 +496,5 @@ def _merged_session(
         descriptors=descriptors,
         dataset_mirror=first.dataset_mirror,
         parts=parts,
+        up=up,
     )

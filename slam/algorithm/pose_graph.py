@@ -26,6 +26,11 @@ Robust back-ends (``online_gnc``), each consistent from the first loop to the fi
 * Cauchy (``online_gnc: false``): iSAM2 with every loop under a Cauchy kernel; the final ``lm``
   runs the same Cauchy problem in batch, ``gnc`` switches to GNC for the final estimate.
 
+Gravity (``gravity.enabled``): a node ``G`` holds the gravity frame (its z axis is up; its heading
+and position are fixed by a prior, its tilt is free), and each submap whose walls give an up
+direction (:mod:`slam.algorithm.gravity`) gets a factor between ``G`` and its anchor that only
+constrains the anchor's tilt. Like the prior and the odometry, these are known inliers for GNC.
+
 GTSAM orders the Pose3 tangent space as ``[rx, ry, rz, tx, ty, tz]``.
 """
 
@@ -37,8 +42,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from common.geometry import orthonormalize, rotation_angle_rad
+from common.geometry import orthonormalize, rotation_angle_rad, so3_exp
 from slam.algorithm.config import PoseGraphConfig
+from slam.algorithm.gravity import UpMeasurement
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +52,11 @@ INLIER_WEIGHT = 0.5
 """A GNC weight above this keeps a loop edge."""
 CAUCHY_INLIER_WEIGHT = 0.1
 """A Cauchy weight above this (whitened residual below 3 k) counts as an inlier."""
+GRAVITY_KEY = gtsam.symbol("g", 0)
+"""Key of the gravity frame ``G`` (never a submap id: those are small integers)."""
+_UNCONSTRAINED_INFORMATION = 1e-8
+"""Information given to what a gravity factor does not measure (heading, position), so that its
+noise model stays positive definite."""
 
 
 @dataclass
@@ -71,6 +82,43 @@ def _pose3(T: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(orthonormalize(T))
 
 
+def _rotation_onto_z(v: np.ndarray) -> np.ndarray:
+    """The smallest rotation that turns the unit vector ``v`` onto ``[0, 0, 1]``."""
+    v = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+    axis = np.cross(v, [0.0, 0.0, 1.0])
+    sin = float(np.linalg.norm(axis))
+    if sin < 1e-12:
+        return np.eye(3) if v[2] > 0 else np.diag([1.0, -1.0, -1.0])
+    angle = float(np.arctan2(sin, v[2]))
+    return so3_exp(axis / sin * angle)
+
+
+def gravity_frame_prior(
+    key: int, T_W_A: np.ndarray, measurement: UpMeasurement
+) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
+    """The gravity frame ``G`` at the world origin with its z axis on a first measured up
+    direction, and its prior: heading and position fixed (they mean nothing), tilt free."""
+    T_W_G = np.eye(4)
+    T_W_G[:3, :3] = _rotation_onto_z(T_W_A[:3, :3] @ measurement.up_A).T
+    free_tilt = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1e-6, 1e-6, 1e-6, 1e-6]))
+    return gtsam.PriorFactorPose3(key, _pose3(T_W_G), free_tilt), T_W_G
+
+
+def gravity_factor(
+    key_G: int, key_A: int, T_W_G: np.ndarray, T_W_A: np.ndarray, measurement: UpMeasurement
+) -> gtsam.BetweenFactorPose3:
+    """A between-factor ``G -> A`` on an anchor's tilt: its measurement turns the current
+    ``T_G_A`` minimally so that ``up_A`` maps onto G's z axis, and its noise informs only the
+    anchor's tilt (``measurement.information_A``), nothing about its heading or position."""
+    T_G_A = np.linalg.inv(T_W_G) @ T_W_A
+    measured = T_G_A.copy()
+    measured[:3, :3] = _rotation_onto_z(T_G_A[:3, :3] @ measurement.up_A) @ T_G_A[:3, :3]
+    information = np.eye(6) * _UNCONSTRAINED_INFORMATION
+    information[:3, :3] += measurement.information_A
+    noise = gtsam.noiseModel.Gaussian.Information(information)
+    return gtsam.BetweenFactorPose3(key_G, key_A, _pose3(measured), noise)
+
+
 def _sigmas(rotation_rad: float, translation_m: float) -> np.ndarray:
     return np.array([rotation_rad] * 3 + [translation_m] * 3, dtype=np.float64)
 
@@ -82,6 +130,8 @@ class PoseGraph:
         self.cfg = cfg
         self._isam = self._new_isam()
         self._chain: list[gtsam.NonlinearFactor] = []  # prior and odometry factors, in order
+        self._gravity: list[gtsam.NonlinearFactor] = []  # G's prior, then one per measured anchor
+        self.up_measurements: dict[int, UpMeasurement] = {}
         self._node_ids: list[int] = []
         self._odometry_anchor: dict[int, np.ndarray] = {}
         self._estimate = gtsam.Values()
@@ -216,6 +266,42 @@ class PoseGraph:
             self._update_cauchy_weights()
         return edge
 
+    def up_in(self, node_id: int) -> np.ndarray:
+        """(3,) the up direction in an anchor's frame at the current estimate: the gravity
+        frame's z axis, or the world's before the first up measurement."""
+        R_W_A = self.pose(node_id)[:3, :3]
+        up_W = np.array([0.0, 0.0, 1.0])
+        if self._gravity:
+            up_W = self._estimate.atPose3(GRAVITY_KEY).rotation().matrix()[:, 2]
+        return R_W_A.T @ up_W
+
+    def add_gravity(self, node_id: int, measurement: UpMeasurement) -> None:
+        """Tie an anchor's tilt to the gravity frame by its measured up direction
+        (:func:`gravity_factor`); the first call creates ``G`` (:func:`gravity_frame_prior`)."""
+        if node_id not in self._odometry_anchor:
+            raise KeyError(f"anchor {node_id} is not in the pose graph")
+        new_factors = gtsam.NonlinearFactorGraph()
+        new_values = gtsam.Values()
+        T_W_A = self.pose(node_id)
+        if not self._gravity:
+            prior, T_W_G = gravity_frame_prior(GRAVITY_KEY, T_W_A, measurement)
+            self._gravity.append(prior)
+            new_factors.add(prior)
+            new_values.insert(GRAVITY_KEY, _pose3(T_W_G))
+        else:
+            T_W_G = self._estimate.atPose3(GRAVITY_KEY).matrix()
+        factor = gravity_factor(GRAVITY_KEY, node_id, T_W_G, T_W_A, measurement)
+        self.up_measurements[node_id] = measurement
+        self._gravity.append(factor)
+        new_factors.add(factor)
+        self._isam.update(new_factors, new_values)
+        self._estimate = self._isam.calculateEstimate()
+
+    @property
+    def num_gravity_factors(self) -> int:
+        """Anchors with an up-direction factor."""
+        return max(len(self._gravity) - 1, 0)
+
     def reframe(self, T_New_W: np.ndarray) -> None:
         """Express the whole graph in another world frame: every anchor becomes
         ``T_New_W @ T_W_A`` and the first anchor's prior moves with it.
@@ -234,14 +320,26 @@ class PoseGraph:
         moved = gtsam.Values()
         for node in self._node_ids:
             moved.insert(node, _pose3(T_New_W @ self.pose(node)))
+        if self._gravity:
+            g_prior = self._gravity[0]
+            self._gravity[0] = gtsam.PriorFactorPose3(
+                GRAVITY_KEY, _pose3(T_New_W @ g_prior.prior().matrix()), g_prior.noiseModel()
+            )
+            T_W_G = self._estimate.atPose3(GRAVITY_KEY).matrix()
+            moved.insert(GRAVITY_KEY, _pose3(T_New_W @ T_W_G))
         self._reseed(moved)
 
     # --- solving ------------------------------------------------------------------------------
 
-    def _gaussian_graph(self) -> gtsam.NonlinearFactorGraph:
+    def _known_inliers(self) -> gtsam.NonlinearFactorGraph:
+        """Prior, odometry and gravity factors: never rejected."""
         graph = gtsam.NonlinearFactorGraph()
-        for factor in self._chain:
+        for factor in (*self._chain, *self._gravity):
             graph.add(factor)
+        return graph
+
+    def _gaussian_graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = self._known_inliers()
         for edge in self.loops:
             graph.add(self._loop_factor(edge, robust=False))
         return graph
@@ -253,21 +351,21 @@ class PoseGraph:
             return
         params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
         params.setLossType(gtsam.GncLossType.TLS)
-        params.setKnownInliers(list(range(len(self._chain))))
+        known = len(self._chain) + len(self._gravity)
+        params.setKnownInliers(list(range(known)))
         optimizer = gtsam.GncLMOptimizer(self._gaussian_graph(), self._estimate, params)
         optimizer.setInlierCostThresholdsAtProbability(self.cfg.gnc_inlier_probability)
         result = optimizer.optimize()
         weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
-        for edge, weight in zip(self.loops, weights[len(self._chain) :], strict=True):
+        for edge, weight in zip(self.loops, weights[known:], strict=True):
             edge.weight = float(weight)
             edge.inlier = bool(weight > INLIER_WEIGHT)
         self._reseed(result)
 
     def _inlier_graph(self) -> gtsam.NonlinearFactorGraph:
-        """The chain and the GNC-inlier loops with Gaussian noise: the problem GNC solved."""
-        graph = gtsam.NonlinearFactorGraph()
-        for factor in self._chain:
-            graph.add(factor)
+        """The known inliers and the GNC-inlier loops with Gaussian noise: the problem GNC
+        solved."""
+        graph = self._known_inliers()
         for edge in self.loops:
             if edge.inlier:
                 graph.add(self._loop_factor(edge, robust=False))
@@ -278,9 +376,7 @@ class PoseGraph:
         GNC-inlier loops (Gaussian), otherwise every loop under the Cauchy kernel."""
         if self.cfg.online_gnc:
             return self._inlier_graph()
-        graph = gtsam.NonlinearFactorGraph()
-        for factor in self._chain:
-            graph.add(factor)
+        graph = self._known_inliers()
         for edge in self.loops:
             graph.add(self._loop_factor(edge, robust=True))
         return graph

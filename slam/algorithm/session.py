@@ -7,6 +7,8 @@ other runs without the raw data (DESIGN section 10).
 * every frame's anchor and pose relative to it (``T_A_S``) and its timestamp, so a merge can
   write every frame's pose after the anchors moved;
 * each submap's place descriptor (:mod:`slam.algorithm.place`);
+* the up directions measured on anchor scans (:mod:`slam.algorithm.gravity`), so that a merge
+  keeps the gravity factors (optional: absent in runs without them and in older files);
 * the sensor setup (JSON) and the fixed map from the loader's frames to the dataset's own
   (``dataset_mirror``), so merged trajectories are written in the dataset's frames.
 
@@ -27,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from slam.algorithm.gravity import UpMeasurement
 from slam.algorithm.place import PlaceDescriptor
 
 
@@ -81,6 +84,7 @@ class SessionRecord:
         descriptors: ``{anchor id: PlaceDescriptor}``.
         dataset_mirror: 4x4 map of the loader's frames to the dataset's (``M P M``).
         parts: for a merged run, ``[{"name", "first_row", "rows"}]`` of the runs it joined.
+        up: ``{anchor id: UpMeasurement}`` of the anchors with a gravity factor.
     """
 
     setup: dict
@@ -94,6 +98,7 @@ class SessionRecord:
     descriptors: dict[int, PlaceDescriptor]
     dataset_mirror: np.ndarray = field(default_factory=lambda: np.eye(4))
     parts: list[dict] = field(default_factory=list)
+    up: dict[int, UpMeasurement] = field(default_factory=dict)
 
     @property
     def sensor(self) -> str:
@@ -145,6 +150,12 @@ class SessionRecord:
                 [np.zeros((0, 32), np.uint8)] + [self.descriptors[i].bits for i in ids]
             ),
         }
+        up_ids = sorted(self.up)
+        arrays["up_ids"] = np.asarray(up_ids, np.int64)
+        arrays["up_A"] = np.array([self.up[i].up_A for i in up_ids], np.float64).reshape(-1, 3)
+        arrays["up_information"] = np.array(
+            [self.up[i].information_A for i in up_ids], np.float64
+        ).reshape(-1, 3, 3)
         for name, items in (("odometry", self.odometry), ("loop", self.loops)):
             for key, value in edges(items).items():
                 arrays[f"{name}_{key}"] = value
@@ -187,6 +198,17 @@ class SessionRecord:
                 ids, offsets[:-1], offsets[1:], arrays["descriptor_planar"], strict=True
             )
         }
+        up_ids = arrays.get("up_ids", np.zeros(0, np.int64))
+        up_A = arrays.get("up_A", np.zeros((0, 3)))
+        up_information = arrays.get("up_information", np.zeros((0, 3, 3)))
+        if not len(up_ids) == len(up_A) == len(up_information) or not set(up_ids.tolist()) <= set(
+            node_ids.tolist()
+        ):
+            raise ValueError("session up directions are inconsistent")
+        up = {
+            int(n): UpMeasurement(u.astype(np.float64), info.astype(np.float64), 0)
+            for n, u, info in zip(up_ids, up_A, up_information, strict=True)
+        }
         return cls(
             setup=dict(header.get("setup", {})),
             node_ids=node_ids,
@@ -199,6 +221,7 @@ class SessionRecord:
             descriptors=descriptors,
             dataset_mirror=arrays["dataset_mirror"].astype(np.float64),
             parts=list(header.get("parts", [])),
+            up=up,
         )
 
 
@@ -225,4 +248,5 @@ def session_from_pipeline(
         timestamps=pipeline.timestamps(),
         descriptors=descriptors,
         dataset_mirror=np.eye(4) if dataset_mirror is None else np.asarray(dataset_mirror),
+        up=dict(graph.up_measurements),
     )

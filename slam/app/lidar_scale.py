@@ -19,6 +19,8 @@ submaps.normal_radius_m                                1.5 voxel
 loop_closure.min_travel_m                              3 R
 loop_closure.lidar.proximity_radius_m                  0.7 R
 loop_closure.lidar.icp_max_correspondence_m            1.5 voxel
+pose_graph.gravity.voxel_m, normal_radius_m            voxel / 4, voxel
+pose_graph.gravity.min_range_m, max_range_m            R / 15, 5 R / 3
 =====================================================  =======================
 """
 
@@ -80,6 +82,14 @@ def scale_config(cfg: RunConfig, first_scan: np.ndarray) -> dict[str, float]:
         ("inlier_distance_m", voxel / 2.0),
     ):
         _set_unset(lidar, field, value, changed, "loop_closure.lidar")
+    gravity = cfg.pose_graph.gravity
+    for field, value in (
+        ("voxel_m", voxel / 4.0),
+        ("normal_radius_m", voxel),
+        ("min_range_m", extent / 15.0),
+        ("max_range_m", 5.0 * extent / 3.0),
+    ):
+        _set_unset(gravity, field, value, changed, "pose_graph.gravity")
     logger.info(
         "LiDAR scale from the first scan: extent %.1f m (p%.0f), farthest %.1f m; set %s",
         extent,
