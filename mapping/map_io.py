@@ -25,7 +25,10 @@ and arrays named ``session_*``, written and read opaquely here (the SLAM layer d
 as float32 quaternion and translation instead of float64 matrices). Version 2 and 3 files still
 load as maps; :func:`load_session` reads only the current version's section and refuses theirs.
 
-Files are written to a temporary file in the target folder and moved into place.
+Files are written to a temporary file in the target folder and moved into place. The per-voxel
+arrays are written submap by submap (:class:`_Stacked`): the file is the one ``np.savez_compressed``
+writes of their concatenation, without the concatenation in memory (issue 25: that copy of every
+submap's encoding set the run's peak RSS).
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ import json
 import zipfile
 import zlib
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -75,6 +78,39 @@ def _from_numpy(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
     return t
 
 
+class _Stacked(NamedTuple):
+    """An array stored as the concatenation of ``parts`` along the first axis (never built)."""
+
+    parts: list[np.ndarray]
+
+
+def _write_stacked(fid, parts: list[np.ndarray]) -> None:
+    """The ``.npy`` bytes ``np.lib.format.write_array`` writes of ``np.concatenate(parts)``: the
+    same header (dtype promoted as ``concatenate`` does, C order), then each part's data."""
+    dtype = np.result_type(*parts)
+    tail = parts[0].shape[1:]
+    if any(p.shape[1:] != tail for p in parts):
+        raise ValueError(f"save: parts of shapes {[p.shape for p in parts]} do not stack")
+    header = np.lib.format.header_data_from_array_1_0(np.empty((0, *tail), dtype))
+    header["shape"] = (sum(p.shape[0] for p in parts), *tail)
+    np.lib.format.write_array_header_1_0(fid, header)
+    for part in parts:
+        if part.size:
+            fid.write(memoryview(np.ascontiguousarray(part, dtype=dtype)).cast("B"))
+
+
+def _write_npz(f, arrays: dict[str, np.ndarray | _Stacked]) -> None:
+    """``np.savez_compressed(f, **arrays)`` (the same entries in the same order, each written
+    as ``np.save`` would), where a :class:`_Stacked` entry is written part by part."""
+    with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zipf:
+        for name, value in arrays.items():
+            with zipf.open(f"{name}.npy", "w", force_zip64=True) as fid:  # zip64 as numpy does
+                if isinstance(value, _Stacked):
+                    _write_stacked(fid, value.parts)
+                else:
+                    np.lib.format.write_array(fid, np.asanyarray(value), allow_pickle=False)
+
+
 def save_map(
     neural_map: NeuralMap,
     path: str | Path,
@@ -104,7 +140,7 @@ def save_map(
             f"{cfg.jacobian_storage} Jacobians"
         )
     counts = [o.num_voxels for o in originals]
-    arrays: dict[str, np.ndarray] = {
+    arrays: dict[str, np.ndarray | _Stacked] = {
         "submap_ids": np.asarray(ids, dtype=np.int64),
         "submap_fused": np.asarray([s.fused for s in submaps], dtype=bool),
         "submap_T_W_A_encoded": np.asarray(
@@ -131,9 +167,8 @@ def save_map(
         "latent_coeffs": _to_numpy(torch.zeros(0, k_f, 3, dtype=dtype)),
         "jacobian_coeffs": _to_numpy(torch.zeros(0, k_j, 3, 3, dtype=jac_dtype)),
     }
-    for name in _PER_VOXEL:
-        parts = [_to_numpy(getattr(o, name)) for o in originals]
-        arrays[name] = np.concatenate([empty[name], *parts])
+    for name in _PER_VOXEL:  # views of the submaps' tensors, written one after the other
+        arrays[name] = _Stacked([empty[name], *(_to_numpy(getattr(o, name)) for o in originals)])
     header = {
         "format": FORMAT,
         "version": VERSION,
@@ -151,7 +186,7 @@ def save_map(
             arrays[SESSION_PREFIX + name] = np.asarray(value)
     arrays["header"] = np.array(json.dumps(header))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, **arrays)
+        _write_npz(f, arrays)
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:

@@ -11,9 +11,15 @@ dense ``(chunk_voxels s + 1)^3`` node array (faces shared with neighbours), runs
 marching cubes on the cells whose 8 corners are all observed, drops triangles with a vertex sigma
 above the threshold and caches the result. Changed voxels mark the chunks their cube reaches as
 dirty; only those are re-meshed. The chunk meshes are concatenated and only the vertices on chunk
-faces (the only ones two chunks can share) are welded; the assembled mesh is cached until a chunk
-changes. A chunk whose marching cubes fails is left out with a warning that counts them
-(:attr:`ChunkMesher.failed_chunks`); a chunk with no surface in its observed cells is simply empty.
+faces (the only ones two chunks can share) are welded. A chunk whose marching cubes fails is left
+out with a warning that counts them (:attr:`ChunkMesher.failed_chunks`); a chunk with no surface in
+its observed cells is simply empty.
+
+Memory (issue 25): a chunk is cached as marching cubes' float32 lattice coordinates and faces in the
+smallest integer type that indexes its vertices (a third of float64 world vertices and int64
+faces; the world vertices are computed from them exactly when the mesh is assembled); the
+assembled mesh is not cached (the caller's is the only copy); and the free heap pages the batches'
+temporaries leave in glibc's arenas go back to the OS every few batches and after assembling.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import numpy as np
 import torch
 import trimesh
 
+from common.memory import release_freed_memory
 from common.voxel_keys import pack_keys, unpack_keys
 from mapping.field import decode_indexed, decode_lattice, voxel_query_terms
 from mapping.networks import Decoder
@@ -33,6 +40,8 @@ from mapping.voxel_store import VoxelStore
 log = logging.getLogger(__name__)
 
 CHUNKS_PER_BATCH = 32
+TRIM_EVERY_BATCHES = 8  # free heap pages back to the OS this often while meshing (see update)
+FACE_ROWS = 1 << 20  # faces re-indexed per step when welding (bounds the temporary)
 NEAR_SURFACE_VU = 0.25  # coarse nodes closer than this to the surface mark their cells active
 _NEIGHBOUR_SHIFTS = torch.stack(
     torch.meshgrid(*(torch.arange(-1, 2),) * 3, indexing="ij"), dim=-1
@@ -136,9 +145,9 @@ class ChunkMesher:
         self.chunk_voxels = chunk_voxels
         self.max_sigma_vu = max_sigma_vu
         self.min_weight = min_weight
-        # per chunk: world vertices, faces, and which vertices lie on the chunk's faces
+        # per chunk: lattice vertices (from the chunk's corner node), faces, and which vertices
+        # lie on the chunk's faces
         self._chunks: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._assembled: trimesh.Trimesh | None = None
         self.failed_chunks = 0  # chunks whose marching cubes failed (whole lifetime)
         self.last_remeshed = torch.zeros(0, dtype=torch.int64)  # packed chunk keys, last update
         self._fine = lattice_offsets(subdivisions)
@@ -153,7 +162,6 @@ class ChunkMesher:
 
     def clear(self) -> None:
         self._chunks.clear()
-        self._assembled = None
 
     def dirty_chunks(self, dirty_voxel_keys: torch.Tensor) -> torch.Tensor:
         """Packed chunk keys whose node range a changed voxel's ``2V`` cube reaches."""
@@ -181,12 +189,17 @@ class ChunkMesher:
 
         ``threads > 1`` meshes batches of chunks on that many Python threads (torch and
         scikit-image release the GIL); each batch is meshed alone, so the result is the same.
+        Every :data:`TRIM_EVERY_BATCHES` batches the free heap pages go back to the OS: a batch's
+        decode temporaries are blocks of ~2 MB, below glibc's mmap threshold, and without the
+        trims the mesh threads' arenas grew by ~400 MiB over the whole-map mesh of the full
+        generated KITTI 00 run. Each trim costs ~10 ms plus re-faulting the pages; on that mesh,
+        every 8th batch peaked within ~5 MiB of every 4th (50 MiB below every 16th) for ~2 % more
+        CPU time than no trims (every 4th: ~8 %).
         """
         chunks = self.dirty_chunks(dirty_voxel_keys)
         self.last_remeshed = chunks
         if chunks.numel() == 0:
             return
-        self._assembled = None
         failures: list[tuple[int, str]] = []
         keys = store.sorted_keys()
         rows = store.rows()
@@ -204,20 +217,24 @@ class ChunkMesher:
                 store, decoder, batch, grid, rows, pair_voxel[lo:hi], pair_chunk[lo:hi]
             )
 
-        if threads > 1 and len(batches) > 1:
-            with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="mesh") as pool:
-                results = list(pool.map(mesh_batch, batches))
-        else:
-            results = map(mesh_batch, batches)
-        for batch, meshes in zip(batches, results, strict=True):
-            for key, mesh in zip(batch.tolist(), meshes, strict=True):
-                if isinstance(mesh, str):
-                    failures.append((key, mesh))
-                    mesh = None
-                if mesh is None:
-                    self._chunks.pop(key, None)
-                else:
-                    self._chunks[key] = mesh
+        with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="mesh") as pool:
+            # taken as they finish (in order), so that a batch's meshes are stored at once
+            if threads > 1 and len(batches) > 1:
+                results = pool.map(mesh_batch, batches)
+            else:
+                results = map(mesh_batch, batches)
+            for i, (batch, meshes) in enumerate(zip(batches, results, strict=True)):
+                for key, mesh in zip(batch.tolist(), meshes, strict=True):
+                    if isinstance(mesh, str):
+                        failures.append((key, mesh))
+                        mesh = None
+                    if mesh is None:
+                        self._chunks.pop(key, None)
+                    else:
+                        self._chunks[key] = mesh
+                if i % TRIM_EVERY_BATCHES == TRIM_EVERY_BATCHES - 1:
+                    release_freed_memory()
+        release_freed_memory()
         if failures:
             self.failed_chunks += len(failures)
             key, reason = failures[0]
@@ -365,14 +382,15 @@ class ChunkMesher:
             sigma = torch.where(needed, f_sigma, i_sigma)
             valid = torch.where(needed, f_valid, i_valid)
         sdf, sigma, valid = (t.cpu().numpy() for t in (sdf, sigma, valid))
-        corners = unpack_keys(batch).cpu().numpy() * (cs * s)
-        return [self._march(sdf[i], sigma[i], valid[i], corners[i]) for i in range(n_chunks)]
+        return [self._march(sdf[i], sigma[i], valid[i]) for i in range(n_chunks)]
 
     def _march(
-        self, sdf: np.ndarray, sigma: np.ndarray, valid: np.ndarray, corner: np.ndarray
+        self, sdf: np.ndarray, sigma: np.ndarray, valid: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str | None:
-        """One chunk's mesh ``(world vertices, faces, on-chunk-face mask)``, None when it has no
-        surface, or the reason marching cubes failed."""
+        """One chunk's mesh ``(lattice vertices, faces, on-chunk-face mask)``, None when it has no
+        surface, or the reason marching cubes failed. The vertices are marching cubes' own
+        (float32, in lattice steps from the chunk's first node): :meth:`_assemble` makes world
+        coordinates of them."""
         from scipy.ndimage import map_coordinates
         from skimage.measure import marching_cubes
 
@@ -413,49 +431,58 @@ class ChunkMesher:
         if faces.shape[0] == 0:
             return None
         used, faces = np.unique(faces, return_inverse=True)
-        h = self.voxel_size_m / self.subdivisions
         local = verts[used]
         # marching cubes puts a vertex on a lattice edge, so the coordinate across a chunk face
         # is exactly the face's node index
         on_face = ((local == 0) | (local == sdf.shape[0] - 1)).any(axis=1)
-        verts_W = (local.astype(np.float64) + corner) * h
-        return verts_W, faces.reshape(-1, 3).astype(np.int64), on_face
+        index_type = np.min_scalar_type(max(len(used) - 1, 0))
+        return local, faces.reshape(-1, 3).astype(index_type), on_face
 
     def mesh(self) -> trimesh.Trimesh:
-        """All cached chunk meshes, concatenated, with the vertices on chunk faces welded.
-
-        The result is cached until a chunk changes; each call returns a copy.
-        """
-        if self._assembled is None:
-            self._assembled = self._assemble()
-        return self._assembled.copy()
+        """All cached chunk meshes, concatenated, with the vertices on chunk faces welded (a new
+        mesh on every call)."""
+        mesh = self._assemble()
+        release_freed_memory()
+        return mesh
 
     def _assemble(self) -> trimesh.Trimesh:
         if not self._chunks:
             return trimesh.Trimesh(
                 np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False
             )
-        verts, faces, on_face, offset = [], [], [], 0
-        for key in sorted(self._chunks):
-            v, f, b = self._chunks[key]
-            verts.append(v)
-            faces.append(f + offset)
-            on_face.append(b)
-            offset += v.shape[0]
-        V = np.concatenate(verts)
-        F = np.concatenate(faces)
-        shared = np.flatnonzero(np.concatenate(on_face))
+        keys = sorted(self._chunks)
+        parts = [self._chunks[key] for key in keys]
+        n_verts = np.array([v.shape[0] for v, _, _ in parts], dtype=np.int64)
+        n_faces = np.array([f.shape[0] for _, f, _ in parts], dtype=np.int64)
+        h = self.voxel_size_m / self.subdivisions
+        # world vertex = (lattice vertex + chunk corner node) * h, in float64
+        V = np.concatenate([v for v, _, _ in parts], dtype=np.float64)
+        corners = unpack_keys(np.asarray(keys, dtype=np.int64)) * (
+            self.chunk_voxels * self.subdivisions
+        )
+        for axis in range(3):
+            V[:, axis] += np.repeat(corners[:, axis], n_verts)
+        V *= h
+        F = np.concatenate([f for _, f, _ in parts], dtype=np.int64)
+        F += np.repeat(np.cumsum(n_verts) - n_verts, n_faces)[:, None]
+        shared = np.flatnonzero(np.concatenate([b for _, _, b in parts]))
+        del parts
         if len(shared):
             # weld on a 1/4096 lattice-step grid (the same vertex from two chunks differs only
             # by float rounding)
-            h = self.voxel_size_m / self.subdivisions
             quantised = np.round(V[shared] * (4096.0 / h)).astype(np.int64)
             _, first, inverse = np.unique(quantised, axis=0, return_index=True, return_inverse=True)
+            del quantised
             target = np.arange(len(V))
             target[shared] = shared[first[inverse.reshape(-1)]]
-            keep = target == np.arange(len(V))
+            keep = np.ones(len(V), dtype=bool)
+            keep[shared] = target[shared] == shared
             new_index = np.cumsum(keep) - 1
-            F = new_index[target][F]
+            remap = new_index[target]
+            del target, new_index
+            for start in range(0, len(F), FACE_ROWS):  # in place, a block at a time
+                F[start : start + FACE_ROWS] = remap[F[start : start + FACE_ROWS]]
+            del remap
             V = V[keep]
             good = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])
             if not good.all():

@@ -12,6 +12,11 @@ half precision that would leave errors of several per cent after a voxel's domin
 removed. A voxel whose weight falls to ``<= WEIGHT_TOLERANCE * previous weight`` is deleted; every
 contribution is at least 1 (point counts, and convex blends of them), so this never drops a voxel
 that another submap still holds.
+
+The keys changed since the last :meth:`VoxelStore.take_dirty` are kept as a list of arrays, merged
+into one array of unique keys whenever the list has grown by as many keys as the larger of the
+merged array and the map (issue 25: a run that never meshes before its end would otherwise hold
+every fused and removed block's keys, remaps included, and concatenate them all at the end).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from common.voxel_keys import unpack_keys
 from mapping.voxel_block import VoxelBlock
 
 WEIGHT_TOLERANCE = 1e-6
+DIRTY_MERGE_MIN = 1 << 16  # pending changed keys below which they are never merged
 
 
 def _canonical(block: VoxelBlock) -> tuple[VoxelBlock, torch.Tensor]:
@@ -53,6 +59,8 @@ class VoxelStore:
         self._weights = torch.zeros(capacity, dtype=torch.float64, device=device)
         self._free = torch.arange(capacity - 1, -1, -1, device=device)  # stack, top at the end
         self._dirty: list[torch.Tensor] = []
+        self._dirty_count = 0  # keys in self._dirty
+        self._dirty_merged = 0  # keys in its first array when that is the result of a merge
 
     # ------------------------------------------------------------------ queries
     @property
@@ -110,7 +118,19 @@ class VoxelStore:
             return torch.zeros(0, dtype=torch.int64, device=self.device)
         dirty = torch.unique(torch.cat(self._dirty))
         self._dirty = []
+        self._dirty_count = self._dirty_merged = 0
         return dirty
+
+    def _mark_dirty(self, keys: torch.Tensor) -> None:
+        """Record changed keys; merge the record when it has grown enough (amortised O(1) a key,
+        the record stays below twice the keys it stands for plus the map)."""
+        self._dirty.append(keys)
+        self._dirty_count += keys.shape[0]
+        grown = self._dirty_count - self._dirty_merged
+        if grown >= max(self._dirty_merged, self.num_voxels, DIRTY_MERGE_MIN):
+            merged = torch.unique(torch.cat(self._dirty))
+            self._dirty = [merged]
+            self._dirty_count = self._dirty_merged = merged.shape[0]
 
     # ------------------------------------------------------------------ updates
     def add(self, block: VoxelBlock) -> None:
@@ -133,7 +153,7 @@ class VoxelStore:
             self._latents[r] = block.latents[miss]
             self._weights[r] = w_new[miss]
             self._insert(keys[miss], r)
-        self._dirty.append(keys)
+        self._mark_dirty(keys)
 
     def subtract(self, block: VoxelBlock) -> None:
         """Remove: ``F <- (F w - F_k w_k) / (w - w_k)``, ``w <- w - w_k``; drop emptied voxels.
@@ -167,7 +187,7 @@ class VoxelStore:
             dead = (~alive).nonzero().squeeze(1)
             self._blend(rows[live], latents[live], -w_k[live])
             self._delete(keys[dead], rows[dead])
-        self._dirty.append(keys)
+        self._mark_dirty(keys)
 
     def _blend(self, rows: torch.Tensor, latents: torch.Tensor, w_k: torch.Tensor) -> None:
         """``F <- (F w + F_k w_k) / (w + w_k)`` at ``rows``; a negative ``w_k`` removes.
@@ -184,7 +204,7 @@ class VoxelStore:
         """Drop every voxel (the changed keys are reported by :meth:`take_dirty`)."""
         dirty = self._keys
         self._reset(1024)
-        self._dirty.append(dirty)
+        self._mark_dirty(dirty)
 
     # ------------------------------------------------------------------ internals
     def _allocate(self, n: int) -> torch.Tensor:

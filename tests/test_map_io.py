@@ -202,3 +202,26 @@ def test_every_storage_dtype_round_trips(tmp_path: Path, dtype: str) -> None:
     for name in FIELDS:
         assert torch.equal(getattr(subs[0].original, name), getattr(sub.original, name))
     assert torch.equal(loaded.voxel_block().latents, nm.voxel_block().latents)
+
+
+def test_stacked_arrays_are_written_as_savez_compressed_writes_their_concatenation() -> None:
+    """The per-voxel arrays are written part by part: the file is byte for byte the one
+    ``np.savez_compressed`` writes of the concatenated arrays (dtype promotion included)."""
+    import io
+
+    from mapping.map_io import _Stacked, _write_npz
+
+    rng = np.random.default_rng(0)
+    parts = {
+        "keys": [np.zeros(0, np.int64), rng.integers(0, 1 << 40, 7), rng.integers(0, 9, 0)],
+        "latent": [rng.normal(size=(n, 4, 3)).astype(np.float32) for n in (0, 5, 0, 300_000)],
+        "bits": [np.zeros((0, 2, 3, 3), np.int16), rng.integers(-9, 9, (3, 2, 3, 3), np.int16)],
+        "mixed": [np.zeros(0, np.float32), np.ones(4, np.float64)],  # promoted to float64
+    }
+    plain = {"ids": np.arange(4), "header": np.array(json.dumps({"a": 1}))}
+    ours, reference = io.BytesIO(), io.BytesIO()
+    _write_npz(ours, {**plain, **{name: _Stacked(p) for name, p in parts.items()}})
+    np.savez_compressed(reference, **plain, **{n: np.concatenate(p) for n, p in parts.items()})
+    assert ours.getvalue() == reference.getvalue()
+    with pytest.raises(ValueError, match="do not stack"):
+        _write_npz(io.BytesIO(), {"x": _Stacked([np.zeros((1, 2)), np.zeros((1, 3))])})

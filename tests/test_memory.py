@@ -1,4 +1,4 @@
-"""Freed memory goes back to the OS (slam/algorithm/memory.py)."""
+"""Freed memory goes back to the OS (common/memory.py)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 _CHILD = textwrap.dedent(
     """
     import numpy as np
-    from slam.algorithm.memory import LARGE_ALLOCATION_BYTES, keep_large_allocations_apart
+    from common.memory import LARGE_ALLOCATION_BYTES, keep_large_allocations_apart
 
     def rss_bytes():
         with open("/proc/self/status") as status:

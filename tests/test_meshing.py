@@ -227,5 +227,26 @@ def test_no_surface_in_observed_cells_is_an_empty_chunk_not_a_failure() -> None:
     sdf = np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None] - 4.5, (n, n, n)).copy()
     valid = np.ones((n, n, n), dtype=bool)
     valid[4:6] = False  # the sign change lies only in cells with unobserved corners
-    out = mesher._march(sdf, np.full((n, n, n), 0.1, np.float32), valid, np.zeros(3))
+    out = mesher._march(sdf, np.full((n, n, n), 0.1, np.float32), valid)
     assert out is None and mesher.failed_chunks == 0
+
+
+def test_chunk_cache_is_compact_and_each_mesh_is_a_new_copy() -> None:
+    """Chunks are cached as float32 lattice vertices and small-integer faces; the world vertices
+    are exactly ``(lattice + corner node) * h`` in float64; a returned mesh is the caller's own."""
+    nm = _sphere_map()
+    first = nm.extract_mesh()
+    mesher = nm._mesher
+    h = V / mesher.subdivisions
+    assembled = {row.tobytes() for row in first.vertices}
+    for key in sorted(mesher._chunks):
+        local, faces, on_face = mesher._chunks[key]
+        assert local.dtype == np.float32 and faces.dtype.itemsize <= 2
+        assert on_face.shape == (len(local),) and int(faces.max()) < len(local)
+        corner = unpack_keys(np.array([key]))[0] * (mesher.chunk_voxels * mesher.subdivisions)
+        world = (local.astype(np.float64) + corner) * h
+        # the assembled mesh holds each chunk's interior vertices unchanged
+        assert all(row.tobytes() in assembled for row in world[~on_face])
+    first.vertices[:] = 0.0  # the caller's copy: changing it changes nothing cached
+    second = nm.extract_mesh()
+    assert len(second.faces) == len(first.faces) and np.abs(second.vertices).max() > 0.1

@@ -300,3 +300,30 @@ def test_mesh_of_box_is_closed_with_planar_prior() -> None:
     mesh = nm.extract_mesh()
     assert mesh.is_watertight
     assert mesh.volume == pytest.approx(box.volume, rel=0.1)
+
+
+@pytest.mark.parametrize("merge_min", [1, 10**9])
+def test_changed_keys_are_merged_as_they_pile_up(monkeypatch, merge_min: int) -> None:
+    """Fusing and removing the same submaps again and again (remaps) keeps the record of changed
+    keys bounded by merging it; what take_dirty reports is the same either way."""
+    import mapping.voxel_store as store_module
+
+    monkeypatch.setattr(store_module, "DIRTY_MERGE_MIN", merge_min)
+    nm = NeuralMap(MapConfig(min_points_per_voxel=1, device="cpu"), planar_prior())
+    subs = [
+        nm.encode(i, *_sphere(800, centre=(0.3 * i, 0.0, 0.0), seed=i), np.eye(4)) for i in range(3)
+    ]
+    for step in range(6):  # all three in, the middle one out and in, ...
+        for sub in subs if step % 2 == 0 else subs[1:2]:
+            if sub.submap_id in nm.fused_ids:
+                nm.remove(sub)
+            else:
+                nm.fuse(sub)
+    store = nm._store
+    assert store._dirty_count == sum(k.shape[0] for k in store._dirty)
+    if merge_min == 1:
+        assert 0 < store._dirty_merged <= store._dirty_count
+        assert store._dirty_count <= 2 * max(store._dirty_merged, store.num_voxels)
+    dirty = store.take_dirty()
+    every = torch.unique(torch.cat([torch.as_tensor(s.original.keys) for s in subs]))
+    assert torch.equal(dirty, every) and store.take_dirty().numel() == 0

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from common.memory import keep_large_allocations_apart, release_freed_memory
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 from slam.algorithm.config import PipelineConfig
@@ -41,7 +42,6 @@ from slam.algorithm.graph_view import GraphSnapshot, GraphView
 from slam.algorithm.gravity import estimate_up, scan_normals
 from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
 from slam.algorithm.map_worker import MapWorker
-from slam.algorithm.memory import keep_large_allocations_apart, release_freed_memory
 from slam.algorithm.pose_graph import PoseGraph
 from slam.algorithm.remap import RemapEvent, Remapper
 from slam.algorithm.report import PipelineReport

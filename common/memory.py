@@ -3,9 +3,12 @@
 numpy and torch temporaries of a map update are freed when the update ends, but glibc keeps the
 freed pages of its heaps (one arena per thread: the map worker has its own) mapped, so a long run's
 resident size ratchets up with every large temporary. ``malloc_trim(0)`` unmaps free pages at the
-top of each arena and inside it; it costs milliseconds, so it runs once per closed submap and
-before the final mesh. :func:`keep_large_allocations_apart` (called when a pipeline is built)
-keeps the large blocks out of the arenas in the first place.
+top of each arena and inside it; it costs milliseconds, so it runs once per closed submap, before
+the final mesh and while meshing (:mod:`mapping.meshing`: every few batches of chunks and after
+assembling the mesh). :func:`keep_large_allocations_apart` (called when a pipeline is built) keeps
+the large blocks out of the arenas in the first place.
+
+This module is a leaf (standard library only), so ``mapping/`` and ``slam/`` may both use it.
 """
 
 from __future__ import annotations
