@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from frontends.frame import point_ranges_m
+from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.config import GravityConfig
 from slam.algorithm.normals import estimate_normals
 
@@ -75,6 +75,14 @@ def scan_normals(points_S: np.ndarray, cfg: GravityConfig) -> np.ndarray:
         points, np.zeros(3), num_neighbours=cfg.normal_neighbours, max_radius_m=cfg.normal_radius_m
     )
     return normals[valid]
+
+
+def measure_up(frame: Frame, up_guess_S: np.ndarray, cfg: GravityConfig) -> UpMeasurement | None:
+    """The up direction in a frame's sensor frame from its own normals (RGB-D) or from normals
+    estimated on its points (:func:`scan_normals`); None where its walls do not give one."""
+    normals = frame.normals
+    normals = scan_normals(frame.points, cfg) if normals is None else np.asarray(normals)
+    return estimate_up(normals, up_guess_S, cfg)
 
 
 def estimate_up(

@@ -39,7 +39,7 @@ from frontends.odometry.base import Odometry, OdometryResult
 from slam.algorithm.config import PipelineConfig
 from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.graph_view import GraphSnapshot, GraphView
-from slam.algorithm.gravity import estimate_up, scan_normals
+from slam.algorithm.gravity import measure_up
 from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
 from slam.algorithm.map_worker import MapWorker
 from slam.algorithm.pose_graph import PoseGraph
@@ -223,8 +223,11 @@ class SlamPipeline:
         current = step.current
         if step.opened and current is not None and current.submap_id not in self.graph:
             self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, covariance)
-            if frame is not None:
-                self._add_gravity(current.submap_id, frame)
+            gravity = self.cfg.pose_graph.gravity
+            if gravity.enabled and frame is not None:  # the anchor frame is this scan's
+                up = measure_up(frame, self.graph.up_in(current.submap_id), gravity)
+                if up is not None:
+                    self.graph.add_gravity(current.submap_id, up)
         self._timed("keyframing", start)
         if closed is None:
             return None
@@ -273,18 +276,6 @@ class SlamPipeline:
         if added and not self.worker.threaded and self._last_remap_moved:
             remap = self.remapper.events[-1]
         return self._snapshot(candidates, added, remap, relocalised)
-
-    def _add_gravity(self, submap_id: int, frame: Frame) -> None:
-        """An up-direction factor on a new anchor, from the walls in its own scan (the anchor
-        frame is that scan's sensor frame)."""
-        cfg = self.cfg.pose_graph.gravity
-        if not cfg.enabled:
-            return
-        normals = frame.normals
-        normals = scan_normals(frame.points, cfg) if normals is None else np.asarray(normals)
-        measurement = estimate_up(normals, self.graph.up_in(submap_id), cfg)
-        if measurement is not None:
-            self.graph.add_gravity(submap_id, measurement)
 
     def _relocalise(self, record: SubmapRecord) -> Relocalisation | None:
         """Try to place the session in the stored map by a closed submap, until one verifies;
