@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.geometry import so3_exp
 from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.config import GravityConfig
 from slam.algorithm.normals import estimate_normals
@@ -108,16 +109,8 @@ def estimate_up(
         jacobian = np.cross(up, n) @ basis
         residual = n @ up
         step = np.linalg.solve(jacobian.T @ jacobian + 1e-9 * np.eye(2), -jacobian.T @ residual)
-        omega = basis @ step
-        angle = float(np.linalg.norm(omega))
-        if angle > 0:
-            axis = omega / angle
-            up = (
-                up * np.cos(angle)
-                + np.cross(axis, up) * np.sin(angle)
-                + axis * (axis @ up) * (1 - np.cos(angle))
-            )
-            up /= np.linalg.norm(up)
+        up = so3_exp(basis @ step) @ up
+        up /= np.linalg.norm(up)
     # Spread of the wall normals around the up axis, normalised so that walls facing every way
     # give the identity on the tilt plane; each axis is capped there, so a thousand walls facing
     # one way are worth no more than one direction's full share.

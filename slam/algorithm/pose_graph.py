@@ -300,7 +300,7 @@ class PoseGraph:
     @property
     def num_gravity_factors(self) -> int:
         """Anchors with an up-direction factor."""
-        return max(len(self._gravity) - 1, 0)
+        return len(self.up_measurements)
 
     def reframe(self, T_New_W: np.ndarray) -> None:
         """Express the whole graph in another world frame: every anchor becomes
