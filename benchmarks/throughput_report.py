@@ -83,13 +83,15 @@ def write_report(saved: dict) -> None:
         "mapping and remap run on a second thread, overlapped with odometry, so the stages can "
         "add up to more than the whole run; CPU: the main thread's CPU time to the end of the "
         "final remap, the submap worker thread's (0 where it has none), the map worker "
-        "thread's (0 with the workers inline), and the rest of the process (KISS-ICP's thread "
-        "pool, reading ahead, the final mesh, writing the map); `final_mesh` is the whole map "
-        "meshed after the last remap (on the whole thread budget) and `map_save` writing "
+        "thread's (0 with the workers inline), the odometry's child process (KISS-ICP and its "
+        "thread pool, with `odometry.child_process`; 0 without), and the rest (KISS-ICP's "
+        "thread pool when it runs in the process, reading ahead, the final mesh, writing the "
+        "map); RSS: the process's and the odometry process's together; `final_mesh` is the "
+        "whole map meshed after the last remap (on the whole thread budget) and `map_save` writing "
         "`map.npz`, both after the last frame; n/a: not timed then), memory and map:",
         "",
         "| run | " + " | ".join(STAGES) + " | whole run | "
-        "CPU main / submap worker / map worker / other [s] | "
+        "CPU main / submap worker / map worker / odometry process / other [s] | "
         f"RSS at {RSS_EVERY:,}-frame steps [MB] | map.npz [MB] | voxels | mesh accuracy [cm] | "
         "threads |",
         "|---|" + "---|" * (len(STAGES) + 7),
@@ -104,8 +106,9 @@ def write_report(saved: dict) -> None:
         if threads:
             main, worker = threads["main"], threads["map_worker"] or 0.0
             submap = threads.get("submap_worker") or 0.0
-            other = r["cpu_s"] - main - worker - submap
-            cpu = f"{main:.0f} / {submap:.0f} / {worker:.0f} / {other:.0f}"
+            child = threads.get("odometry_process") or 0.0
+            other = r["cpu_s"] - main - worker - submap - child
+            cpu = f"{main:.0f} / {submap:.0f} / {worker:.0f} / {child:.0f} / {other:.0f}"
         else:
             cpu = "n/a"
         lines.append(

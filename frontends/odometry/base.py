@@ -64,6 +64,10 @@ class Odometry(ABC):
         results carry (the pipeline calls it when that frame anchors a new submap, so each
         odometry edge of the pose graph gets the covariance of its own motion)."""
 
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release what the odometry holds outside this object (a child process); no frame may
+        follow."""
+
 
 def register_odometry(name: str) -> Callable[[type[Odometry]], type[Odometry]]:
     """Class decorator adding an odometry to :data:`ODOMETRIES` under ``name``."""

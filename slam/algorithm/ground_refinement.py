@@ -219,6 +219,9 @@ class GroundRefinedOdometry(Odometry):
     def restart_covariance(self) -> None:
         self.inner.restart_covariance()
 
+    def close(self) -> None:
+        self.inner.close()
+
     def _ground_points(self, scan: np.ndarray) -> np.ndarray:
         points = np.asarray(scan, dtype=np.float64)
         r = np.linalg.norm(points[:, :2], axis=1)

@@ -4,9 +4,10 @@ The pipeline has two of them: the *submap worker* (keyframing, normals, loop det
 pose graph) and the *map worker* (encode, fuse, remap), so its main thread runs little but the
 odometry. Jobs run one at a time in the order they were submitted and take every pose they need
 as an argument (a snapshot taken at submission), so the results are the same whatever the
-timing: threaded or inline, a run gives the same poses, loops and map. KISS-ICP, torch and
-numpy's large operations release the GIL, so on two cores the workers overlap with the odometry
-of the next frames.
+timing: threaded or inline, a run gives the same poses, loops and map. Torch and numpy's large
+operations release the GIL, so on two cores the workers overlap with the odometry of the next
+frames; KISS-ICP's bindings do not (they hold it through a registration), which is why it runs
+in a child process (:mod:`frontends.odometry.child_process`).
 
 An exception in a job is raised again by the next :meth:`MapWorker.submit` or
 :meth:`MapWorker.drain`, so a failed map update ends the run.

@@ -355,6 +355,7 @@ class SlamPipeline:
             return None
         last_index = len(self._frame_submap) - 1
         step = self.keyframer.decide_finish()
+        self.odometry.close()
         t = _clock()
         if step is not None:
             self._closed_count += 1

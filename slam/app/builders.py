@@ -96,10 +96,19 @@ def odometry_method(cfg: RunConfig, sensor: str) -> str:
     return method
 
 
+def _kiss_icp(cfg: RunConfig) -> Odometry:
+    """KISS-ICP, in a child process where that lets the worker threads run meanwhile."""
+    from frontends.odometry.child_process import ChildProcessOdometry, child_process_available
+
+    if cfg.odometry.child_process and cfg.map_worker and child_process_available():
+        return ChildProcessOdometry("kiss-icp", config=cfg.odometry.kiss_icp)
+    return make_odometry("kiss-icp", config=cfg.odometry.kiss_icp)
+
+
 def build_odometry(cfg: RunConfig, sensor: str) -> Odometry:
     method = odometry_method(cfg, sensor)
     if method == "kiss-icp":
-        odometry = make_odometry(method, config=cfg.odometry.kiss_icp)
+        odometry = _kiss_icp(cfg)
         if cfg.odometry.ground_refinement.enabled:
             from slam.algorithm.ground_refinement import GroundRefinedOdometry
 

@@ -208,6 +208,12 @@ class OdometryConfig(_Strict):
         description="LiDAR: refine each scan's height, roll and pitch against the ground seen "
         "so far (slam/algorithm/ground_refinement.py)",
     )
+    child_process: bool = Field(
+        True,
+        description="kiss-icp with map_worker on: run KISS-ICP in a child process (Linux), "
+        "because its bindings hold the GIL through each registration and so stall the worker "
+        "threads (frontends/odometry/child_process.py); results are the same either way",
+    )
 
 
 class VizConfig(_Strict):

@@ -1,0 +1,246 @@
+"""An odometry that runs in a child process, so that its native code leaves this process's threads
+alone.
+
+KISS-ICP's Python bindings hold the GIL for a whole registration (about 30 ms of a 128k-point
+scan), so while the main thread registers, the pipeline's submap and map worker threads cannot run
+a line of Python: they fall behind and the main thread then waits for them. Behind a process
+boundary the main thread waits on a socket, with the GIL released, and the workers run meanwhile.
+
+Each call crosses as a pickle (protocol 5) whose arrays travel out of band through a shared
+memory file (``memfd``) per direction, so a scan is copied twice (into the file and out of it)
+instead of being pickled and pushed through the socket (measured on 128k-point scans: 5.5 ms a
+round trip of 3 MB each way through the socket; through the files a whole call took 2-4 ms more
+than registering in this process). Errors raised by the odometry
+(e.g. :class:`~frontends.errors.DatasetError` for an empty scan) are raised again here.
+
+Linux only (``os.memfd_create``); :func:`child_process_available` says whether it can be used.
+"""
+
+from __future__ import annotations
+
+import logging
+import mmap
+import os
+import pickle
+import socket
+import subprocess
+import sys
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from frontends.frame import Frame
+from frontends.odometry.base import Odometry, OdometryResult
+
+log = logging.getLogger(__name__)
+
+INITIAL_BYTES = 8 << 20
+"""First size of each shared file (a 128k-point float64 scan is 3 MB); it grows on demand."""
+
+
+def child_process_available() -> bool:
+    """Whether this platform can run an odometry in a child process (needs ``memfd_create``)."""
+    return hasattr(os, "memfd_create") and sys.platform.startswith("linux")
+
+
+class _SharedFile:
+    """One direction's shared memory file: the writer grows it, the reader maps what it is told."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self._map: mmap.mmap | None = None
+
+    def _mapped(self, size: int) -> mmap.mmap:
+        if self._map is None or len(self._map) < size:
+            if self._map is not None:
+                self._map.close()
+            self._map = mmap.mmap(self.fd, max(size, os.fstat(self.fd).st_size))
+        return self._map
+
+    def write(self, buffers: list[memoryview]) -> list[tuple[int, int]]:
+        """Copy ``buffers`` into the file back to back; their ``(offset, size)`` spans."""
+        spans, offset = [], 0
+        for buffer in buffers:
+            spans.append((offset, buffer.nbytes))
+            offset += buffer.nbytes
+        if offset > os.fstat(self.fd).st_size:
+            os.ftruncate(self.fd, max(offset, 2 * os.fstat(self.fd).st_size))
+        with memoryview(self._mapped(offset)) as view:
+            for (start, size), buffer in zip(spans, buffers, strict=True):
+                view[start : start + size] = buffer.cast("B")
+        return spans
+
+    def read(self, spans: list[tuple[int, int]]) -> list[bytearray]:
+        """Copies of the spans (the next message overwrites the file)."""
+        if not spans:
+            return []
+        with memoryview(self._mapped(max(start + size for start, size in spans))) as view:
+            return [bytearray(view[start : start + size]) for start, size in spans]
+
+    def close(self) -> None:
+        if self._map is not None:
+            self._map.close()
+            self._map = None
+        os.close(self.fd)
+
+
+class _Channel:
+    """Pickled messages over a socket, their arrays through the two shared files."""
+
+    def __init__(self, conn: Connection, outgoing: _SharedFile, incoming: _SharedFile) -> None:
+        self.conn = conn
+        self.outgoing = outgoing
+        self.incoming = incoming
+
+    def send(self, message: Any) -> None:
+        buffers: list[pickle.PickleBuffer] = []
+        header = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
+        spans = self.outgoing.write([buffer.raw() for buffer in buffers])
+        self.conn.send_bytes(pickle.dumps((header, spans), protocol=5))
+
+    def receive(self) -> Any:
+        header, spans = pickle.loads(self.conn.recv_bytes())
+        return pickle.loads(header, buffers=self.incoming.read(spans))
+
+    def close(self) -> None:
+        self.conn.close()
+        self.outgoing.close()
+        self.incoming.close()
+
+
+@dataclass(frozen=True)
+class ProcessUsage:
+    """Resources of the child process so far (from ``/proc``)."""
+
+    cpu_s: float
+    rss_mb: float
+    peak_rss_mb: float
+
+
+class ChildProcessOdometry(Odometry):
+    """The odometry ``make_odometry(name, **options)`` built and run in a child process.
+
+    Results equal the same odometry's in this process (same code, same inputs, same thread
+    count). The child exits when :meth:`close` is called, when this object is collected, or when
+    this process ends (it reads end-of-file then).
+    """
+
+    def __init__(self, name: str, **options: Any) -> None:
+        if not child_process_available():
+            raise RuntimeError("ChildProcessOdometry needs Linux (os.memfd_create)")
+        parent_socket, child_socket = socket.socketpair()
+        to_child = os.memfd_create("odometry-frames")
+        to_parent = os.memfd_create("odometry-results")
+        for fd in (to_child, to_parent):
+            os.ftruncate(fd, INITIAL_BYTES)
+        root = str(Path(__file__).resolve().parents[2])
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
+        fds = (child_socket.fileno(), to_child, to_parent)
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", __name__, *map(str, fds)], pass_fds=fds, env=env
+        )
+        child_socket.close()
+        self._channel = _Channel(
+            Connection(parent_socket.detach()), _SharedFile(to_child), _SharedFile(to_parent)
+        )
+        self.name = name
+        self._call("build", (name, options))
+
+    @property
+    def pid(self) -> int:
+        """The child's process id."""
+        return self._process.pid
+
+    @property
+    def exit_code(self) -> int | None:
+        """The child's exit status, None while it runs."""
+        return self._process.poll()
+
+    def _call(self, method: str, argument: Any = None) -> Any:
+        if self._channel is None:
+            raise RuntimeError("the odometry process was closed")
+        try:
+            self._channel.send((method, argument))
+            status, value = self._channel.receive()
+        except (EOFError, OSError) as exc:
+            code = self._process.poll()
+            raise RuntimeError(
+                f"the {self.name} odometry process ended (exit code {code}); its own error is "
+                "printed above"
+            ) from exc
+        if status == "error":
+            raise value
+        return value
+
+    def register(self, frame: Frame) -> OdometryResult:
+        result, self.num_failures = self._call("register", frame)
+        return result
+
+    def restart_covariance(self) -> None:
+        self._call("restart_covariance")
+
+    def usage(self) -> ProcessUsage:
+        """CPU time and memory of the child so far."""
+        with open(f"/proc/{self.pid}/stat") as stat:
+            fields = stat.read().rsplit(")", 1)[1].split()
+        ticks = os.sysconf("SC_CLK_TCK")
+        cpu_s = (int(fields[11]) + int(fields[12])) / ticks  # utime, stime
+        memory = {}
+        with open(f"/proc/{self.pid}/status") as status:
+            for line in status:
+                key, _, value = line.partition(":")
+                if key in ("VmRSS", "VmHWM"):
+                    memory[key] = int(value.split()[0]) / 1024
+        return ProcessUsage(cpu_s, memory["VmRSS"], memory["VmHWM"])
+
+    def close(self) -> None:
+        """End the child process (idempotent)."""
+        if self._channel is None:
+            return
+        channel, self._channel = self._channel, None
+        channel.close()
+        try:
+            self._process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+
+    def __del__(self) -> None:
+        if getattr(self, "_channel", None) is not None:
+            self.close()
+
+
+def _serve(channel: _Channel) -> None:
+    """The child's loop: build the odometry, then answer calls until the parent hangs up."""
+    from frontends.odometry.base import make_odometry
+
+    odometry: Odometry | None = None
+    while True:
+        try:
+            method, argument = channel.receive()
+        except EOFError:
+            return
+        try:
+            if method == "build":
+                name, options = argument
+                odometry = make_odometry(name, **options)
+                value = None
+            elif method == "register":
+                assert odometry is not None
+                value = (odometry.register(argument), odometry.num_failures)
+            elif method == "restart_covariance":
+                assert odometry is not None
+                value = odometry.restart_covariance()
+            else:
+                raise ValueError(f"unknown odometry call {method!r}")
+        except Exception as exc:
+            channel.send(("error", exc))
+        else:
+            channel.send(("ok", value))
+
+
+if __name__ == "__main__":
+    socket_fd, from_parent, to_parent = (int(arg) for arg in sys.argv[1:4])
+    _serve(_Channel(Connection(socket_fd), _SharedFile(to_parent), _SharedFile(from_parent)))

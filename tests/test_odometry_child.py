@@ -1,0 +1,105 @@
+"""The odometry in a child process (frontends/odometry/child_process.py): the same results as in
+this process, its errors raised here, large frames, and a clear error when the child is gone."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from frontends.errors import DatasetError
+from frontends.frame import Frame
+from frontends.odometry import make_odometry
+from frontends.odometry.child_process import (
+    INITIAL_BYTES,
+    ChildProcessOdometry,
+    child_process_available,
+)
+from frontends.odometry.kiss import KissIcpConfig, KissIcpOdometry
+
+pytestmark = pytest.mark.skipif(
+    not child_process_available(), reason="the odometry child process needs Linux"
+)
+
+ONE_THREAD = KissIcpConfig(registration={"max_num_threads": 1})  # bitwise reproducible
+
+
+def _street(num_frames: int):
+    from frontends.sources import make_source
+
+    return make_source("generated", kind="lidar", num_frames=num_frames, azimuth_steps=512)
+
+
+def test_child_gives_the_same_poses_and_points_as_in_process() -> None:
+    frames = list(_street(186))[:25]
+    here = make_odometry("kiss-icp", config=ONE_THREAD)
+    child = ChildProcessOdometry("kiss-icp", config=ONE_THREAD)
+    try:
+        for frame in frames:
+            expected, got = here.register(frame), child.register(frame)
+            assert np.array_equal(got.T_W_S, expected.T_W_S)
+            assert np.array_equal(got.map_points(frame), expected.map_points(frame))
+            got.map_points(frame)[0, 0] += 1.0  # the caller owns (and may change) the arrays
+        assert not np.allclose(got.T_W_S, np.eye(4))  # it did move
+    finally:
+        child.close()
+
+
+def test_child_raises_the_odometrys_own_errors() -> None:
+    child = ChildProcessOdometry("kiss-icp")
+    try:
+        with pytest.raises(DatasetError, match="frame 3: empty scan"):
+            child.register(Frame(3, 0.0, np.zeros((0, 3))))
+        with pytest.raises(DatasetError, match="point times"):
+            child.register(Frame(5, 0.0, np.ones((10, 3)), point_times=np.zeros(3)))
+    finally:
+        child.close()
+    with pytest.raises(ValueError, match="max_rnge"):
+        ChildProcessOdometry("kiss-icp", data={"max_rnge": 1.0})
+
+
+def test_frames_larger_than_the_shared_files_cross_both_ways() -> None:
+    rng = np.random.default_rng(0)
+    num_points = INITIAL_BYTES // 24 + 50_000  # float64 (N, 3): more than the first file size
+    directions = rng.normal(size=(num_points, 3))
+    points = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    points *= rng.uniform(5.0, 40.0, size=(num_points, 1))
+    frame = Frame(0, 0.0, points)
+    child = ChildProcessOdometry("kiss-icp", data={"deskew": False})
+    try:
+        result = child.register(frame)
+    finally:
+        child.close()
+    assert np.array_equal(result.map_points(frame), KissIcpOdometry().register(frame).points)
+    assert result.map_points(frame).nbytes > INITIAL_BYTES
+
+
+def test_a_vanished_child_is_a_clear_error() -> None:
+    child = ChildProcessOdometry("kiss-icp")
+    os.kill(child.pid, signal.SIGKILL)
+    with pytest.raises(RuntimeError, match="kiss-icp odometry process ended"):
+        child.register(Frame(0, 0.0, np.ones((10, 3))))
+    child.close()
+    with pytest.raises(RuntimeError, match="was closed"):
+        child.register(Frame(0, 0.0, np.ones((10, 3))))
+
+
+def test_lidar_runs_put_kiss_icp_in_a_child_that_finish_ends() -> None:
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.app.builders import build_map, build_odometry
+    from slam.app.config import RunConfig
+
+    cfg = RunConfig.model_validate({"mapping": {"device": "cpu"}})
+    odometry = build_odometry(cfg, "lidar")
+    assert isinstance(odometry, ChildProcessOdometry)
+    pipeline = SlamPipeline(cfg.pipeline_config(), "lidar", odometry, build_map(cfg))
+    for frame in list(_street(186))[:5]:
+        pipeline.process(frame)
+    pipeline.finish()
+    assert odometry.exit_code == 0  # ended, cleanly
+    assert len(pipeline.slam_poses()) == 5
+    for off in ({"odometry": {"child_process": False}}, {"map_worker": False}):
+        inline = build_odometry(RunConfig.model_validate(off), "lidar")
+        assert isinstance(inline, KissIcpOdometry)
