@@ -216,6 +216,7 @@ def test_kiss_icp_recovers_a_known_motion_of_a_synthetic_scene() -> None:
     points_W, _ = trimesh.sample.sample_surface(scene, 60_000, seed=1)
     step = _se3((0.0, 0.0, 0.02), (0.5, 0.1, 0.0))
     odometry = KissIcpOdometry(data={"max_range": 60.0, "min_range": 3.0, "deskew": False})
+    odometry_timed = KissIcpOdometry(data={"max_range": 60.0, "min_range": 3.0})
     T_W_S = np.eye(4)
     for i in range(6):
         points_S = (points_W - T_W_S[:3, 3]) @ T_W_S[:3, :3]
@@ -225,11 +226,14 @@ def test_kiss_icp_recovers_a_known_motion_of_a_synthetic_scene() -> None:
         np.testing.assert_allclose(est[:3, 3], T_W_S[:3, 3], atol=0.02)
         assert _angle_deg(np.linalg.inv(T_W_S) @ est) < 0.2
         T_W_S = T_W_S @ step
-        # the map gets the scan KISS-ICP registered: the frame's points within its range limits
-        ranges = np.linalg.norm(points_S, axis=1)
-        map_points = result.map_points(frame)
-        assert len(map_points) == np.count_nonzero((ranges > 3.0) & (ranges < 60.0))
-        assert np.linalg.norm(map_points, axis=1).min() > 3.0
+        # nothing to deskew (no point times): the map gets the frame's own points
+        assert result.points is None and result.map_points(frame) is frame.points
+    # with point times the map gets the scan KISS-ICP deskewed, within its range limits
+    timed = Frame(6, 0.6, points_S, point_times=np.linspace(0.0, 1.0, len(points_S)))
+    map_points = odometry_timed.register(timed).map_points(timed)
+    ranges = np.linalg.norm(points_S, axis=1)
+    assert len(map_points) == np.count_nonzero((ranges > 3.0) & (ranges < 60.0))
+    assert np.linalg.norm(map_points, axis=1).min() > 3.0
 
 
 def test_kiss_icp_empty_scan_names_the_frame() -> None:

@@ -18,10 +18,11 @@ Linux only (``os.memfd_create``); :func:`child_process_available` says whether i
 
 from __future__ import annotations
 
-import logging
+import contextlib
 import mmap
 import os
 import pickle
+import signal
 import socket
 import subprocess
 import sys
@@ -32,8 +33,6 @@ from typing import Any
 
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
-
-log = logging.getLogger(__name__)
 
 INITIAL_BYTES = 8 << 20
 """First size of each shared file (a 128k-point float64 scan is 3 MB); it grows on demand."""
@@ -209,7 +208,8 @@ class ChildProcessOdometry(Odometry):
 
     def __del__(self) -> None:
         if getattr(self, "_channel", None) is not None:
-            self.close()
+            with contextlib.suppress(Exception):  # at interpreter exit modules may be gone
+                self.close()
 
 
 def _serve(channel: _Channel) -> None:
@@ -242,5 +242,8 @@ def _serve(channel: _Channel) -> None:
 
 
 if __name__ == "__main__":
+    # Ctrl-C reaches the whole process group: the parent handles it, and this process ends when
+    # the parent closes the socket
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     socket_fd, from_parent, to_parent = (int(arg) for arg in sys.argv[1:4])
     _serve(_Channel(Connection(socket_fd), _SharedFile(to_parent), _SharedFile(from_parent)))

@@ -15,7 +15,7 @@ from kiss_icp.config.config import (
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from frontends.errors import DatasetError
-from frontends.frame import Frame, point_ranges_m
+from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult, register_odometry
 
 logger = logging.getLogger(__name__)
@@ -94,9 +94,10 @@ class KissIcpOdometry(Odometry):
     """KISS-ICP scan-to-local-map registration. W is the frame of the first scan.
 
     Construct with a :class:`KissIcpConfig` or its sections as keyword arguments, e.g.
-    ``KissIcpOdometry(data={"max_range": 80.0})``. Each result's ``points`` are the deskewed,
-    range-filtered scan (sensor frame); after each :meth:`register`, ``last_keypoints`` holds the
-    downsampled points that were registered.
+    ``KissIcpOdometry(data={"max_range": 80.0})``. A result's ``points`` are the deskewed,
+    range-filtered scan (sensor frame) when the frame has per-point times and ``data.deskew`` is
+    on, else None (the frame's own points); after each :meth:`register`, ``last_keypoints`` holds
+    the downsampled points that were registered.
     """
 
     def __init__(self, config: KissIcpConfig | None = None, **options) -> None:
@@ -125,16 +126,6 @@ class KissIcpOdometry(Odometry):
             raise DatasetError(
                 f"frame {frame.index}: points must be (N, 3), got {points.shape}; check the source"
             )
-        ranges = point_ranges_m(points)
-        usable = np.count_nonzero(
-            (ranges > self.config.data.min_range) & (ranges < self.config.data.max_range)
-        )
-        if usable == 0:
-            raise DatasetError(
-                f"frame {frame.index}: empty scan ({len(points)} points, none within "
-                f"{self.config.data.min_range}-{self.config.data.max_range} m); check the scan "
-                "file or the range limits"
-            )
         if frame.point_times is not None and self.config.data.deskew:
             times = np.asarray(frame.point_times, dtype=np.float64).reshape(-1)
             if len(times) != len(points):
@@ -144,10 +135,19 @@ class KissIcpOdometry(Odometry):
                 )
         else:
             times = np.zeros(0)
-        deskewed, keypoints = self._kiss.register_frame(points, times)
-        deskewed = np.asarray(deskewed)
+        # KISS-ICP returns an empty scan for a frame without points in its range (and leaves its
+        # pose at the prediction): checked after the fact, which spares a pass over the points
+        kept, keypoints = self._kiss.register_frame(points, times)
+        if len(kept) == 0:
+            raise DatasetError(
+                f"frame {frame.index}: empty scan ({len(points)} points, none within "
+                f"{self.config.data.min_range}-{self.config.data.max_range} m); check the scan "
+                "file or the range limits"
+            )
         self.last_keypoints = np.asarray(keypoints)
+        # without per-point times nothing was corrected: the map takes the frame's own points
+        # (and applies its own range limits, submaps.min_range_m / max_range_m)
         return OdometryResult(
             np.array(self._kiss.last_pose, dtype=np.float64),
-            points=deskewed if len(deskewed) > 0 else None,
+            points=np.asarray(kept) if len(times) else None,
         )

@@ -55,7 +55,8 @@ def inlier_score(
     """Fraction of ``query`` points within ``inlier_distance_m`` of the reference after ``T``."""
     if len(query) == 0:
         return 0.0
-    distances, _ = tree.query(transform_points(T_ref_query, query), k=1)
+    moved = transform_points(T_ref_query, query)
+    distances, _ = tree.query(moved, k=1, distance_upper_bound=inlier_distance_m)  # inf beyond
     return float(np.mean(distances < inlier_distance_m))
 
 

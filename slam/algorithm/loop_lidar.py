@@ -159,7 +159,9 @@ class IcpVerifier:
         if min(len(reference), len(query)) < c.min_structure_points:
             return Verification(False, "too little structure above the ground", T, scores)
         query_in_ref = transform_points(T, query)
-        distances, _ = cKDTree(reference).query(query_in_ref, k=1)
+        distances, _ = cKDTree(reference).query(
+            query_in_ref, k=1, distance_upper_bound=c.inlier_distance_m
+        )
         inlier_ratio = float(np.mean(distances < c.inlier_distance_m))
         overlap = voxel_overlap(reference, query_in_ref, c.overlap_voxel_m)
         scores["inlier_ratio"] = inlier_ratio
