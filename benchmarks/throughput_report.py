@@ -234,6 +234,7 @@ MEMORY_PARTS = (
     ("allocator_free", "glibc free chunks (resident or not; in the line above where resident)"),
     ("rss", "RSS"),
     ("trim_returned", "of which malloc_trim(0) returned right after"),
+    ("odometry_process_rss", "odometry child process (KISS-ICP, its local map): its own RSS"),
 )
 
 
