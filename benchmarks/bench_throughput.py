@@ -176,10 +176,11 @@ def scenario_ours(
         count += 1
         if count % RSS_EVERY == 0:
             mark = time.perf_counter()
-            rss[str(count)] = _rss_mb()[0] + (child_usage().rss_mb if child_usage else 0.0)
+            child_rss_mb = child_usage().rss_mb if child_usage else 0.0
+            rss[str(count)] = _rss_mb()[0] + child_rss_mb
             memory[str(count)] = _breakdown(pipeline, baseline_mb)
             if child_usage and memory[str(count)] is not None:
-                memory[str(count)]["odometry_process_rss"] = child_usage().rss_mb
+                memory[str(count)]["odometry_process_rss"] = child_rss_mb
             instrument_s += time.perf_counter() - mark
     child = child_usage() if child_usage else None  # its work is done: finish() ends it
     phase_peaks = {"frames": _phase_peak() + (child.peak_rss_mb if child else 0.0)}

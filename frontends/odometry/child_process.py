@@ -63,8 +63,9 @@ class _SharedFile:
         for buffer in buffers:
             spans.append((offset, buffer.nbytes))
             offset += buffer.nbytes
-        if offset > os.fstat(self.fd).st_size:
-            os.ftruncate(self.fd, max(offset, 2 * os.fstat(self.fd).st_size))
+        size = os.fstat(self.fd).st_size
+        if offset > size:
+            os.ftruncate(self.fd, max(offset, 2 * size))
         with memoryview(self._mapped(offset)) as view:
             for (start, size), buffer in zip(spans, buffers, strict=True):
                 view[start : start + size] = buffer.cast("B")
