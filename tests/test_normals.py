@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.algorithm.normals import estimate_normals, smallest_eigenvectors
+from common.normals import estimate_normals, smallest_eigenvectors
 
 
 def _random_covariances(rng: np.random.Generator, n: int) -> np.ndarray:

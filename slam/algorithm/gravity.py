@@ -26,9 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.geometry import so3_exp
+from common.normals import estimate_normals
 from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.config import GravityConfig
-from slam.algorithm.normals import estimate_normals
 
 _GATES_RAD = (1.0, 0.5, 0.25, 0.125, 0.125, 0.125)
 """Gates on the angle between a normal and the horizontal, one Gauss-Newton step each, as

@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from common.geometry import orthonormalize, transform_points
+from common.normals import estimate_normals
 from common.voxel_keys import point_voxel_keys
 from frontends.odometry.point_to_plane import point_to_plane_hessian
 from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig
@@ -51,7 +52,6 @@ from slam.algorithm.loops import (
     Verification,
     relative_motion,
 )
-from slam.algorithm.normals import estimate_normals
 from slam.algorithm.place import bev_descriptor
 from slam.algorithm.submaps import SubmapRecord
 

@@ -22,10 +22,10 @@ import numpy as np
 from kiss_icp.voxelization import voxel_down_sample
 
 from common.geometry import rotation_angle_rad, transform_points
+from common.normals import estimate_normals
 from common.voxel_keys import KEY_LIMIT, point_voxel_keys
 from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.config import SubmapConfig
-from slam.algorithm.normals import estimate_normals
 
 SURFACE_CELL_FACTOR = 4
 """Surface coverage (``max_surface_views``) is counted in cells of this many ``map_voxel_m``."""

@@ -100,9 +100,10 @@ def _kiss_icp(cfg: RunConfig) -> Odometry:
     """KISS-ICP, in a child process where that lets the worker threads run meanwhile."""
     from frontends.odometry.child_process import ChildProcessOdometry, child_process_available
 
+    options = {"config": cfg.odometry.kiss_icp, "start_scans": cfg.odometry.kiss_icp_start_scans}
     if cfg.odometry.child_process and cfg.map_worker and child_process_available():
-        return ChildProcessOdometry("kiss-icp", config=cfg.odometry.kiss_icp)
-    return make_odometry("kiss-icp", config=cfg.odometry.kiss_icp)
+        return ChildProcessOdometry("kiss-icp", **options)
+    return make_odometry("kiss-icp", **options)
 
 
 def build_odometry(cfg: RunConfig, sensor: str) -> Odometry:

@@ -52,7 +52,7 @@ def frame_points(frame, submap_cfg) -> tuple[np.ndarray, np.ndarray]:
     and averaging it would leave too few points per voxel for the encoder's pruning
     (``mapping.min_points_per_voxel``).
     """
-    from slam.algorithm.normals import estimate_normals
+    from common.normals import estimate_normals
 
     points = np.asarray(frame.points, dtype=np.float64)
     distance = np.linalg.norm(points, axis=1)
