@@ -141,3 +141,41 @@ def test_graph_gate_rejects_a_correction_outside_the_odometry_uncertainty():
     assert mahalanobis_distance2(T_graph, covariance, drifted, loop_covariance) < limit
     aliased = T_graph @ _pose(PERIOD_M)
     assert mahalanobis_distance2(T_graph, covariance, aliased, loop_covariance) > limit
+
+
+def test_fine_restart_keeps_the_better_scoring_registration(periodic_pair):
+    """From a guess 4 m along the street the wide first passes end at a worse minimum than the
+    fine passes alone; the verifier keeps the one with more inliers and says so."""
+    reference, query, T_true = periodic_pair
+    guess = _guess(T_true, 4.0)
+    config = LidarLoopConfig(**LOOP_CONFIG, ambiguity_check=False, icp_point_to_plane=False)
+    restarted = IcpVerifier(config).verify(reference, query, guess)
+    single = IcpVerifier(config.model_copy(update={"icp_fine_restart": False})).verify(
+        reference, query, guess
+    )
+    assert "icp_fine_restart" not in single.scores
+    assert restarted.scores["icp_fine_restart"] == 1.0
+    assert restarted.scores["inlier_ratio"] > single.scores["inlier_ratio"] + 0.05
+    fine = IcpVerifier(config).align(reference, query, guess, scales=config.icp_scales[-2:])
+    np.testing.assert_allclose(restarted.T_ref_query, fine)
+    correction_m, _ = relative_motion(guess, fine)
+    assert restarted.scores["icp_correction_m"] == pytest.approx(correction_m)
+
+
+def test_point_to_plane_finish_brings_the_true_loop_closer(periodic_pair):
+    """KISS-ICP's point-to-point result of the true loop is 0.18 m off; the point-to-plane
+    finish on the reference's normals takes it closer, and the edge's Hessian is taken there."""
+    reference, query, T_true = periodic_pair
+    guess = _guess(T_true, 0.5)
+    config = LidarLoopConfig(**LOOP_CONFIG, ambiguity_check=False)
+    finished = IcpVerifier(config).verify(reference, query, guess)
+    point_to_point = IcpVerifier(config.model_copy(update={"icp_point_to_plane": False})).verify(
+        reference, query, guess
+    )
+    assert finished.accepted and point_to_point.accepted
+    assert finished.scores["icp_point_to_plane"] == 1.0
+    error_m, error_deg = relative_motion(T_true, finished.T_ref_query)
+    before_m, _ = relative_motion(T_true, point_to_point.T_ref_query)
+    assert error_m < 0.5 * before_m and error_deg < 0.2
+    assert finished.covariance is not None
+    assert not np.allclose(finished.covariance, point_to_point.covariance)

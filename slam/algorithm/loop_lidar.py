@@ -34,6 +34,8 @@ the other peaks of the score along the street); see :mod:`slam.algorithm.loop_am
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -42,9 +44,13 @@ from scipy.stats import chi2
 from common.geometry import orthonormalize, transform_points
 from common.normals import estimate_normals
 from common.voxel_keys import point_voxel_keys
-from frontends.odometry.point_to_plane import point_to_plane_hessian
+from frontends.odometry.point_to_plane import point_to_plane_hessian, point_to_plane_icp
 from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig
-from slam.algorithm.loop_ambiguity import find_ambiguity, mahalanobis_distance2
+from slam.algorithm.loop_ambiguity import (
+    find_ambiguity,
+    inlier_score,
+    mahalanobis_distance2,
+)
 from slam.algorithm.loops import (
     LoopCandidate,
     LoopDetector,
@@ -144,29 +150,38 @@ class IcpVerifier:
         :meth:`check_ambiguity` (when ``cfg.ambiguity_check``).
         """
         c = self.cfg
-        reference = np.asarray(reference, dtype=np.float64)
-        query = np.asarray(query, dtype=np.float64)
-        T = self.align(reference, query, T_ref_query_guess)
+        full_reference = np.asarray(reference, dtype=np.float64)
+        full_query = np.asarray(query, dtype=np.float64)
+        T = self.align(full_reference, full_query, T_ref_query_guess)
         correction_m, correction_deg = relative_motion(T_ref_query_guess, T)
         scores = {"icp_correction_m": correction_m, "icp_correction_deg": correction_deg}
         if not np.all(np.isfinite(T)):
             return Verification(False, "icp diverged", T_ref_query_guess, scores)
-        full_reference, full_query = reference, query
-        if c.ground_clearance_m > 0:
-            reference = reference[above_ground(reference, c.ground_cell_m, c.ground_clearance_m)]
-            query = query[above_ground(query, c.ground_cell_m, c.ground_clearance_m)]
+        reference, query = self._structure(full_reference), self._structure(full_query)
         scores["structure_points"] = float(min(len(reference), len(query)))
         if min(len(reference), len(query)) < c.min_structure_points:
             return Verification(False, "too little structure above the ground", T, scores)
-        query_in_ref = transform_points(T, query)
-        distances, _ = cKDTree(reference).query(
-            query_in_ref, k=1, distance_upper_bound=c.inlier_distance_m
-        )
-        inlier_ratio = float(np.mean(distances < c.inlier_distance_m))
-        overlap = voxel_overlap(reference, query_in_ref, c.overlap_voxel_m)
+        tree = cKDTree(reference)
+
+        def score(T: np.ndarray) -> float:
+            return inlier_score(tree, query, T, c.inlier_distance_m)
+
+        surfaces = _Surfaces.of(full_reference, c.inlier_distance_m)
+        T, flags = self._refine(full_reference, full_query, T_ref_query_guess, T, score, surfaces)
+        correction_m, correction_deg = relative_motion(T_ref_query_guess, T)
+        scores.update(flags, icp_correction_m=correction_m, icp_correction_deg=correction_deg)
+        inlier_ratio = score(T)
+        overlap = voxel_overlap(reference, transform_points(T, query), c.overlap_voxel_m)
         scores["inlier_ratio"] = inlier_ratio
         scores["overlap"] = overlap
-        cost = self._cost(full_reference, full_query, T)
+        cost = point_to_plane_hessian(
+            surfaces.points,
+            surfaces.normals,
+            full_query,
+            T,
+            max_distance_m=c.inlier_distance_m,
+            tree=surfaces.tree,
+        )
         eigenvalue = cost.normalized_min_eigenvalue(_rms_radius(full_reference))
         scores["min_eigenvalue"] = eigenvalue
         if limit_correction and (
@@ -207,12 +222,24 @@ class IcpVerifier:
         reference = np.asarray(reference, dtype=np.float64)
         query = np.asarray(query, dtype=np.float64)
         ref_structure, query_structure = self._structure(reference), self._structure(query)
+        surfaces: list[_Surfaces] = []  # normals only once a peak is re-registered
+
+        def realign(guess: np.ndarray) -> np.ndarray:
+            """The fine passes, polished like the chosen solution (so both compete alike)."""
+            T = self.align(reference, query, guess, scales=c.icp_scales[-2:])
+            if not (c.icp_point_to_plane and np.all(np.isfinite(T))):
+                return T
+            if not surfaces:
+                surfaces.append(_Surfaces.of(reference, c.inlier_distance_m))
+            polished = self._polish(query, T, surfaces[0])
+            return T if polished is None else polished
+
         score, alternative = find_ambiguity(
             ref_structure,
             query_structure,
             verification.T_ref_query,
             verification.covariance,
-            lambda guess: self.align(reference, query, guess, scales=c.icp_scales[-2:]),
+            realign,
             inlier_distance_m=c.inlier_distance_m,
             step_m=c.ambiguity_step_m,
             max_offset_m=min(c.ambiguity_max_offset_m, _rms_radius(ref_structure)),
@@ -236,15 +263,67 @@ class IcpVerifier:
             return Verification(False, reason, verification.T_ref_query, scores)
         return verification._replace(scores=scores)
 
-    def _cost(self, reference: np.ndarray, query: np.ndarray, T: np.ndarray):
-        """Point-to-plane cost at ``T`` (normals by PCA on the reference cloud)."""
+    def _refine(
+        self,
+        reference: np.ndarray,
+        query: np.ndarray,
+        guess: np.ndarray,
+        T: np.ndarray,
+        score: Callable[[np.ndarray], float],
+        surfaces: _Surfaces,
+    ) -> tuple[np.ndarray, dict[str, float]]:
+        """The registration to judge, from the coarse-to-fine ICP result ``T``, and flags saying
+        which refinements changed it.
+
+        ``icp_fine_restart``: the fine passes alone from ``guess``, kept when their result
+        scores more inliers (``score``). ``icp_point_to_plane``: then point-to-plane ICP on the
+        reference's surfaces, which KISS-ICP's point-to-point cost does not see: on the
+        generated sparse street it took loops that point-to-point left 0.7-1.1 deg off to within
+        0.1 deg, with as many inliers as the true pose.
+        """
         c = self.cfg
+        flags: dict[str, float] = {}
+        if c.icp_fine_restart and len(c.icp_scales) > 2:
+            T_fine = self.align(reference, query, guess, scales=c.icp_scales[-2:])
+            if np.all(np.isfinite(T_fine)) and score(T_fine) > score(T):
+                T, flags["icp_fine_restart"] = T_fine, 1.0
+        if c.icp_point_to_plane:
+            polished = self._polish(query, T, surfaces)
+            if polished is not None:
+                T, flags["icp_point_to_plane"] = polished, 1.0
+        return T, flags
+
+    def _polish(self, query: np.ndarray, T: np.ndarray, surfaces: _Surfaces) -> np.ndarray | None:
+        """Point-to-plane ICP from ``T`` (None when it found no correspondences)."""
+        d = self.cfg.inlier_distance_m
+        result = point_to_plane_icp(
+            surfaces.points,
+            surfaces.normals,
+            query,
+            T,
+            max_distances_m=(2 * d, d, d / 2),
+            max_iterations=20,
+            tree=surfaces.tree,
+        )
+        if result.num_inliers > 0 and np.all(np.isfinite(result.T_ref_query)):
+            return result.T_ref_query
+        return None
+
+
+@dataclass
+class _Surfaces:
+    """Reference points with PCA normals (the point-to-plane ICP and Hessian) and their tree."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+
+    @staticmethod
+    def of(reference: np.ndarray, inlier_distance_m: float) -> _Surfaces:
         normals, valid = estimate_normals(
-            reference, np.zeros(3), num_neighbours=10, max_radius_m=4 * c.inlier_distance_m
+            reference, np.zeros(3), num_neighbours=10, max_radius_m=4 * inlier_distance_m
         )
-        return point_to_plane_hessian(
-            reference[valid], normals[valid], query, T, max_distance_m=c.inlier_distance_m
-        )
+        return _Surfaces(reference[valid], normals[valid], cKDTree(reference[valid]))
 
 
 def _rms_radius(points: np.ndarray) -> float:
