@@ -12,10 +12,10 @@ from kiss_icp.config.config import (
     MappingConfig,
     RegistrationConfig,
 )
+from kiss_icp.voxelization import voxel_down_sample
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from common.normals import estimate_normals
-from common.voxel_keys import point_voxel_keys
 from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult, register_odometry
@@ -205,9 +205,9 @@ class KissIcpOdometry(Odometry):
 
         def thinned(points: np.ndarray) -> np.ndarray:
             ranges = np.linalg.norm(points, axis=1)
-            points = points[(ranges >= data.min_range) & (ranges <= data.max_range)]
-            _, first_index = np.unique(point_voxel_keys(points, voxel_m), return_index=True)
-            return points[first_index]
+            return voxel_down_sample(
+                points[(ranges >= data.min_range) & (ranges <= data.max_range)], voxel_m
+            )
 
         reference, query = thinned(np.asarray(previous)), thinned(np.asarray(scan))
         normals, valid = estimate_normals(
