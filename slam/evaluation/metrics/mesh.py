@@ -103,13 +103,17 @@ def _distances_to_sampled_surface(
     k = max(1, min(num_candidates, len(samples)))
     tree = cKDTree(samples)
     _, nearest = tree.query(points, k=k, workers=-1)
-    nearest = nearest.reshape(len(points), k)
-    candidate_faces = face_index[nearest]  # (N, k)
-    triangles = mesh.triangles[candidate_faces.reshape(-1)]
-    query = np.repeat(points, k, axis=0)
-    closest = trimesh.triangles.closest_point(triangles, query)
-    distance = np.linalg.norm(closest - query, axis=1).reshape(len(points), k)
-    return distance.min(axis=1)
+    # Neighbouring samples often lie on one triangle (always on a coarse mesh): measure each
+    # (point, triangle) pair once.
+    candidates = np.sort(face_index[nearest.reshape(len(points), k)], axis=1)
+    first = np.ones(candidates.shape, dtype=bool)
+    first[:, 1:] = candidates[:, 1:] != candidates[:, :-1]
+    rows = np.nonzero(first)[0]
+    query = points[rows]
+    closest = trimesh.triangles.closest_point(mesh.triangles[candidates[first]], query)
+    distance = np.linalg.norm(closest - query, axis=1)
+    # ``rows`` is sorted and holds every point at least once: the nearest of each point's run
+    return np.minimum.reduceat(distance, np.searchsorted(rows, np.arange(len(points))))
 
 
 def mesh_metrics(
