@@ -42,12 +42,29 @@ class LidarLoopConfig(BaseModel):
         min_length=1,
         description="coarse-to-fine ICP passes: factors on the correspondence distance and kernel",
     )
+    icp_coarse_voxel_m: float = Field(
+        1.0,
+        ge=0,
+        description="the passes before the last two register the query thinned to one point per "
+        "voxel of this size (0: every point); they only bring the guess into the fine passes' "
+        "reach, and the widest pass was 40 % of the ICP time",
+    )
     icp_fine_restart: bool = Field(
         True,
         description="also refine the guess with the last two ICP scales alone and keep the "
         "result with the higher inlier ratio: the wide first passes can drag a good guess into a "
         "worse minimum (generated sparse street, loop 9-58: 1.53 deg wrong, 0.59 inliers; from "
         "the guess with the fine passes: 0.77 deg, 0.68)",
+    )
+    icp_fine_restart_min_correction_m: float = Field(
+        0.25,
+        ge=0,
+        description="restart only when the coarse-to-fine result lies at least this far from the "
+        "guess (or icp_fine_restart_min_correction_deg): closer, the fine passes from the guess "
+        "converged to the same pose on every stored loop of the generated streets",
+    )
+    icp_fine_restart_min_correction_deg: float = Field(
+        0.25, ge=0, description="... or is rotated at least this much from it"
     )
     icp_point_to_plane: bool = Field(
         True,

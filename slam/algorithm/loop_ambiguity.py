@@ -102,6 +102,7 @@ def find_ambiguity(
     min_separation_deg: float,
     max_realignments: int,
     seed_ratio: float = 0.5,
+    tree: cKDTree | None = None,
 ) -> tuple[float, Ambiguity | None]:
     """The chosen solution's inlier score and the best-scoring alternative solution, if any.
 
@@ -111,9 +112,11 @@ def find_ambiguity(
     :func:`search_directions`; the ``max_realignments`` best peaks that lie at least
     ``min_separation_m`` away and score at least ``seed_ratio`` of the unshifted pose are
     re-registered with ``align``. An alternative counts when it converges at least
-    ``min_separation_m`` or ``min_separation_deg`` from ``T_ref_query``.
+    ``min_separation_m`` or ``min_separation_deg`` from ``T_ref_query``. ``tree``: a KD-tree of
+    ``reference`` already built (else one is).
     """
-    tree = cKDTree(reference)
+    if tree is None:
+        tree = cKDTree(reference)
     score = inlier_score(tree, query, T_ref_query, inlier_distance_m)
     offsets = np.arange(-max_offset_m, max_offset_m + 1e-9, step_m)
     seeds: list[tuple[float, np.ndarray]] = []

@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -106,9 +107,11 @@ class IcpVerifier:
         """Refine ``T_ref_query`` with KISS-ICP's robust point-to-point registration, coarse to
         fine: one pass per ``scales`` entry (default ``icp_scales``), each scaling the
         correspondence distance and the kernel (a guess off by a couple of degrees needs the
-        wide first passes)."""
+        wide first passes). Passes before the last two register the query thinned to
+        ``icp_coarse_voxel_m``."""
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
+        from kiss_icp.voxelization import voxel_down_sample
 
         c = self.cfg
         voxel_map = VoxelHashMap(
@@ -121,11 +124,15 @@ class IcpVerifier:
             max_num_iterations=c.icp_max_iterations, convergence_criterion=1e-4, max_num_threads=1
         )
         points = np.asarray(query, dtype=np.float64)
+        scales = c.icp_scales if scales is None else scales
+        coarse = points
+        if c.icp_coarse_voxel_m > 0 and len(scales) > 2:
+            coarse = np.asarray(voxel_down_sample(points, c.icp_coarse_voxel_m), dtype=np.float64)
         T = orthonormalize(T_ref_query_guess)
-        for scale in c.icp_scales if scales is None else scales:
+        for k, scale in enumerate(scales):
             T = np.asarray(
                 registration.align_points_to_map(
-                    points=points,
+                    points=coarse if k < len(scales) - 2 else points,
                     voxel_map=voxel_map,
                     initial_guess=T,
                     max_correspondance_distance=scale * c.icp_max_correspondence_m,
@@ -142,12 +149,15 @@ class IcpVerifier:
         T_ref_query_guess: np.ndarray,
         limit_correction: bool = True,
         check_ambiguity: bool = True,
+        graph_check: Callable[[Verification], Verification] | None = None,
     ) -> Verification:
         """ICP plus the acceptance tests; an accepted edge carries its ICP covariance.
 
         ``limit_correction``: reject a large ICP correction (for guesses that are independent
-        of the drift, such as map_closures' 2D matches). ``check_ambiguity``: finish with
-        :meth:`check_ambiguity` (when ``cfg.ambiguity_check``).
+        of the drift, such as map_closures' 2D matches). ``graph_check``: then judges an
+        accepted edge against the pose graph. ``check_ambiguity``: finally the ambiguity search
+        of :meth:`_check_ambiguity` (when ``cfg.ambiguity_check``), on the clouds, structure and
+        normals prepared here.
         """
         c = self.cfg
         full_reference = np.asarray(reference, dtype=np.float64)
@@ -161,19 +171,23 @@ class IcpVerifier:
         scores["structure_points"] = float(min(len(reference), len(query)))
         if min(len(reference), len(query)) < c.min_structure_points:
             return Verification(False, "too little structure above the ground", T, scores)
-        tree = cKDTree(reference)
-
-        def score(T: np.ndarray) -> float:
-            return inlier_score(tree, query, T, c.inlier_distance_m)
-
-        surfaces = _Surfaces.of(full_reference, c.inlier_distance_m)
-        T, flags = self._refine(full_reference, full_query, T_ref_query_guess, T, score, surfaces)
+        clouds = _Clouds(
+            full_reference,
+            full_query,
+            reference,
+            query,
+            cKDTree(reference),
+            _Surfaces.of(full_reference, c.inlier_distance_m),
+            c.inlier_distance_m,
+        )
+        T, flags = self._refine(clouds, T_ref_query_guess, T)
         correction_m, correction_deg = relative_motion(T_ref_query_guess, T)
         scores.update(flags, icp_correction_m=correction_m, icp_correction_deg=correction_deg)
-        inlier_ratio = score(T)
+        inlier_ratio = clouds.score(T)
         overlap = voxel_overlap(reference, transform_points(T, query), c.overlap_voxel_m)
         scores["inlier_ratio"] = inlier_ratio
         scores["overlap"] = overlap
+        surfaces = clouds.surfaces
         cost = point_to_plane_hessian(
             surfaces.points,
             surfaces.normals,
@@ -199,10 +213,14 @@ class IcpVerifier:
                 f"degenerate icp cost: min eigenvalue {eigenvalue:.4f} < {c.min_hessian_eigenvalue}"
             )
             return Verification(False, reason, T, scores)
-        accepted = Verification(True, "accepted", T, scores, cost.covariance(c.covariance_factor))
+        verification = Verification(
+            True, "accepted", T, scores, cost.covariance(c.covariance_factor)
+        )
+        if graph_check is not None:
+            verification = graph_check(verification)
         if check_ambiguity:
-            return self.check_ambiguity(full_reference, full_query, accepted)
-        return accepted
+            verification = self._check_ambiguity(clouds, verification)
+        return verification
 
     def _structure(self, points: np.ndarray) -> np.ndarray:
         c = self.cfg
@@ -210,42 +228,35 @@ class IcpVerifier:
             return points
         return points[above_ground(points, c.ground_cell_m, c.ground_clearance_m)]
 
-    def check_ambiguity(
-        self, reference: np.ndarray, query: np.ndarray, verification: Verification
-    ) -> Verification:
+    def _check_ambiguity(self, clouds: _Clouds, verification: Verification) -> Verification:
         """Reject an accepted ``verification`` when another registration scores about as well
         (:func:`slam.algorithm.loop_ambiguity.find_ambiguity`), on the structure above the
         ground; the profile reaches the reference structure's RMS radius at most."""
         c = self.cfg
         if not (c.ambiguity_check and verification.accepted):
             return verification
-        reference = np.asarray(reference, dtype=np.float64)
-        query = np.asarray(query, dtype=np.float64)
-        ref_structure, query_structure = self._structure(reference), self._structure(query)
-        surfaces: list[_Surfaces] = []  # normals only once a peak is re-registered
 
         def realign(guess: np.ndarray) -> np.ndarray:
             """The fine passes, polished like the chosen solution (so both compete alike)."""
-            T = self.align(reference, query, guess, scales=c.icp_scales[-2:])
+            T = self.align(clouds.reference, clouds.query, guess, scales=c.icp_scales[-2:])
             if not (c.icp_point_to_plane and np.all(np.isfinite(T))):
                 return T
-            if not surfaces:
-                surfaces.append(_Surfaces.of(reference, c.inlier_distance_m))
-            polished = self._polish(query, T, surfaces[0])
+            polished = self._polish(clouds.query, T, clouds.surfaces)
             return T if polished is None else polished
 
         score, alternative = find_ambiguity(
-            ref_structure,
-            query_structure,
+            clouds.reference_structure,
+            clouds.query_structure,
             verification.T_ref_query,
             verification.covariance,
             realign,
             inlier_distance_m=c.inlier_distance_m,
             step_m=c.ambiguity_step_m,
-            max_offset_m=min(c.ambiguity_max_offset_m, _rms_radius(ref_structure)),
+            max_offset_m=min(c.ambiguity_max_offset_m, _rms_radius(clouds.reference_structure)),
             min_separation_m=c.ambiguity_min_separation_m,
             min_separation_deg=c.ambiguity_min_separation_deg,
             max_realignments=c.ambiguity_max_realignments,
+            tree=clouds.structure_tree,
         )
         scores = dict(verification.scores)
         scores["ambiguity_score"] = score
@@ -264,31 +275,34 @@ class IcpVerifier:
         return verification._replace(scores=scores)
 
     def _refine(
-        self,
-        reference: np.ndarray,
-        query: np.ndarray,
-        guess: np.ndarray,
-        T: np.ndarray,
-        score: Callable[[np.ndarray], float],
-        surfaces: _Surfaces,
+        self, clouds: _Clouds, guess: np.ndarray, T: np.ndarray
     ) -> tuple[np.ndarray, dict[str, float]]:
         """The registration to judge, from the coarse-to-fine ICP result ``T``, and flags saying
         which refinements changed it.
 
-        ``icp_fine_restart``: the fine passes alone from ``guess``, kept when their result
-        scores more inliers (``score``). ``icp_point_to_plane``: then point-to-plane ICP on the
-        reference's surfaces, which KISS-ICP's point-to-point cost does not see: on the
-        generated sparse street it took loops that point-to-point left 0.7-1.1 deg off to within
-        0.1 deg, with as many inliers as the true pose.
+        ``icp_fine_restart``: the fine passes alone from ``guess`` (when ``T`` moved it by the
+        ``icp_fine_restart_min_correction_*``), kept when their result scores more inliers.
+        ``icp_point_to_plane``: then point-to-plane ICP on the reference's surfaces, which
+        KISS-ICP's point-to-point cost does not see: on the generated sparse street it took
+        loops that point-to-point left 0.7-1.1 deg off to within 0.1 deg, with as many inliers
+        as the true pose.
         """
         c = self.cfg
         flags: dict[str, float] = {}
-        if c.icp_fine_restart and len(c.icp_scales) > 2:
-            T_fine = self.align(reference, query, guess, scales=c.icp_scales[-2:])
-            if np.all(np.isfinite(T_fine)) and score(T_fine) > score(T):
+        moved_m, moved_deg = relative_motion(guess, T)
+        if (
+            c.icp_fine_restart
+            and len(c.icp_scales) > 2
+            and (
+                moved_m >= c.icp_fine_restart_min_correction_m
+                or moved_deg >= c.icp_fine_restart_min_correction_deg
+            )
+        ):
+            T_fine = self.align(clouds.reference, clouds.query, guess, scales=c.icp_scales[-2:])
+            if np.all(np.isfinite(T_fine)) and clouds.score(T_fine) > clouds.score(T):
                 T, flags["icp_fine_restart"] = T_fine, 1.0
         if c.icp_point_to_plane:
-            polished = self._polish(query, T, surfaces)
+            polished = self._polish(clouds.query, T, clouds.surfaces)
             if polished is not None:
                 T, flags["icp_point_to_plane"] = polished, 1.0
         return T, flags
@@ -324,6 +338,33 @@ class _Surfaces:
             reference, np.zeros(3), num_neighbours=10, max_radius_m=4 * inlier_distance_m
         )
         return _Surfaces(reference[valid], normals[valid], cKDTree(reference[valid]))
+
+
+@dataclass
+class _Clouds:
+    """One candidate's clouds and what its verification derives from them, each made once.
+
+    Attributes:
+        reference, query: the whole clouds (float64).
+        reference_structure, query_structure: their points above the ground (the scores').
+        structure_tree: KD-tree of ``reference_structure``.
+        surfaces: the reference's points with normals (point-to-plane ICP and Hessian).
+        inlier_distance_m: a query point within this of the reference structure is an inlier.
+    """
+
+    reference: np.ndarray
+    query: np.ndarray
+    reference_structure: np.ndarray
+    query_structure: np.ndarray
+    structure_tree: cKDTree
+    surfaces: _Surfaces
+    inlier_distance_m: float
+
+    def score(self, T_ref_query: np.ndarray) -> float:
+        """Inlier score of the query structure against the reference's after ``T_ref_query``."""
+        return inlier_score(
+            self.structure_tree, self.query_structure, T_ref_query, self.inlier_distance_m
+        )
 
 
 def _rms_radius(points: np.ndarray) -> float:
@@ -393,8 +434,9 @@ class LidarLoopDetector(LoopDetector):
         i: int,
         j: int,
         verification: Verification,
+        *,
         T_W_A: dict[int, np.ndarray],
-        relative_covariance: RelativeCovariance | None,
+        covariance: RelativeCovariance | None,
     ) -> Verification:
         """Reject an accepted edge far outside the graph's uncertainty of ``T_Ai_Aj`` (a chi-square
         gate, ``graph_consistency_probability``)."""
@@ -402,14 +444,14 @@ class LidarLoopDetector(LoopDetector):
         if (
             not verification.accepted
             or probability <= 0
-            or relative_covariance is None
+            or covariance is None
             or i not in T_W_A
             or j not in T_W_A
         ):
             return verification
         T_graph = np.linalg.inv(T_W_A[i]) @ T_W_A[j]
         distance2 = mahalanobis_distance2(
-            T_graph, relative_covariance(i, j), verification.T_ref_query, verification.covariance
+            T_graph, covariance(i, j), verification.T_ref_query, verification.covariance
         )
         scores = dict(verification.scores, graph_mahalanobis2=distance2)
         limit = float(chi2.ppf(probability, 6))
@@ -442,12 +484,10 @@ class LidarLoopDetector(LoopDetector):
                 cloud,
                 guess,
                 limit_correction=detector != "proximity",
-                check_ambiguity=False,
+                graph_check=partial(
+                    self._check_graph, i, j, T_W_A=T_W_A_estimates, covariance=relative_covariance
+                ),
             )
-            verification = self._check_graph(
-                i, j, verification, T_W_A_estimates, relative_covariance
-            )
-            verification = self._verifier.check_ambiguity(reference, cloud, verification)
             verification.scores.update(detection_scores)
             logger.debug(
                 "loop %d-%d (%s): %s %s", i, j, detector, verification.reason, verification.scores
