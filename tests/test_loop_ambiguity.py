@@ -179,3 +179,44 @@ def test_point_to_plane_finish_brings_the_true_loop_closer(periodic_pair):
     assert error_m < 0.5 * before_m and error_deg < 0.2
     assert finished.covariance is not None
     assert not np.allclose(finished.covariance, point_to_point.covariance)
+
+
+def test_fine_restart_runs_only_after_a_real_coarse_correction(periodic_pair):
+    """The restart of the 4 m guess above is skipped when its gate lies beyond the coarse
+    correction: then the verifier keeps the coarse-to-fine result, as with no restart at all."""
+    reference, query, T_true = periodic_pair
+    guess = _guess(T_true, 4.0)
+    config = LidarLoopConfig(**LOOP_CONFIG, ambiguity_check=False, icp_point_to_plane=False)
+    coarse = IcpVerifier(config).align(reference, query, guess)
+    moved_m, moved_deg = relative_motion(guess, coarse)
+    assert moved_m >= config.icp_fine_restart_min_correction_m  # the restart test's case
+    gated = config.model_copy(
+        update={
+            "icp_fine_restart_min_correction_m": moved_m + 1.0,
+            "icp_fine_restart_min_correction_deg": moved_deg + 1.0,
+        }
+    )
+    result = IcpVerifier(gated).verify(reference, query, guess)
+    assert "icp_fine_restart" not in result.scores
+    np.testing.assert_allclose(result.T_ref_query, coarse)
+
+
+def test_thinned_coarse_passes_reach_the_full_density_pose(periodic_pair):
+    """The wide passes on the query thinned to 1 m voxels end where the full-density passes do
+    (from 2 m along the street and 1 deg of yaw off the true loop): they only have to bring the
+    guess into the fine passes' reach."""
+    reference, query, T_true = periodic_pair
+    guess = _guess(T_true, 2.0)
+    yaw = np.deg2rad(1.0)
+    guess[:2, :2] = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    guess[:3, :3] = guess[:3, :3] @ T_true[:3, :3]
+    config = LidarLoopConfig(**LOOP_CONFIG, ambiguity_check=False)
+    thinned = IcpVerifier(config).verify(reference, query, guess)
+    full = IcpVerifier(config.model_copy(update={"icp_coarse_voxel_m": 0.0})).verify(
+        reference, query, guess
+    )
+    assert thinned.accepted and full.accepted
+    distance_m, distance_deg = relative_motion(full.T_ref_query, thinned.T_ref_query)
+    assert distance_m < 0.02 and distance_deg < 0.05
+    error_m, _ = relative_motion(T_true, thinned.T_ref_query)
+    assert error_m < 0.2
