@@ -54,6 +54,11 @@ def test_unknown_section_and_bad_value(tmp_path: Path):
     assert "\n" not in str(info.value)
     with pytest.raises(ConfigError, match=r"mapping\.voxel_size_m"):
         build_run_config({"mapping": {"voxel_size_m": "big"}}, "x.yaml")
+    # mesh scoring: off (0) or at least 1000 samples, nothing between
+    assert build_run_config({"output": {"mesh_samples": 0}}, "x.yaml").output.mesh_samples == 0
+    with pytest.raises(ConfigError, match=r"output\.mesh_samples.*at least 1000") as info:
+        build_run_config({"output": {"mesh_samples": 500}}, "x.yaml")
+    assert "\n" not in str(info.value)
 
 
 def test_bad_yaml_and_missing_file(tmp_path: Path):

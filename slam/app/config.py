@@ -11,7 +11,7 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator
 
 from frontends.odometry.kiss import KissIcpConfig
 from frontends.odometry.rgbd import RgbdOdometryConfig
@@ -271,8 +271,18 @@ class OutputConfig(_Strict):
     write_mesh: bool = Field(True, description="write mesh.ply at the end")
     write_map: bool = Field(True, description="write the neural map file at the end")
     mesh_samples: int = Field(
-        100_000, ge=1000, description="surface samples per mesh for mesh accuracy/completion"
+        100_000,
+        ge=0,
+        description="surface samples per mesh for mesh accuracy/completion; 0: the run does not "
+        "score its mesh (python -m slam.eval scores it later, with 100,000)",
     )
+
+    @field_validator("mesh_samples")
+    @classmethod
+    def _samples(cls, value: int) -> int:
+        if 0 < value < 1000:
+            raise ValueError("mesh_samples: 0 (no scoring) or at least 1000")
+        return value
 
 
 class RunConfig(_Strict):

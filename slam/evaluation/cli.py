@@ -204,7 +204,8 @@ def evaluate_run(
     gt_mesh, mask = None, None
     if mesh is not None and gt.mesh_path is not None and gt.poses is not None:
         if num_samples is None:
-            num_samples = cfg.output.mesh_samples if cfg is not None else 200_000
+            num_samples = cfg.output.mesh_samples if cfg is not None else 0
+            num_samples = num_samples or 100_000  # a run that did not score its mesh
         try:
             sections = mesh_section(
                 run_dir,

@@ -355,7 +355,7 @@ def collect_metrics(
     num_mesh_samples: int = 100_000,
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Everything ``metrics.json`` holds."""
+    """Everything ``metrics.json`` holds (the mesh scored only when ``num_mesh_samples`` > 0)."""
     from slam.evaluation.metrics.trajectory import align_se3
 
     slam_peak_rss_mb = peak_rss_mb()  # before scoring, which loads and samples ground truth
@@ -379,7 +379,8 @@ def collect_metrics(
     section = None if gt is None else trajectory_section(report.odometry_poses, slam, gt)
     if section is not None:
         metrics["trajectory"] = section
-    if mesh is not None and gt_mesh_path is not None and section is not None:
+    can_score = mesh is not None and gt_mesh_path is not None and section is not None
+    if can_score and num_mesh_samples > 0:
         slam_scored, gt_scored = gt_subset(slam, gt)
         T_gt_W = align_se3(slam_scored, gt_scored)
         cameras = None
