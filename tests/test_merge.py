@@ -19,6 +19,7 @@ import pytest
 
 from mapping.neural_map import NeuralMap
 from slam.app.trajectory_io import read_kitti
+from slam.evaluation.cli import evaluate_run
 
 ROOT = Path(__file__).resolve().parents[1]
 # a short lap of the generated room (its end revisits its start), split in two sessions; the runs
@@ -124,6 +125,9 @@ def test_continuing_a_map_places_the_run_in_its_frame(runs):
     session = json.loads((runs["b"] / "metrics.json").read_text())
     assert session["input"]["frames_total"] == 60
     assert "trajectory" in session and "mesh" not in session  # output.mesh_samples=0
+    # ... which slam.eval scores afterwards, with the configuration's default samples
+    scored = evaluate_run(runs["a"], make_plots=False, write=False)
+    assert scored["mesh"]["num_samples"] == 100_000 and scored["mesh"]["accuracy_m"] < 0.05
 
 
 def test_continuing_a_map_relocalises_live(runs):

@@ -204,8 +204,11 @@ def evaluate_run(
     gt_mesh, mask = None, None
     if mesh is not None and gt.mesh_path is not None and gt.poses is not None:
         if num_samples is None:
-            num_samples = cfg.output.mesh_samples if cfg is not None else 0
-            num_samples = num_samples or 100_000  # a run that did not score its mesh
+            from slam.app.config import OutputConfig
+
+            num_samples = cfg.output.mesh_samples if cfg is not None else 200_000
+            # a run that did not score its mesh (0) is scored with the configuration's default
+            num_samples = num_samples or OutputConfig.model_fields["mesh_samples"].default
         try:
             sections = mesh_section(
                 run_dir,
