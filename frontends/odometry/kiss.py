@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from common.normals import estimate_normals
 from frontends.errors import DatasetError
-from frontends.frame import Frame
+from frontends.frame import Frame, point_ranges_m
 from frontends.odometry.base import Odometry, OdometryResult, register_odometry
 from frontends.odometry.point_to_plane import point_to_plane_icp
 
@@ -204,7 +204,7 @@ class KissIcpOdometry(Odometry):
         data, voxel_m = self.config.data, 0.5 * self.voxel_size_m
 
         def thinned(points: np.ndarray) -> np.ndarray:
-            ranges = np.linalg.norm(points, axis=1)
+            ranges = point_ranges_m(points)
             return voxel_down_sample(
                 points[(ranges >= data.min_range) & (ranges <= data.max_range)], voxel_m
             )
