@@ -14,6 +14,7 @@ from slam.app.config import (
     build_run_config,
     dump_run_config,
     load_run_config,
+    set_origins,
 )
 
 # YAML files in configs/ that configure something other than a run.
@@ -44,6 +45,23 @@ def test_unknown_key_names_the_key(tmp_path: Path):
     assert "loop_closure.lidar.top_kk" in message
     assert str(path) in message
     assert "\n" not in message
+
+
+def test_unknown_key_suggests_the_closest_or_lists_the_valid_ones():
+    with pytest.raises(ConfigError, match=r"did you mean 'top_k'\?$"):
+        build_run_config({"loop_closure": {"lidar": {"top_kk": 3}}}, "x.yaml")
+    with pytest.raises(ConfigError, match=r"did you mean 'mapping'\?$"):
+        build_run_config({"mapings": {}}, "x.yaml")
+    with pytest.raises(ConfigError) as info:
+        build_run_config({"remap": {"zzz": 1}}, "x.yaml")
+    listed = str(info.value).rsplit("valid keys here: ", 1)[1].split(", ")
+    assert set(listed) == set(RunConfig.model_fields["remap"].annotation.model_fields)
+
+
+def test_unknown_section_from_set_names_the_argument():
+    origins = set_origins(["mapings.voxel_size_m=1"])
+    with pytest.raises(ConfigError, match=r"^--set mapings\.voxel_size_m=1: unknown key"):
+        build_run_config({"mapings": {"voxel_size_m": 1}}, "x.yaml", origins)
 
 
 def test_unknown_section_and_bad_value(tmp_path: Path):

@@ -319,7 +319,7 @@ _OS_HINTS = {
 
 def _one_line(exc: BaseException, folder: Path | None = None) -> str:
     if isinstance(exc, ValidationError):
-        return describe_validation_error(exc, "config")
+        return describe_validation_error(exc, "config", model=None)
     if isinstance(exc, OSError) and exc.strerror and exc.errno in _OS_HINTS:
         location = exc.filename or folder
         where = f"{location}: " if location else ""

@@ -7,11 +7,12 @@ errors into a one-line :class:`ConfigError`.
 
 from __future__ import annotations
 
+import difflib
 import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator
 
 from frontends.odometry.kiss import KissIcpConfig
 from frontends.odometry.rgbd import RgbdOdometryConfig
@@ -380,16 +381,37 @@ def _location(loc: tuple[Any, ...]) -> str:
     return ".".join(str(part) for part in loc) or "<root>"
 
 
-def describe_validation_error(error: ValidationError, origin: str) -> str:
-    """One line naming the first offending key of a pydantic error."""
+def _sibling_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
+    """The keys the model accepts beside the last part of ``loc`` ([] where it cannot tell)."""
+    for part in loc[:-1]:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        annotation = field.annotation if field is not None else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return []
+        model = annotation
+    return list(model.model_fields)
+
+
+def _unknown_key_hint(model: type[BaseModel] | None, loc: tuple[Any, ...]) -> str:
+    keys = _sibling_keys(model, loc) if model is not None and loc else []
+    if not keys:
+        return "check its spelling and section"
+    close = difflib.get_close_matches(str(loc[-1]), keys, n=1)
+    return f"did you mean '{close[0]}'?" if close else "valid keys here: " + ", ".join(keys)
+
+
+def describe_validation_error(
+    error: ValidationError, origin: str, model: type[BaseModel] | None = RunConfig
+) -> str:
+    """One line naming the first offending key of a pydantic error; for an unknown key, the
+    closest valid one of ``model`` (the validated model) or the valid keys at that level."""
     first = error.errors()[0]
     key = _location(first["loc"])
     if first["type"] == "extra_forbidden":
-        return f"{origin}: unknown key '{key}'; check the spelling against slam/config.py"
+        return f"{origin}: unknown key '{key}'; {_unknown_key_hint(model, tuple(first['loc']))}"
     if first["type"] == "missing":
         return f"{origin}: missing key '{key}'"
-    value = first.get("input")
-    shown = repr(value)
+    shown = repr(first.get("input"))
     if len(shown) > 60:
         shown = shown[:57] + "..."
     return f"{origin}: invalid value {shown} for '{key}': {first['msg']}"
@@ -432,14 +454,15 @@ def build_run_config(
     """Validate a nested mapping into a :class:`RunConfig` (one-line :class:`ConfigError`).
 
     ``override_origins`` maps dotted keys to where they were set (``--set KEY=VALUE``): an error
-    at or below such a key names that argument instead of ``origin``.
+    at, below or above such a key (an unknown section it created) names that argument instead
+    of ``origin``.
     """
     try:
         return RunConfig.model_validate(data)
     except ValidationError as exc:
         key = _location(exc.errors()[0]["loc"])
         for dotted, argument in (override_origins or {}).items():
-            if key == dotted or key.startswith(dotted + "."):
+            if key == dotted or key.startswith(dotted + ".") or dotted.startswith(key + "."):
                 origin = argument
                 break
         raise ConfigError(describe_validation_error(exc, origin)) from None
