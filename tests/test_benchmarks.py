@@ -4,13 +4,14 @@ the measured child processes (real processes, no mocks)."""
 from __future__ import annotations
 
 import importlib
+import json
 import math
 import sys
 from pathlib import Path
 
 import pytest
 
-from benchmarks import run_all
+from benchmarks import bench_variants, run_all
 from benchmarks.harness.child import in_child_measured, run_command
 from benchmarks.harness.machine import git_revision, machine_description
 from benchmarks.harness.reference import kiss_slam_unavailable
@@ -166,3 +167,53 @@ def test_kiss_slam_reads_the_scans_as_ours_does(corrected):
     assert (T_cam_lidar is not None) == corrected
     if not corrected:
         assert Path(args[0]) == Path(source.sequence_dir) / "velodyne"
+
+
+def _variant_result(name: str, quick: bool, slam_z_m: float, worst_kept_m: float) -> dict:
+    run = {
+        "frames": 10,
+        "kiss_icp_xyz_m": [0.3, 0.3, 1.0],
+        "kiss_icp_ate_m": 1.1,
+        "slam_xyz_m": [0.1, 0.1, slam_z_m],
+        "slam_ate_m": 0.2,
+        "verified": 2,
+        "kept": 2,
+        "kept_loop_errors": [[worst_kept_m, 0.1], [0.01, 0.2]],
+        "worst_kept_m": worst_kept_m,
+        "worst_kept_deg": 0.2,
+        "pitch_bias_mrad_per_100m": 1.0,
+        "rejections": {},
+        "wall_s": 5.0,
+    }
+    return {
+        "machine": "test machine",
+        "date": "2026-01-01T00:00:00",
+        "quick": quick,
+        "command": f"python -m benchmarks.bench_variants --variants '{name}'",
+        "before_sets": [],
+        "runs": {name: run},
+        "before": {},
+        "kiss_slam": {},
+    }
+
+
+def test_variant_results_combine_into_one_table_with_targets(tmp_path):
+    files = []
+    for name, z, worst in (("sparse", 0.2, 0.1), ("periodic", 0.7, 1.5)):
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps(_variant_result(name, False, z, worst)))
+        files.append(path)
+    out = tmp_path / "all.md"
+    assert bench_variants.main(["--combine", *map(str, files), "--out", str(out)]) == 0
+    report = out.read_text()
+    assert report.count("| sparse | 10 |") == 1 and report.count("| periodic | 10 |") == 1
+    assert "- sparse: z ratio 0.20 (met); worst kept loop 0.10 m / 0.20 deg (met)" in report
+    assert "- periodic: z ratio 0.70 (missed); worst kept loop 1.50 m / 0.20 deg (missed)" in report
+    assert report.count("Combined from `") == 2
+    combined = json.loads(out.with_suffix(".json").read_text())
+    assert set(combined["runs"]) == {"sparse", "periodic"}
+
+    quick = tmp_path / "quick.json"
+    quick.write_text(json.dumps(_variant_result("noise", True, 0.1, 0.1)))
+    assert bench_variants.main(["--combine", str(files[0]), str(quick), "--out", str(out)]) == 2
+    assert bench_variants.main(["--combine", str(files[0]), str(files[0]), "--out", str(out)]) == 2
