@@ -370,6 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames": args.frames,
         "relief": args.relief,
         "override": args.override,
+        "cores": os.cpu_count(),
         "runs": {},
     }
     methods = list(args.only or ["kiss_icp", "kiss_slam", "ours"])

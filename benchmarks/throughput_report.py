@@ -76,6 +76,7 @@ def write_report(saved: dict) -> None:
                 f"{_f(r.get('peak_rss_mb'), 0)} | {_f(r.get('ate_odometry_m'), 3)} | "
                 f"{_f(r.get('ate_slam_m'), 3)} | {_f(run.get('load'), 1)} |"
             )
+    lines += _cpu_floor_lines(saved)
     lines += _per_axis_lines(results)
     lines += [
         "",
@@ -236,6 +237,32 @@ MEMORY_PARTS = (
     ("trim_returned", "of which malloc_trim(0) returned right after"),
     ("odometry_process_rss", "odometry child process (KISS-ICP, its local map): its own RSS"),
 )
+
+
+def _cpu_floor_lines(saved: dict) -> list[str]:
+    """Ours' CPU time over the machine's cores: the wall time no schedule of the same work can
+    beat, set against KISS-SLAM's wall (issue 25's target)."""
+    cores = saved.get("cores")
+    if not cores:
+        return []
+    lines = []
+    for key in sorted(saved["runs"]):
+        run = saved["runs"][key]
+        ours = run.get("ours") or {}
+        kslam = run.get("kiss_slam") or saved["runs"].get("after", {}).get("kiss_slam") or {}
+        if not ours.get("cpu_s") or not kslam.get("wall_s"):
+            continue
+        floor = ours["cpu_s"] / cores
+        lines.append(
+            f"- {key}: ours' CPU over the {cores} cores is {floor:.0f} s, "
+            f"{floor / kslam['wall_s']:.2f}x KISS-SLAM's wall; its wall is "
+            f"{ours['wall_s'] / floor:.2f}x that floor. Ours reaches KISS-SLAM's wall only "
+            f"with at most {cores * kslam['wall_s']:.0f} CPU-s, however its threads are "
+            "scheduled."
+        )
+    if not lines:
+        return []
+    return ["", "Lower bound of ours' wall time: its CPU time divided by the cores.", "", *lines]
 
 
 def _memory_lines(results: dict) -> list[str]:

@@ -217,3 +217,19 @@ def test_variant_results_combine_into_one_table_with_targets(tmp_path):
     quick.write_text(json.dumps(_variant_result("noise", True, 0.1, 0.1)))
     assert bench_variants.main(["--combine", str(files[0]), str(quick), "--out", str(out)]) == 2
     assert bench_variants.main(["--combine", str(files[0]), str(files[0]), "--out", str(out)]) == 2
+
+
+def test_throughput_report_states_ours_cpu_floor_against_kiss_slam():
+    from benchmarks.throughput_report import _cpu_floor_lines
+
+    runs = {
+        "after": {"ours": {"cpu_s": 600.0, "wall_s": 350.0}, "kiss_slam": {"wall_s": 250.0}},
+        "before abc": {"ours": {"cpu_s": 700.0, "wall_s": 400.0}},
+    }
+    lines = _cpu_floor_lines({"cores": 2, "runs": runs})
+    after = next(line for line in lines if line.startswith("- after:"))
+    assert "is 300 s, 1.20x KISS-SLAM's wall" in after and "1.17x that floor" in after
+    assert "at most 500 CPU-s" in after
+    before = next(line for line in lines if line.startswith("- before abc:"))
+    assert "is 350 s, 1.40x" in before  # against the invocation's one KISS-SLAM run
+    assert _cpu_floor_lines({"runs": runs}) == []  # no core count recorded: no claim
