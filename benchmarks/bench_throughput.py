@@ -44,6 +44,7 @@ from benchmarks.harness.reference import kiss_icp_alone, kiss_slam
 from benchmarks.micro_encode import scenario_micro
 from benchmarks.throughput_report import RSS_EVERY, write_report
 from common.atomic_io import write_text_atomic
+from slam.app.threads import machine_cores
 
 METHODS = ("ours", "kiss_icp", "kiss_slam", "micro", "rgbd")
 QUICK_FRAMES = 150
@@ -370,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames": args.frames,
         "relief": args.relief,
         "override": args.override,
-        "cores": os.cpu_count(),
+        "cores": machine_cores(),
         "runs": {},
     }
     methods = list(args.only or ["kiss_icp", "kiss_slam", "ours"])
