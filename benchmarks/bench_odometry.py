@@ -219,10 +219,6 @@ def seven_scenes_rows(quick: bool) -> tuple[list[Row], str]:
             {"downscale": 1},
             {"keyframe_translation_m": 0.0},
             {"keyframe_translation_m": 0.1, "keyframe_rotation_deg": 5.0},
-            {
-                "tracking": "model",
-                "model": {"voxel_size_m": 0.02, "resolution": 192, "max_weight": 16},
-            },
         ]
     rows = [_run(name, "rgbd", options, Loaded()) for options in variants]
     note = (

@@ -181,27 +181,21 @@ def lidar_frames(quick: bool) -> int:
     return window(quick).num_frames if quick else FULL_LIDAR_FRAMES
 
 
-def lidar_source(quick: bool, terrain_relief_m: float = 0.0):
-    return kitti_source(quick, lidar_frames(quick), terrain_relief_m)
+def lidar_source(quick: bool):
+    return kitti_source(quick, lidar_frames(quick))
 
 
-def scenario_lidar(
-    quick: bool,
-    odometry_mode: str,
-    terrain_relief_m: float = 0.0,
-    odometry: dict[str, Any] | None = None,
-) -> dict:
-    """One LiDAR run; ``odometry`` overrides fields of configs/kitti.yaml's odometry section."""
+def scenario_lidar(quick: bool, odometry_mode: str) -> dict:
+    """One LiDAR run with configs/kitti.yaml."""
     _child_setup()
     from slam.app.builders import build_odometry
     from slam.app.config import default_config_path, load_run_config
 
-    source = lidar_source(quick, terrain_relief_m)
+    source = lidar_source(quick)
     overrides: dict[str, Any] = {
         "source": {"dataset": "generated"},
         "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
         "mapping": {"device": "cpu"},
-        "odometry": odometry or {},
     }
     cfg = load_run_config(default_config_path("kitti"), overrides)
     if odometry_mode == "kiss-icp":

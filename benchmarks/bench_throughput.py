@@ -93,8 +93,7 @@ def _child_usage(odometry) -> Callable[[], Any] | None:
         from frontends.odometry.child_process import ChildProcessOdometry
     except ImportError:  # revisions before it
         return None
-    inner = getattr(odometry, "inner", odometry)  # under GroundRefinedOdometry
-    return inner.usage if isinstance(inner, ChildProcessOdometry) else None
+    return odometry.usage if isinstance(odometry, ChildProcessOdometry) else None
 
 
 def _profile_summary(profile, top: int = 30) -> str:

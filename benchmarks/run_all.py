@@ -53,7 +53,6 @@ BENCHMARKS = (
     "keyframing",
     "accuracy",
     "slam",
-    "vertical",
     "throughput",
     "map_size",
     "variants",

@@ -66,8 +66,8 @@ def write_report(
         "the places of frames 112 on again). configs/kitti.yaml: "
         "30 m submaps, V = 1 m, loop candidates from "
         "map_closures and anchor proximity (20 m), verified by ICP and overlap above the ground. "
-        "The road follows KITTI 00's real elevation profile (its slopes, crests and dips; the "
-        "street with hills beside it is benchmarks/bench_vertical.py's). The second row "
+        "The road follows KITTI 00's real elevation profile (its slopes, crests and dips). "
+        "The second row "
         "replaces KISS-ICP by the ground truth with an injected yaw drift, so that the loop "
         "closure has a drift to remove. Per-axis ATE: RMSE along the world x, y and z (up) axes "
         "after the same alignment, KISS-ICP alone (odometry) -> SLAM.",

@@ -1,4 +1,4 @@
-"""Markdown tables of ``bench_slam`` (and ``bench_vertical``) results."""
+"""Markdown tables of ``bench_slam`` results."""
 
 from __future__ import annotations
 

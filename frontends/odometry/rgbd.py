@@ -12,21 +12,6 @@ starting from identity, OpenCV's estimate degrades quickly with the baseline. Me
 redkitchen frames 0-399 (``benchmarks/results/odometry.md``): ATE 3.5 cm with 3 cm / 2 deg
 keyframes (the default), 6.2 cm frame-to-frame, 24 cm with 10 cm / 5 deg keyframes.
 
-Frame to model (``tracking='model'``, off by default): a local TSDF volume of the recent frames
-(:mod:`frontends.odometry.model_tracking`, OpenCV 5 ``cv2.Volume``) is ray-cast at the keyframe's
-pose, and the frame is registered to that depth (with the keyframe's grey image for the
-photometric term) instead of the keyframe's own depth: the model carries the geometry of every
-frame integrated so far, so registrations are anchored to it rather than chained. It falls back
-to the keyframe, logging the reason (INFO) and counting it in ``model_fallbacks``, when the model
-is empty, its ray-cast covers less than ``model.min_valid_fraction`` of the keyframe's depth, or
-registration to it fails. Measured odometry ATE (``tracking='model'`` vs the default keyframe):
-generated room 0.45 vs 0.55 cm with 3 cm voxels (200 per side), but 7-Scenes redkitchen 0-399
-3.7-4.9 vs 3.5 cm whatever the voxel size (2-3 cm), weight cap, truncation or registration
-direction, at about twice the cost (integration of a 192^3 volume and its ray-cast per frame).
-A likely reason (not verified): real Kinect depth carries per-pixel distortions that the model,
-averaged over many views, does not share with any single frame, while a keyframe shares them
-with the frames near it.
-
 If registration to the keyframe fails, the previous frame is tried; if that fails too, the pose
 is extrapolated with constant velocity, a warning is logged and ``num_failures`` is incremented.
 
@@ -50,7 +35,6 @@ from common.geometry import rotation_angle_rad
 from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult, register_odometry
-from frontends.odometry.model_tracking import LocalTsdfModel
 from frontends.odometry.point_to_plane import adjoint, point_to_plane_hessian
 from frontends.odometry.rgbd_config import RgbdOdometryConfig
 
@@ -111,9 +95,6 @@ class RgbdOdometry(Odometry):
         num_failures: frames whose pose was extrapolated because registration failed.
         num_fallbacks: frames registered to the previous frame after the keyframe failed.
         num_keyframes: keyframes used so far.
-        num_model_frames: frames registered to the local model (tracking='model').
-        model_fallbacks: why frames were registered to the keyframe instead of the model, with
-            how often (tracking='model').
     """
 
     def __init__(self, config: RgbdOdometryConfig | None = None, **options) -> None:
@@ -138,13 +119,6 @@ class RgbdOdometry(Odometry):
         self.num_failures = 0
         self.num_fallbacks = 0
         self.num_keyframes = 0
-        self.num_model_frames = 0
-        self.model_fallbacks: dict[str, int] = {}
-        self._model: LocalTsdfModel | None = None
-        self._key_depth = None  # the keyframe's depth and grey image (tracking='model')
-        self._key_gray = None
-        # ((keyframe count, placement count), model OdometryFrame or None, why none)
-        self._reference = None
         self._key_cloud = None  # (points, normals, tree) of the keyframe for the covariance
         self._prev_cloud = None
         self._cov_chain = np.zeros((6, 6))  # since restart_covariance(), at the current keyframe
@@ -185,9 +159,6 @@ class RgbdOdometry(Odometry):
         ]
         self._odometry = cv2.Odometry(otype, settings, algtype)
         self._shape = frame.depth.shape
-        if c.tracking == "model":
-            h, w = frame.depth.shape[0] // s, frame.depth.shape[1] // s
-            self._model = LocalTsdfModel(c.model, K, w, h, c.max_depth_m)
 
     def _choose_downscale(self, frame: Frame) -> int:
         if self.config.downscale is not None:
@@ -224,7 +195,7 @@ class RgbdOdometry(Odometry):
             raise DatasetError(f"frame {frame.index}: depth image has no valid pixel")
 
     def _prepare(self, frame: Frame):
-        """The frame prepared for ``cv2.Odometry``, its (downscaled) depth and grey image."""
+        """The frame prepared for ``cv2.Odometry``."""
         import cv2
 
         depth = np.asarray(frame.depth, dtype=np.float32)
@@ -244,7 +215,7 @@ class RgbdOdometry(Odometry):
             else cv2.OdometryFrame(depth=depth, image=gray)
         )
         self._odometry.prepareFrame(odometry_frame)
-        return odometry_frame, depth, gray
+        return odometry_frame
 
     def _relative(self, reference, current) -> np.ndarray | None:
         """``T_ref_cur`` or None when OpenCV reports failure."""
@@ -253,78 +224,23 @@ class RgbdOdometry(Odometry):
             return None
         return np.linalg.inv(np.asarray(Rt, dtype=np.float64))
 
-    def _model_reference(self):
-        """The model ray-cast at the keyframe's pose with the keyframe's grey image, prepared
-        for ``cv2.Odometry`` (cached until the keyframe or the model's placement changes), or
-        the reason why there is none."""
-        import cv2
-
-        key = (self.num_keyframes, self._model.num_placements)
-        if self._reference is not None and self._reference[0] == key:
-            return self._reference[1:]
-        if self._model.is_empty:
-            return None, "the model is empty"
-        depth, normals = self._model.render(self._T_W_key)
-        coverage = np.count_nonzero(depth) / max(1, np.count_nonzero(self._key_depth))
-        if coverage < self.config.model.min_valid_fraction:
-            self._reference = (key, None, "the model covers too little of the view")
-            return self._reference[1:]
-        if self._key_gray is None:
-            model_frame = cv2.OdometryFrame(depth=depth, normals=normals)
-        else:
-            model_frame = cv2.OdometryFrame(depth=depth, image=self._key_gray, normals=normals)
-        self._odometry.prepareFrame(model_frame)
-        self._reference = (key, model_frame, "")
-        return model_frame, ""
-
-    def _track_model(self, current) -> tuple[np.ndarray | None, str]:
-        """``T_W_cur`` registered to the model seen from the keyframe, or None and why."""
-        reference, reason = self._model_reference()
-        if reference is None:
-            return None, reason
-        # The model in the keyframe's place: its ray-cast depth lifts the keyframe's pixels
-        # (photometric term) and the current frame's normals take the ICP term, as for a keyframe
-        # (odometry ATE on 7-Scenes redkitchen 0-399, 3 cm voxels: 4.0 cm this way, 4.9 cm the
-        # other way round).
-        T_key_cur = self._relative(reference, current)
-        if T_key_cur is None:
-            return None, "registration to the model failed"
-        return self._T_W_key @ T_key_cur, ""
-
     def register(self, frame: Frame) -> OdometryResult:
         self._check(frame)
         if self._odometry is None:
             self._build(frame)
-        current, depth, gray = self._prepare(frame)
+        current = self._prepare(frame)
         if self._keyframe is None:
             self._keyframe = self._previous = current
             self._T_W_key = self._T_W_prev = np.eye(4)
             self._key_cloud = self._prev_cloud = self._cloud(frame)
             self._cov_key_prev = np.zeros((6, 6))
             self.num_keyframes = 1
-            self._key_depth, self._key_gray = depth, gray
-            if self._model is not None:
-                self._model.integrate(depth, np.eye(4))
             return OdometryResult(np.eye(4), covariance=self._covariance_since_restart())
 
-        T_W_cur = None
-        if self._model is not None:
-            T_W_cur, reason = self._track_model(current)
-            if T_W_cur is None:
-                self.model_fallbacks[reason] = self.model_fallbacks.get(reason, 0) + 1
-                logger.info(
-                    "frame %d: %s; registering to the keyframe instead", frame.index, reason
-                )
-            else:
-                self.num_model_frames += 1
         new_keyframe = False
         cloud = self._cloud(frame)
-        T_key_cur = None if T_W_cur is not None else self._relative(self._keyframe, current)
-        if T_W_cur is not None:
-            cov_key_cur = self._registration_covariance(
-                self._key_cloud, cloud, np.linalg.inv(self._T_W_key) @ T_W_cur
-            )
-        elif T_key_cur is not None:
+        T_key_cur = self._relative(self._keyframe, current)
+        if T_key_cur is not None:
             T_W_cur = self._T_W_key @ T_key_cur
             cov_key_cur = self._registration_covariance(self._key_cloud, cloud, T_key_cur)
         else:
@@ -361,14 +277,11 @@ class RgbdOdometry(Odometry):
             cov_key_cur = np.zeros((6, 6))
             self._keyframe, self._T_W_key = current, T_W_cur
             self._key_cloud = cloud
-            self._key_depth, self._key_gray = depth, gray
             self.num_keyframes += 1
         self._cov_key_cur = self._cov_key_prev = cov_key_cur
         self._prev_cloud = cloud
         self._T_prev_prev2 = np.linalg.inv(self._T_W_prev) @ T_W_cur
         self._previous, self._T_W_prev = current, T_W_cur
-        if self._model is not None and (self._keyframe is current or not c.model.keyframes_only):
-            self._model.integrate(depth, T_W_cur)
         return OdometryResult(T_W_cur.copy(), covariance=self._covariance_since_restart())
 
     def _cloud(self, frame: Frame):

@@ -6,8 +6,6 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from frontends.odometry.model_tracking import LocalTsdfModelConfig
-
 
 class RgbdOdometryConfig(BaseModel):
     """Options of the OpenCV RGB-D odometry front-end."""
@@ -63,17 +61,6 @@ class RgbdOdometryConfig(BaseModel):
     )
     keyframe_rotation_deg: float = Field(
         2.0, ge=0, description="Replace the keyframe once the camera has turned this much."
-    )
-    tracking: Literal["keyframe", "model"] = Field(
-        "keyframe",
-        description="'keyframe': register each frame to the latest keyframe. 'model': register it "
-        "to a local TSDF model of the recent frames ray-cast at the keyframe's pose (frame to "
-        "model, as KinectFusion), falling back to the keyframe when the model is empty, covers "
-        "too little of the view or registration to it fails.",
-    )
-    model: LocalTsdfModelConfig = Field(
-        default_factory=LocalTsdfModelConfig,
-        description="The local TSDF model (tracking='model').",
     )
     covariance_points: int = Field(
         2000,

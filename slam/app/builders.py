@@ -109,12 +109,7 @@ def _kiss_icp(cfg: RunConfig) -> Odometry:
 def build_odometry(cfg: RunConfig, sensor: str) -> Odometry:
     method = odometry_method(cfg, sensor)
     if method == "kiss-icp":
-        odometry = _kiss_icp(cfg)
-        if cfg.odometry.ground_refinement.enabled:
-            from slam.algorithm.ground_refinement import GroundRefinedOdometry
-
-            return GroundRefinedOdometry(odometry, cfg.odometry.ground_refinement)
-        return odometry
+        return _kiss_icp(cfg)
     if method == "rgbd":
         return make_odometry(method, config=cfg.odometry.rgbd)
     return make_odometry(method)

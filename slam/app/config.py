@@ -26,7 +26,6 @@ from slam.algorithm.config import (
     Strict,
     SubmapConfig,
 )
-from slam.algorithm.ground_refinement import GroundRefinementConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
@@ -203,11 +202,6 @@ class OdometryConfig(_Strict):
     )
     rgbd: RgbdOdometryConfig = Field(
         default_factory=RgbdOdometryConfig, description="OpenCV RGB-D options (method rgbd)"
-    )
-    ground_refinement: GroundRefinementConfig = Field(
-        default_factory=GroundRefinementConfig,
-        description="LiDAR: refine each scan's height, roll and pitch against the ground seen "
-        "so far (slam/algorithm/ground_refinement.py)",
     )
     kiss_icp_start_scans: int = Field(
         8,
