@@ -44,8 +44,3 @@ def rotation_angle_rad(R: np.ndarray) -> np.ndarray | float:
 def so3_exp(rotvec: np.ndarray) -> np.ndarray:
     """Rotation matrix ``(3, 3)`` (or ``(N, 3, 3)``) of a rotation vector (axis times angle)."""
     return Rotation.from_rotvec(rotvec).as_matrix()
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis times angle, ``(3,)`` or ``(N, 3)``) of a rotation matrix."""
-    return Rotation.from_matrix(R).as_rotvec()

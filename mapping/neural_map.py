@@ -250,6 +250,3 @@ class NeuralMap:
         from mapping.map_io import load_map
 
         return load_map(cls, path, model)
-
-    def _weights64(self) -> torch.Tensor:
-        return self._store.weights64()

@@ -9,8 +9,8 @@ the first activation takes ``k = U W x0`` straight from the input coefficients, 
 are formed once, after the last layer. The result is the module's (to float rounding), not an
 approximation. The Jacobian is forward-mode differentiation along the invariants that depend on
 ``r`` (``r . n_hat`` and ``|r_perp|^2``), two scalar tangents instead of three vector ones, with
-``dF/dr_j`` assembled from them at the end. :func:`point_latents_reference` computes the same
-with ``torch.func`` and is used by the tests to check this path.
+``dF/dr_j`` assembled from them at the end. tests/test_networks.py checks both against the
+module and ``torch.func.jacfwd``.
 
 :mod:`mapping.latent_table` tabulates this function once per prior; encoding looks it up.
 """
@@ -254,16 +254,3 @@ def point_latents(
     if d_pos is None:
         return latents, None
     return latents, torch.cat([d_pos, d_pos.new_zeros(*d_pos.shape[:-1], nrm.shape[-1])], dim=-1)
-
-
-def point_latents_reference(
-    encoder: PointEncoder, r: torch.Tensor, n: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Reference via the module and ``torch.func.jacfwd``: ``(P, C, 3)``, ``(P, C, 3, 3)``."""
-
-    def single(ri: torch.Tensor, ni: torch.Tensor) -> torch.Tensor:
-        return encoder(ri, ni)
-
-    latents = encoder(r, n)
-    jac = torch.func.vmap(torch.func.jacfwd(single, argnums=0))(r, n)
-    return latents, jac

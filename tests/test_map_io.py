@@ -58,7 +58,7 @@ def test_save_load_round_trip(saved) -> None:
     a, b = nm.voxel_block(), loaded.voxel_block()
     assert torch.equal(a.keys, b.keys)
     assert (a.latents - b.latents).abs().max() < 1e-6
-    assert torch.allclose(nm._weights64(), loaded._weights64(), rtol=1e-12, atol=1e-9)
+    assert torch.allclose(nm._store.weights64(), loaded._store.weights64(), rtol=1e-12, atol=1e-9)
     assert loaded.cfg == nm.cfg
     assert [s.submap_id for s in loaded_subs] == [10, 11, 12]
     for s, t in zip(subs, loaded_subs, strict=True):

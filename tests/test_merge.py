@@ -234,7 +234,7 @@ def test_runs_without_shared_place_are_reported(runs, tmp_path: Path):
 
 def test_bev_descriptor_recovers_a_planar_motion():
     """The LiDAR descriptor (bird's-eye ORB) matched across a known yaw and shift."""
-    from slam.algorithm.place import bev_descriptor, match_places
+    from slam.algorithm.place import bev_descriptor, fit_matches, ratio_matches
 
     rng = np.random.default_rng(0)
     clouds = [rng.uniform([-40, -40, 0], [40, 40, 0.1], (20000, 3))]
@@ -246,9 +246,9 @@ def test_bev_descriptor_recovers_a_planar_motion():
     yaw, t = 0.3, np.array([3.0, -2.0, 0.0])
     R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
     query = (reference - t) @ R  # reference = R query + t
-    T, inliers = match_places(
-        bev_descriptor(reference, 0.5), bev_descriptor(query, 0.5), inlier_m=1.0
-    )
+    reference_places, query_places = bev_descriptor(reference, 0.5), bev_descriptor(query, 0.5)
+    index = ratio_matches(reference_places, query_places)
+    T, inliers = fit_matches(reference_places, query_places, index, inlier_m=1.0)
     assert T is not None and inliers >= 20
     assert np.linalg.norm(T[:3, 3] - t) < 0.2
     assert np.abs(T[:3, :3] - R).max() < 0.02

@@ -170,15 +170,10 @@ def test_observations_face_sensors_in_free_space():
     on_surface = scenes.sdf(batch.points).abs()
     assert on_surface[batch.point_mask].mean() < 0.03
     # noisy normals stay within the tilt bound of the true surface normal (up to sign)
-    _, true_normal = scenes.sdf_grad_flat(batch.points.reshape(-1, 3), _patch_index(batch))
-    cos = (true_normal.reshape(batch.normals.shape) * batch.normals).sum(-1).abs()
+    _, true_normal, _ = scenes.sdf_exact(batch.points)
+    cos = (true_normal * batch.normals).sum(-1).abs()
     clean = batch.point_mask & (on_surface < 0.01)
     assert torch.quantile(cos[clean], 0.1) > math.cos(math.radians(45.0))
-
-
-def _patch_index(batch) -> torch.Tensor:
-    b, n, _ = batch.points.shape
-    return torch.arange(b).repeat_interleave(n)
 
 
 def test_sdf_samples_are_balanced_and_consistent_with_the_scene():

@@ -159,16 +159,6 @@ class Scenes:
         """SDF of the union ``(B, M)``; exact outside, an upper bound inside (see module doc)."""
         return self.slot_sdf(x).amin(-1)
 
-    def sdf_grad_flat(
-        self, x: torch.Tensor, patch: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Union SDF and its unit gradient (the outward normal direction) at flat points."""
-        with torch.enable_grad():
-            xg = x.detach().requires_grad_(True)
-            d = self.sdf_flat(xg, patch)
-            (g,) = torch.autograd.grad(d.sum(), xg)
-        return d.detach(), g / safe_norm(g).unsqueeze(-1)
-
     def sdf_exact_flat(
         self, x: torch.Tensor, patch: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

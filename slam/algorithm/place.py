@@ -9,7 +9,7 @@ A descriptor is a set of ORB keypoints with their positions in the submap's anch
   so the image is built here the same way (occupied columns per cell, normalised to uint8).
 * RGB-D (:func:`keyframe_descriptor`): the anchor keyframe's ORB keypoints lifted with its depth.
 
-Matching (:func:`match_places`): Lowe's ratio test on the Hamming distances, then a RANSAC rigid
+Matching (:func:`ratio_matches`): Lowe's ratio test on the Hamming distances, then a RANSAC rigid
 fit of the matched positions (2D rotation about z plus xy translation for a planar LiDAR
 descriptor, full 3D otherwise). The result is only a guess: a merge verifies it on surface points
 decoded from the submaps' own neural maps.
@@ -146,18 +146,3 @@ def fit_matches(
     if best.sum() < sample + 1:
         return None, int(best.sum())
     return _rigid_fit(qry[best], ref[best], query.planar), int(best.sum())
-
-
-def match_places(
-    reference: PlaceDescriptor,
-    query: PlaceDescriptor,
-    ratio: float = 0.8,
-    inlier_m: float = 0.5,
-    iterations: int = 300,
-    seed: int = 0,
-) -> tuple[np.ndarray | None, int]:
-    """``(T_ref_query guess, RANSAC inliers)`` of two descriptors (``(None, 0)``: no match)."""
-    if len(reference) < 3 or len(query) < 3:
-        return None, 0
-    index = ratio_matches(reference, query, ratio)
-    return fit_matches(reference, query, index, inlier_m, iterations, seed)

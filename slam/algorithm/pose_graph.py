@@ -297,11 +297,6 @@ class PoseGraph:
         self._isam.update(new_factors, new_values)
         self._estimate = self._isam.calculateEstimate()
 
-    @property
-    def num_gravity_factors(self) -> int:
-        """Anchors with an up-direction factor."""
-        return len(self.up_measurements)
-
     def reframe(self, T_New_W: np.ndarray) -> None:
         """Express the whole graph in another world frame: every anchor becomes
         ``T_New_W @ T_W_A`` and the first anchor's prior moves with it.

@@ -85,7 +85,3 @@ class Remapper:
         if event.moved_ids:
             self.events.append(event)
         return event
-
-    @property
-    def total_moved(self) -> int:
-        return sum(e.num_moved for e in self.events)
