@@ -49,3 +49,9 @@ def so3_exp(rotvec: np.ndarray) -> np.ndarray:
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Rotation vector (axis times angle, ``(3,)`` or ``(N, 3)``) of a rotation matrix."""
     return Rotation.from_matrix(R).as_rotvec()
+
+
+def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""
+    D = np.linalg.inv(T_a) @ T_b
+    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle_rad(D[:3, :3])))
