@@ -36,7 +36,7 @@ from benchmarks.harness.child import in_child
 from benchmarks.harness.machine import git_revision, machine_line
 from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
 from common.atomic_io import write_text_atomic
-from slam.app.config import merge_overrides
+from slam.assembly.config import merge_overrides
 
 RESULTS = RESULTS_DIR
 
@@ -55,8 +55,8 @@ def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth
     """Fraction of keyframe ``a``'s depth that agrees (3 cm) with keyframe ``b``'s, moved by the
     loop edge and by the ground truth: a check of the ground truth that needs no ground truth."""
     try:
-        from slam.algorithm.loop_keyframes import depth_agreement
-        from slam.algorithm.loop_rgbd import RgbdVerifier
+        from slam.algorithm.loops.keyframes import depth_agreement
+        from slam.algorithm.loops.rgbd import RgbdVerifier
     except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
         return None, None
 
@@ -77,8 +77,8 @@ def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[s
     poses, so that a trajectory error against the ground truth can be put into proportion.
     """
     try:
-        from slam.algorithm.loop_keyframes import depth_agreement
-        from slam.algorithm.loop_rgbd import RgbdVerifier
+        from slam.algorithm.loops.keyframes import depth_agreement
+        from slam.algorithm.loops.rgbd import RgbdVerifier
     except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
         return None
 
@@ -104,12 +104,11 @@ def _loop_diagnosis(pipeline, source, gt: np.ndarray, a: int, b: int, T_a_b: np.
     give even from a perfect start, with submaps free of odometry drift. (3) Depth agreement
     within 1 cm of keyframe a moved into keyframe b by the edge and by the ground truth.
     """
-    from common.geometry import transform_points
-    from frontends.odometry.point_to_plane import point_to_plane_icp
-    from slam.algorithm.loop_keyframes import depth_agreement
-    from slam.algorithm.loop_refine import RefineCloud
-    from slam.algorithm.loop_rgbd import RgbdVerifier
-    from slam.algorithm.loops import relative_motion
+    from common.geometry import relative_motion, transform_points
+    from common.point_to_plane import point_to_plane_icp
+    from slam.algorithm.loops.keyframes import depth_agreement
+    from slam.algorithm.loops.refine import RefineCloud
+    from slam.algorithm.loops.rgbd import RgbdVerifier
 
     cfg = pipeline.cfg.loop_closure.rgbd
     verifier = RgbdVerifier(cfg)
@@ -150,7 +149,7 @@ def _loop_diagnosis(pipeline, source, gt: np.ndarray, a: int, b: int, T_a_b: np.
 def _summary(
     pipeline, wall_s: float, gt: np.ndarray, source=None, diagnose: bool = False
 ) -> dict[str, Any]:
-    from slam.algorithm.loops import relative_motion
+    from common.geometry import relative_motion
     from slam.evaluation.metrics.trajectory import ate_rmse
 
     loops = []
@@ -217,8 +216,8 @@ def _run(
 
     from frontends.sources import make_source
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_map, build_odometry, source_kwargs
-    from slam.app.config import default_config_path, load_run_config
+    from slam.assembly.builders import build_map, build_odometry, source_kwargs
+    from slam.assembly.config import default_config_path, load_run_config
 
     torch.set_num_threads(1)
     base = {

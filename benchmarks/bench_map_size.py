@@ -149,9 +149,9 @@ def raw_baseline(run_dir: Path) -> dict[str, Any]:
     from kiss_icp.voxelization import voxel_down_sample
 
     from slam.algorithm.submaps import Keyframer
-    from slam.app.builders import build_source
-    from slam.app.config import load_run_config
-    from slam.app.trajectory_io import read_kitti
+    from slam.assembly.builders import build_source
+    from slam.assembly.config import load_run_config
+    from slam.run_folder.trajectory_io import read_kitti
 
     cfg = load_run_config(run_dir / "config.yaml")
     poses = read_kitti(run_dir / "poses_odometry.kitti.txt")

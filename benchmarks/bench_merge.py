@@ -115,9 +115,9 @@ def _session_bytes(map_path: Path) -> int:
 
 def _loop_errors(merged: Path, gt: np.ndarray) -> list[dict[str, float]]:
     """Error of every kept inter-session edge against the ground truth of its anchor frames."""
+    from common.geometry import relative_motion
     from mapping.map_io import load_session
-    from slam.algorithm.loops import relative_motion
-    from slam.algorithm.session import SessionRecord
+    from slam.algorithm.merge.session import SessionRecord
 
     _, header, arrays = load_session(merged / "map.npz")
     session = SessionRecord.from_arrays(header, arrays)
@@ -144,9 +144,9 @@ def _refused_map(merged: Path, data_cfg: Path) -> Any:
     submaps (same ranges, voxels, normals) and every submap is encoded at its merged anchor pose;
     no remapping is involved, so this is the map remapping must match."""
     from slam.algorithm.submaps import Keyframer
-    from slam.app.builders import build_map, build_source
-    from slam.app.config import load_run_config
-    from slam.app.trajectory_io import read_kitti
+    from slam.assembly.builders import build_map, build_source
+    from slam.assembly.config import load_run_config
+    from slam.run_folder.trajectory_io import read_kitti
 
     cfg = load_run_config(data_cfg)
     cfg.source.frames = None
@@ -232,7 +232,7 @@ def _continued(spec, frames: str, common: list[str], work: Path) -> dict[str, An
     """Session B again, as ``slam.run --map A``: where it was relocalised live, how far its
     live poses (in its own run folder) are from where the final merge puts them, and the
     continued map's combined ATE."""
-    from slam.app.trajectory_io import read_kitti
+    from slam.run_folder.trajectory_io import read_kitti
 
     out_dir = work / "continued"
     wall, rss = _child("slam.run", [*spec.run_args, "--frames", frames, *common, "--map",

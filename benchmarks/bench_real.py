@@ -89,7 +89,7 @@ def _slam_run(name: str, args: list[str], work: Path) -> dict:
 
 
 def _poses(folder: Path, kind: str) -> np.ndarray:
-    from slam.app.trajectory_io import read_kitti
+    from slam.run_folder.trajectory_io import read_kitti
 
     return read_kitti(folder / f"poses_{kind}.kitti.txt")
 

@@ -180,7 +180,7 @@ def case_serve(code: Path, work: Path, base: Path) -> Outcome:
 def case_corrupt_map(code: Path, work: Path, base: Path) -> Outcome:
     bad = work / "bad.npz"
     flip_member(base / "map.npz", bad)
-    snippet = f"from mapping.neural_map import NeuralMap\nNeuralMap.load({str(bad)!r})"
+    snippet = f"from mapping.neural_map import NeuralMap\nload_map({str(bad)!r})"
     return outcome(run(code, [PY, "-c", snippet]))
 
 
@@ -364,7 +364,7 @@ def case_fsync(code: Path, work: Path, base: Path) -> Outcome:
 CASES = [
     Case("1", "--serve binds the web viewer", "slam.run demo --serve --set viz.serve_linger_s=5",
          case_serve, quick=False),
-    Case("2", "corrupted map.npz (16 flipped bytes in a member)", "NeuralMap.load(bad.npz)",
+    Case("2", "corrupted map.npz (16 flipped bytes in a member)", "load_map(bad.npz)",
          case_corrupt_map),
     Case("2", "corrupted map.npz in slam.eval", "slam.eval RUN", case_corrupt_map_eval),
     Case("3", "generic folder of truncated PLY files",

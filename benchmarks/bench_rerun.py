@@ -104,25 +104,25 @@ def timed_logger(inner, timings: TimedCalls):
 def run_case(argv: list[str], folder: Path, timings: TimedCalls | None) -> dict[str, Any]:
     """``slam.app.runner.execute`` in this process; with ``timings``, the logger is wrapped by a
     timer."""
-    import slam.app.builders as builders
+    import slam.app.recorder as recorder
     from slam.app.cli import build_parser, resolve_config
     from slam.app.runner import execute
 
     args = build_parser().parse_args(argv)
     entry, cfg = resolve_config(args)
-    original = builders.build_logger
+    original = recorder.build_logger
     if timings is not None:
-        builders.build_logger = lambda *a, **k: timed_logger(original(*a, **k), timings)
+        recorder.build_logger = lambda *a, **k: timed_logger(original(*a, **k), timings)
     try:
         return execute(entry, cfg, folder, progress=False)
     finally:
-        builders.build_logger = original
+        recorder.build_logger = original
 
 
 def prepare(argv: list[str]) -> int:
     """Generate/cache the case's sequence; returns its number of frames."""
-    from slam.app.builders import build_source
     from slam.app.cli import build_parser, resolve_config
+    from slam.assembly.builders import build_source
 
     _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
     return len(build_source(cfg))
@@ -136,9 +136,9 @@ def logger_alone(argv: list[str], submap_frames: int = 20) -> dict[str, Any]:
     import trimesh
     from scipy.spatial import cKDTree
 
-    from slam.app.builders import build_source
     from slam.app.cli import build_parser, resolve_config
     from slam.app.rerun_logger import RerunLogger
+    from slam.assembly.builders import build_source
 
     _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
     source = build_source(cfg)

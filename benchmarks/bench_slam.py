@@ -83,7 +83,7 @@ def _peak_rss_mb() -> float:
 
 def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float]]:
     """Error of every verified loop edge against the ground-truth relative anchor pose."""
-    from slam.algorithm.loops import relative_motion
+    from common.geometry import relative_motion
 
     errors = []
     for c in pipeline.accepted_loops():
@@ -96,7 +96,7 @@ def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float]]:
 
 def _run(cfg, source, odometry) -> tuple[Any, float]:
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_map
+    from slam.assembly.builders import build_map
 
     neural_map = build_map(cfg)
     pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, neural_map)
@@ -188,8 +188,8 @@ def lidar_source(quick: bool):
 def scenario_lidar(quick: bool, odometry_mode: str) -> dict:
     """One LiDAR run with configs/kitti.yaml."""
     _child_setup()
-    from slam.app.builders import build_odometry
-    from slam.app.config import default_config_path, load_run_config
+    from slam.assembly.builders import build_odometry
+    from slam.assembly.config import default_config_path, load_run_config
 
     source = lidar_source(quick)
     overrides: dict[str, Any] = {
@@ -215,8 +215,8 @@ def scenario_lidar(quick: bool, odometry_mode: str) -> dict:
 def scenario_room() -> dict:
     _child_setup()
     from frontends.sources import make_source
-    from slam.app.builders import build_map, build_odometry, source_kwargs
-    from slam.app.config import default_config_path, load_run_config
+    from slam.assembly.builders import build_map, build_odometry, source_kwargs
+    from slam.assembly.config import default_config_path, load_run_config
     from slam.evaluation.metrics.mesh import mesh_metrics
 
     cfg = load_run_config(
@@ -272,8 +272,8 @@ def scenario_7scenes() -> dict | None:
     if not (DATA / "7scenes_redkitchen").is_dir():
         return None
     from frontends.sources import make_source
-    from slam.app.builders import build_odometry, source_kwargs
-    from slam.app.config import default_config_path, load_run_config
+    from slam.assembly.builders import build_odometry, source_kwargs
+    from slam.assembly.config import default_config_path, load_run_config
 
     cfg = load_run_config(
         default_config_path("7scenes"),

@@ -44,7 +44,8 @@ from benchmarks.harness.reference import kiss_icp_alone, kiss_slam
 from benchmarks.micro_encode import scenario_micro
 from benchmarks.throughput_report import RSS_EVERY, write_report
 from common.atomic_io import write_text_atomic
-from slam.app.threads import machine_cores
+from mapping.map_io import save_map
+from slam.assembly.threads import machine_cores
 
 METHODS = ("ours", "kiss_icp", "kiss_slam", "micro", "rgbd")
 QUICK_FRAMES = 150
@@ -112,7 +113,7 @@ def _profile_summary(profile, top: int = 30) -> str:
 
 def _config(extra: dict[str, Any] | None = None):
     """configs/kitti.yaml for the generated scans, without viewer, with ``extra`` on top."""
-    from slam.app.config import default_config_path, load_run_config, merge_overrides
+    from slam.assembly.config import default_config_path, load_run_config, merge_overrides
 
     overrides: dict[str, Any] = {
         "source": {"dataset": "generated"},
@@ -126,7 +127,7 @@ def _apply_thread_budget(cfg) -> str:
     """The run's thread budget where this code has one (issue 11), else slam.app.runner's old
     setting."""
     try:
-        from slam.app.threads import apply_thread_budget
+        from slam.assembly.threads import apply_thread_budget
     except ImportError:
         import torch
 
@@ -145,7 +146,7 @@ def scenario_ours(
 ) -> dict:
     logging.basicConfig(level=logging.WARNING)
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_map, build_odometry
+    from slam.assembly.builders import build_map, build_odometry
     from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 
     cfg = _config(override)
@@ -191,7 +192,7 @@ def scenario_ours(
     memory["finished"] = _breakdown(pipeline, baseline_mb)
     instrument_s += time.perf_counter() - mark
     mark = time.perf_counter()
-    from slam.app.threads import plan_thread_budget
+    from slam.assembly.threads import plan_thread_budget
 
     mesh_threads = plan_thread_budget(cfg.threads, cfg.map_worker).mesh_threads
     mesh = neural_map.extract_mesh(threads=mesh_threads)
@@ -199,7 +200,7 @@ def scenario_ours(
     phase_peaks["final_mesh"] = _phase_peak()
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "map.npz"
-        neural_map.save(path, list(pipeline.submaps.values()))
+        save_map(neural_map, path, list(pipeline.submaps.values()))
         map_bytes = path.stat().st_size
     phase_peaks["map_save"] = _phase_peak()
     wall = time.perf_counter() - start - instrument_s

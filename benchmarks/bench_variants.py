@@ -77,7 +77,7 @@ def window(quick: bool) -> dict[str, int]:
 
 def _loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float, bool]]:
     """(translation m, rotation deg, kept by the graph) of every verified loop vs the truth."""
-    from slam.algorithm.loops import relative_motion
+    from common.geometry import relative_motion
 
     errors = []
     for c in pipeline.accepted_loops():
@@ -113,8 +113,8 @@ def run_ours(quick: bool, name: str, sets: list[str]) -> dict:
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING)
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_map, build_odometry
-    from slam.app.config import (
+    from slam.assembly.builders import build_map, build_odometry
+    from slam.assembly.config import (
         default_config_path,
         load_run_config,
         merge_overrides,

@@ -11,7 +11,7 @@ subtracted from the RSS). The rest of the RSS is the code and libraries (torch, 
 measured before the first frame (``baseline``), and what no walk reaches (``unattributed``:
 resident allocator slack, Python objects, C++ containers such as map_closures' database).
 
-RGB-D runs add the loop detector's kept keyframes (:class:`~slam.algorithm.loop_keyframes.
+RGB-D runs add the loop detector's kept keyframes (:class:`~slam.algorithm.loops.keyframes.
 KeyframeFeatures`, one per closed submap: images, ORB features, refinement cloud and its k-d tree),
 the odometry's state (its keyframe, previous frame and clouds) and, when the caller passes them,
 the frames in hand and read ahead. The frames waiting in the submap worker's queue are out of

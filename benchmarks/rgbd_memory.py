@@ -39,7 +39,7 @@ log = logging.getLogger("benchmarks.rgbd_memory")
 
 
 def _config(name: str):
-    from slam.app.config import default_config_path, load_run_config
+    from slam.assembly.config import default_config_path, load_run_config
 
     overrides: dict[str, Any] = {
         "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
@@ -62,8 +62,8 @@ def scenario(name: str) -> dict | None:
     from benchmarks.memory_breakdown import buffer_bytes, memory_breakdown, rss_mb, trim_mb
     from frontends.sources import make_source
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_map, build_odometry, source_kwargs
-    from slam.app.threads import apply_thread_budget, plan_thread_budget
+    from slam.assembly.builders import build_map, build_odometry, source_kwargs
+    from slam.assembly.threads import apply_thread_budget, plan_thread_budget
     from slam.evaluation.metrics.trajectory import ate_rmse
 
     cfg = _config(name)

@@ -44,3 +44,9 @@ def rotation_angle_rad(R: np.ndarray) -> np.ndarray | float:
 def so3_exp(rotvec: np.ndarray) -> np.ndarray:
     """Rotation matrix ``(3, 3)`` (or ``(N, 3, 3)``) of a rotation vector (axis times angle)."""
     return Rotation.from_rotvec(rotvec).as_matrix()
+
+
+def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""
+    D = np.linalg.inv(T_a) @ T_b
+    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle_rad(D[:3, :3])))

@@ -57,7 +57,7 @@ class Frame:
         depth_scale: units per metre of the integer image ``depth`` was read from
             (``depth == raw.astype(float32) / float32(depth_scale)`` where ``raw`` is valid), or
             None when depth has no integer origin; lets a stored depth image go back to its
-            integers (:class:`~slam.algorithm.loop_keyframes.KeyframeFeatures`).
+            integers (:class:`~slam.algorithm.loops.keyframes.KeyframeFeatures`).
     """
 
     index: int

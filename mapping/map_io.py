@@ -21,9 +21,10 @@ rebuilt on load (equal to the saved one up to float32 rounding of the fusion ord
 
 Version 3 adds an optional *session* section (DESIGN section 10): ``header["session"]`` (JSON)
 and arrays named ``session_*``, written and read opaquely here (the SLAM layer defines them; see
-``slam.algorithm.session``). Version 4 changes only that section (frames' anchor-relative poses
-as float32 quaternion and translation instead of float64 matrices). Version 2 and 3 files still
-load as maps; :func:`load_session` reads only the current version's section and refuses theirs.
+``slam.algorithm.merge.session``). Version 4 changes only that section (frames'
+anchor-relative poses as float32 quaternion and translation instead of float64 matrices).
+Version 2 and 3 files still load as maps; :func:`load_session` reads only the current version's
+section and refuses theirs.
 
 Files are written to a temporary file in the target folder and moved into place. The per-voxel
 arrays are written submap by submap (:class:`_Stacked`): the file is the one ``np.savez_compressed``
@@ -37,7 +38,7 @@ import json
 import zipfile
 import zlib
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -47,10 +48,8 @@ from mapping.compact_block import CompactBlock, storage_dtype
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
 from mapping.networks import PriorModel
+from mapping.neural_map import NeuralMap, Submap
 from mapping.transform import check_rigid
-
-if TYPE_CHECKING:
-    from mapping.neural_map import NeuralMap, Submap
 
 FORMAT = "neural-remap-slam/map"
 VERSION = 4
@@ -221,14 +220,12 @@ def _header(path: Path, data: dict[str, np.ndarray]) -> dict:
 
 
 def load_map(
-    cls: type[NeuralMap], path: str | Path, model: PriorModel | None
+    path: str | Path, model: PriorModel | None = None
 ) -> tuple[NeuralMap, list[Submap]]:
     """Read a map written by :func:`save_map`; any problem is a one-line :class:`MapFileError`.
 
     The global map is rebuilt by fusing the fused submaps in the order they are stored.
     """
-    from mapping.neural_map import Submap
-
     path = Path(path)
     data = _read_npz(path)
     header = _header(path, data)
@@ -238,7 +235,7 @@ def load_map(
         raise MapFileError(
             f"{path}: invalid map config in header ({exc.__class__.__name__})"
         ) from exc
-    neural_map = cls(cfg, model)
+    neural_map = NeuralMap(cfg, model)
     identity = neural_map.model.identity()
     if header.get("model_identity") != identity:
         raise MapFileError(

@@ -14,7 +14,6 @@ once, when it is encoded.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -234,19 +233,3 @@ class NeuralMap:
         """Bytes of the global voxel storage (allocated capacity included; submaps not counted)."""
         return self._store.memory_bytes()
 
-    # ------------------------------------------------------------------ persistence
-    def save(self, path: str | Path, submaps: list[Submap], session=None) -> None:
-        """Write the map and its submaps (and a session section, see :mod:`mapping.map_io`);
-        atomic."""
-        from mapping.map_io import save_map
-
-        save_map(self, path, submaps, session)
-
-    @classmethod
-    def load(
-        cls, path: str | Path, model: PriorModel | None = None
-    ) -> tuple[NeuralMap, list[Submap]]:
-        """Read a file written by :meth:`save`; a bad file raises :class:`MapFileError`."""
-        from mapping.map_io import load_map
-
-        return load_map(cls, path, model)

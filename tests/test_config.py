@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from slam.app.config import (
+from slam.assembly.config import (
     CONFIG_DIR,
     ConfigError,
     RunConfig,

@@ -9,7 +9,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from benchmarks.harness.depth_registration import depth_fit, register_depth
-from slam.algorithm.loops import relative_motion
+from common.geometry import relative_motion
 
 W, H = 320, 240
 K = np.array([[262.5, 0.0, 159.5], [0.0, 262.5, 119.5], [0.0, 0.0, 1.0]])

@@ -23,8 +23,8 @@ import torch
 
 from frontends.sources import make_source
 from slam.algorithm.pipeline import SlamPipeline
-from slam.app.builders import build_map
-from slam.app.outputs import RunOutputs
+from slam.assembly.builders import build_map
+from slam.run_folder.outputs import RunOutputs
 from tests.test_pipeline import STREET, DriftingOdometry, street_config
 
 

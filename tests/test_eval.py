@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from slam.app.trajectory_io import write_kitti, write_tum
 from slam.evaluation.cli import EvalError, evaluate_run, observed_face_mask, read_gt_poses
+from slam.run_folder.trajectory_io import write_kitti, write_tum
 from tests.test_plots import assert_png
 from tests.test_rerun_logger import demo_run
 
@@ -147,7 +147,7 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
     )
 
     # The numbers are recomputed from the files, not copied: change the inputs and they change.
-    from slam.app.trajectory_io import read_tum
+    from slam.run_folder.trajectory_io import read_tum
 
     stamps, slam = read_tum(copy / "poses_slam.tum.txt")
     drifted = slam.copy()

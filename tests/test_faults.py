@@ -21,8 +21,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from slam.app.config import load_run_config
-from slam.app.trajectory_io import read_kitti, read_tum
+from mapping.map_io import load_map
+from slam.assembly.config import load_run_config
+from slam.run_folder.trajectory_io import read_kitti, read_tum
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RUN_FRAMES = 120
@@ -72,9 +73,8 @@ def assert_complete(folder: Path, allow_temporaries: bool = False) -> set[str]:
         elif name == "mesh.ply":
             assert len(trimesh.load(path, force="mesh", process=False).faces) > 0
         elif name == "map.npz":
-            from mapping.neural_map import NeuralMap
 
-            NeuralMap.load(path)
+            load_map(path)
         elif name == "recording.rrd" and not allow_temporaries:
             assert _rrd_verifies(path), "recording.rrd has no valid footer"
     return names

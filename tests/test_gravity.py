@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam.algorithm.config import GravityConfig, PoseGraphConfig
-from slam.algorithm.gravity import UpMeasurement, estimate_up
-from slam.algorithm.pose_graph import PoseGraph
-from slam.algorithm.session import Edge, SessionRecord
+from slam.algorithm.graph.config import GravityConfig, PoseGraphConfig
+from slam.algorithm.graph.gravity import UpMeasurement, estimate_up
+from slam.algorithm.graph.pose_graph import PoseGraph
+from slam.algorithm.merge.session import Edge, SessionRecord
 
 CFG = GravityConfig(enabled=True)
 
@@ -163,8 +163,8 @@ def _session_of(graph: PoseGraph, with_up: bool) -> SessionRecord:
 def test_a_merge_keeps_the_runs_gravity_factors():
     """Two runs (the two halves of a curved lap), merged by the loops where they meet: with
     their stored up directions the merged lap is flat, without them it keeps the bowl."""
-    from slam.algorithm.merge import InterLoop, SessionInput, _Ids, _solve
-    from slam.algorithm.merge_config import MergeConfig
+    from slam.algorithm.merge.config import MergeConfig
+    from slam.algorithm.merge.merge import InterLoop, SessionInput, _Ids, _solve
 
     gt, odometry = curved_circle(36, bias_rad=0.004)
     graphs = []

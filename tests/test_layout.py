@@ -50,14 +50,133 @@ def _violations(folder: str, forbidden: tuple[str, ...]) -> list[str]:
         ("common", ("slam", "mapping", "frontends")),
         (
             "slam/algorithm",
-            ("slam.app", "slam.evaluation", "rerun", "matplotlib", "argparse"),
+            (
+                "slam.app",
+                "slam.assembly",
+                "slam.evaluation",
+                "slam.run_folder",
+                "rerun",
+                "matplotlib",
+                "argparse",
+            ),
         ),
-        ("slam/evaluation", ("slam.app.cli", "slam.app.runner", "slam.run")),
+        ("slam/assembly", ("slam.app", "slam.evaluation", "slam.run_folder", "rerun")),
+        ("slam/run_folder", ("slam.app", "slam.evaluation", "rerun")),
+        ("slam/evaluation", ("slam.app", "slam.run", "slam.merge", "rerun")),
     ],
 )
 def test_import_rules(folder: str, forbidden: tuple[str, ...]) -> None:
     assert _sources(folder), f"{folder} holds no Python file"
     assert _violations(folder, forbidden) == []
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO_ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph(package: str) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports, at any depth, relative imports resolved.
+
+    ``from a.b import c`` counts as an import of the module ``a.b.c`` where there is one, else of
+    ``a.b``."""
+    modules = {_module_name(p): p for p in _sources(package)}
+
+    def known(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {}
+    for module, path in modules.items():
+        base_package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        targets: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = base_package.split(".")
+                    base = ".".join([*parts[: len(parts) - node.level + 1], *filter(None, [base])])
+                submodules = [f"{base}.{alias.name}" for alias in node.names]
+                names = [n if n in modules else base for n in submodules]
+            else:
+                continue
+            targets.update(t for n in names if (t := known(n)) and t != module)
+        graph[module] = targets
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """One cycle through each strongly connected component of more than one node (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for target in sorted(graph.get(node, ())):
+            if target not in index:
+                visit(target)
+                low[node] = min(low[node], low[target])
+            elif target in on_stack:
+                low[node] = min(low[node], index[target])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def _collapsed(graph: dict[str, set[str]], depth: int) -> dict[str, set[str]]:
+    """The graph between sub-packages: every module ``depth`` or more levels down is merged
+    into its package at that depth (``slam.algorithm.loops.lidar`` -> ``slam.algorithm.loops``);
+    modules higher up stay nodes of their own."""
+
+    def node(module: str) -> str:
+        parts = module.split(".")
+        return ".".join(parts[:depth]) if len(parts) > depth else module
+
+    collapsed: dict[str, set[str]] = {}
+    for module, targets in graph.items():
+        source = node(module)
+        collapsed.setdefault(source, set()).update(
+            t for t in map(node, targets) if t != source and not t.startswith(source + ".")
+        )
+    return collapsed
+
+
+@pytest.mark.parametrize("package", ["slam", "mapping", "frontends", "common"])
+def test_no_import_cycle_between_modules_or_sub_packages(package: str) -> None:
+    graph = _import_graph(package)
+    assert _cycles(graph) == []
+    assert _cycles(_collapsed(graph, depth=3)) == []
+    assert _cycles(_collapsed(graph, depth=2)) == []
+
+
+def test_the_cycle_checker_finds_a_cycle_through_a_function_level_import(tmp_path: Path) -> None:
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles(_collapsed({"p.q.x": {"p.q.y"}, "p.q.y": {"p.r"}, "p.r": {"p.q.x"}}, 2)) == [
+        ["p.q", "p.r"]
+    ]
+    module = tmp_path / "m.py"
+    module.write_text("def f():\n    from . import sibling\n")
+    assert "." not in _imports(module)
 
 
 def test_the_checker_sees_function_level_imports(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ import trimesh
 
 from frontends.errors import DatasetError
 from frontends.sources import make_source
-from slam.app.trajectory_io import write_kitti
+from slam.run_folder.trajectory_io import write_kitti
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 STREET = {"kind": "lidar", "num_frames": 150, "seed": 0, "azimuth_steps": 1024}
@@ -131,8 +131,8 @@ def _run(args: list[str], out: Path) -> dict:
 
 
 def _ate_against(out: Path, gt: np.ndarray) -> float:
-    from slam.app.trajectory_io import read_kitti
     from slam.evaluation.metrics.trajectory import ate_rmse
+    from slam.run_folder.trajectory_io import read_kitti
 
     return ate_rmse(read_kitti(out / "poses_slam.kitti.txt"), gt)
 

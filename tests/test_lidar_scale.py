@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam.app.config import default_config_path, load_run_config
-from slam.app.lidar_scale import scale_config, scan_extent_m
+from slam.assembly.config import default_config_path, load_run_config
+from slam.assembly.lidar_scale import scale_config, scan_extent_m
 
 REAL_SCAN = Path(__file__).resolve().parents[2] / "shared/data/kitti/real_scans/000010.bin"
 

@@ -13,15 +13,15 @@ import pytest
 from kiss_icp.voxelization import voxel_down_sample
 from scipy.stats import chi2
 
-from common.geometry import transform_points
+from common.geometry import relative_motion, transform_points
 from frontends.generate.lidar import LidarConfig, beam_directions, simulate_scan
 from frontends.generate.raycast import Raycaster
 from frontends.generate.street import PERIOD_M, street_scene
-from slam.algorithm.config import LidarLoopConfig, PoseGraphConfig
-from slam.algorithm.loop_ambiguity import mahalanobis_distance2
-from slam.algorithm.loop_lidar import IcpVerifier
-from slam.algorithm.loops import relative_motion
-from slam.algorithm.pose_graph import PoseGraph
+from slam.algorithm.graph.config import PoseGraphConfig
+from slam.algorithm.graph.pose_graph import PoseGraph
+from slam.algorithm.loops.ambiguity import mahalanobis_distance2
+from slam.algorithm.loops.config import LidarLoopConfig
+from slam.algorithm.loops.lidar import IcpVerifier
 
 LOOP_CONFIG = {"icp_max_correspondence_m": 1.5}  # configs/kitti.yaml
 

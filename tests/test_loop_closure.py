@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from kiss_icp.voxelization import voxel_down_sample
 
-from common.geometry import transform_points
+from common.geometry import relative_motion, transform_points
 from frontends.sources import make_source
-from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
-from slam.algorithm.loop_lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
-from slam.algorithm.loop_rgbd import RgbdVerifier
-from slam.algorithm.loops import Verification, relative_motion
+from slam.algorithm.loops.base import Verification
+from slam.algorithm.loops.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
+from slam.algorithm.loops.lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
+from slam.algorithm.loops.rgbd import RgbdVerifier
 from slam.algorithm.submaps import SubmapRecord
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -174,7 +174,7 @@ def test_rgbd_3d_check_rejects_depth_inconsistent_with_pnp(room):
 
 
 def test_rgbd_odometry_quality_sees_a_wrong_pose(room):
-    from slam.algorithm.loop_keyframes import depth_agreement
+    from slam.algorithm.loops.keyframes import depth_agreement
 
     verifier = RgbdVerifier(RgbdLoopConfig())
     reference, query, _ = _features(verifier, room, 0, 8)
@@ -215,7 +215,7 @@ def test_rgbd_dense_refinement_corrects_or_rejects_a_wrong_guess(room, offset):
 
 def test_rgbd_dense_refinement_rejects_a_flat_cost():
     """Two views of one plane: ICP cannot fix the in-plane motion, so the edge is rejected."""
-    from slam.algorithm.loop_refine import RefineCloud
+    from slam.algorithm.loops.refine import RefineCloud
 
     rng = np.random.default_rng(0)
     points = np.column_stack([rng.uniform(-1, 1, (20000, 2)), np.full(20000, 2.0)])

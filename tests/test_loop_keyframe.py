@@ -12,12 +12,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from common.geometry import transform_points
+from common.geometry import relative_motion, transform_points
 from frontends.sources import make_source
-from slam.algorithm.config import RgbdLoopConfig
-from slam.algorithm.loop_keyframes import compact_depth
-from slam.algorithm.loop_rgbd import RgbdVerifier
-from slam.algorithm.loops import relative_motion
+from slam.algorithm.loops.config import RgbdLoopConfig
+from slam.algorithm.loops.keyframes import compact_depth
+from slam.algorithm.loops.rgbd import RgbdVerifier
 
 ROOM = {"kind": "rgbd", "num_frames": 240, "seed": 0, "width": 320, "height": 240}
 REFERENCE, QUERY = 2, 236

@@ -13,6 +13,7 @@ import torch
 from mapping.compact_block import FIELDS
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
+from mapping.map_io import load_map, save_map
 from mapping.networks import PriorModel
 from mapping.neural_map import NeuralMap
 
@@ -47,13 +48,13 @@ def saved(tmp_path: Path):
     nm.move(subs[1], T)
     nm.move(subs[2], T)  # never fused
     path = tmp_path / "map.npz"
-    nm.save(path, subs)
+    save_map(nm, path, subs)
     return nm, subs, path
 
 
 def test_save_load_round_trip(saved) -> None:
     nm, subs, path = saved
-    loaded, loaded_subs = NeuralMap.load(path, _model())
+    loaded, loaded_subs = load_map(path, _model())
     # the global map is rebuilt from the submaps: equal up to float32 rounding of fusion order
     a, b = nm.voxel_block(), loaded.voxel_block()
     assert torch.equal(a.keys, b.keys)
@@ -82,7 +83,7 @@ def test_truncated_file_is_rejected(saved) -> None:
     bad = path.with_name("truncated.npz")
     bad.write_bytes(data[: len(data) // 2])
     with pytest.raises(MapFileError, match=r"truncated\.npz") as info:
-        NeuralMap.load(bad, _model())
+        load_map(bad, _model())
     assert "\n" not in str(info.value)
 
 
@@ -90,13 +91,13 @@ def test_foreign_files_are_rejected(tmp_path: Path) -> None:
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"definitely not a zip file")
     with pytest.raises(MapFileError, match=r"junk\.npz"):
-        NeuralMap.load(junk, _model())
+        load_map(junk, _model())
     other = tmp_path / "other.npz"
     np.savez(other, x=np.arange(3))
     with pytest.raises(MapFileError, match="no map header"):
-        NeuralMap.load(other, _model())
+        load_map(other, _model())
     with pytest.raises(MapFileError, match="not found"):
-        NeuralMap.load(tmp_path / "missing.npz", _model())
+        load_map(tmp_path / "missing.npz", _model())
 
 
 def _rewrite_header(path: Path, out: Path, **changes) -> None:
@@ -112,16 +113,16 @@ def test_wrong_version_and_format_are_rejected(saved, tmp_path: Path) -> None:
     _, _, path = saved
     _rewrite_header(path, tmp_path / "v99.npz", version=99)
     with pytest.raises(MapFileError, match="version 99"):
-        NeuralMap.load(tmp_path / "v99.npz", _model())
+        load_map(tmp_path / "v99.npz", _model())
     _rewrite_header(path, tmp_path / "fmt.npz", format="something-else")
     with pytest.raises(MapFileError, match="not a neural-remap-slam/map file"):
-        NeuralMap.load(tmp_path / "fmt.npz", _model())
+        load_map(tmp_path / "fmt.npz", _model())
 
 
 def test_model_mismatch_is_rejected(saved) -> None:
     _, _, path = saved
     with pytest.raises(MapFileError, match="same prior weights"):
-        NeuralMap.load(path, _model(seed=1))
+        load_map(path, _model(seed=1))
 
 
 def test_missing_arrays_are_rejected(saved, tmp_path: Path) -> None:
@@ -131,7 +132,7 @@ def test_missing_arrays_are_rejected(saved, tmp_path: Path) -> None:
             if not item.filename.startswith("latent_coeffs"):
                 dst.writestr(item, src.read(item.filename))
     with pytest.raises(MapFileError, match="inconsistent"):
-        NeuralMap.load(tmp_path / "cut.npz", _model())
+        load_map(tmp_path / "cut.npz", _model())
 
 
 def _rewrite_arrays(path: Path, out: Path, **changes) -> None:
@@ -145,7 +146,7 @@ def test_version_1_files_get_a_regenerate_hint(saved, tmp_path: Path) -> None:
     _, _, path = saved
     _rewrite_header(path, tmp_path / "v1.npz", version=1)
     with pytest.raises(MapFileError, match=r"v1\.npz: map format version 1 .*python -m slam\.run"):
-        NeuralMap.load(tmp_path / "v1.npz", _model())
+        load_map(tmp_path / "v1.npz", _model())
 
 
 @pytest.mark.parametrize("bad", [0.0, -3.0, float("nan")])
@@ -156,7 +157,7 @@ def test_bad_weights_are_rejected_on_load(saved, tmp_path: Path, bad: float) -> 
     weights[5] = bad
     _rewrite_arrays(path, tmp_path / "w.npz", weights=weights)
     with pytest.raises(MapFileError, match=r"w\.npz: .*weights must be finite and positive"):
-        NeuralMap.load(tmp_path / "w.npz", _model())
+        load_map(tmp_path / "w.npz", _model())
 
 
 def test_nan_coefficients_are_rejected_on_load(saved, tmp_path: Path) -> None:
@@ -166,21 +167,21 @@ def test_nan_coefficients_are_rejected_on_load(saved, tmp_path: Path) -> None:
     coeffs[3, 0, 1] = np.nan
     _rewrite_arrays(path, tmp_path / "nan.npz", latent_coeffs=coeffs)
     with pytest.raises(MapFileError, match="NaN"):
-        NeuralMap.load(tmp_path / "nan.npz", _model())
+        load_map(tmp_path / "nan.npz", _model())
 
 
 def test_empty_map_round_trips(tmp_path: Path) -> None:
     cfg = MapConfig(device="cpu")
     nm = NeuralMap(cfg, _model())
-    nm.save(tmp_path / "empty.npz", [])
-    loaded, subs = NeuralMap.load(tmp_path / "empty.npz", _model())
+    save_map(nm, tmp_path / "empty.npz", [])
+    loaded, subs = load_map(tmp_path / "empty.npz", _model())
     assert loaded.num_voxels == 0 and subs == []
     # a submap that was encoded but never fused (and one that encoded nothing)
     p, n = _sphere(800, (0.1, 0.2, 0.3), 4)
     lone = nm.encode(7, p, n, np.eye(4))
     nothing = nm.encode(8, np.zeros((0, 3)), np.zeros((0, 3)), np.eye(4))
-    nm.save(tmp_path / "unfused.npz", [lone, nothing])
-    loaded, subs = NeuralMap.load(tmp_path / "unfused.npz", _model())
+    save_map(nm, tmp_path / "unfused.npz", [lone, nothing])
+    loaded, subs = load_map(tmp_path / "unfused.npz", _model())
     assert loaded.num_voxels == 0
     assert [s.fused for s in subs] == [False, False]
     assert torch.equal(subs[0].original.keys, lone.original.keys)
@@ -196,8 +197,8 @@ def test_every_storage_dtype_round_trips(tmp_path: Path, dtype: str) -> None:
     p, n = _sphere(1500, (0.0, 0.0, 0.0), 5)
     sub = nm.encode(0, p, n, np.eye(4))
     nm.fuse(sub)
-    nm.save(tmp_path / f"{dtype}.npz", [sub])
-    loaded, subs = NeuralMap.load(tmp_path / f"{dtype}.npz", _model())
+    save_map(nm, tmp_path / f"{dtype}.npz", [sub])
+    loaded, subs = load_map(tmp_path / f"{dtype}.npz", _model())
     assert subs[0].original.latent_coeffs.dtype == getattr(torch, dtype)
     for name in FIELDS:
         assert torch.equal(getattr(subs[0].original, name), getattr(sub.original, name))

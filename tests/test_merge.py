@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapping.neural_map import NeuralMap
-from slam.app.trajectory_io import read_kitti
+from mapping.map_io import load_map
 from slam.evaluation.cli import evaluate_run
+from slam.run_folder.trajectory_io import read_kitti
 
 ROOT = Path(__file__).resolve().parents[1]
 # a short lap of the generated room (its end revisits its start), split in two sessions; the runs
@@ -98,7 +98,7 @@ def runs(tmp_path_factory) -> dict[str, Path]:
 
 def _first_session_aligned_rmse(poses: np.ndarray, truth: np.ndarray, n: int) -> float:
     """RMSE of rows ``n:`` after aligning the truth on rows ``:n`` only (rigid, positions)."""
-    from slam.algorithm.place import _rigid_fit
+    from slam.algorithm.loops.place import _rigid_fit
 
     T = _rigid_fit(truth[:n, :3, 3], poses[:n, :3, 3], False)
     error = truth[n:, :3, 3] @ T[:3, :3].T + T[:3, 3] - poses[n:, :3, 3]
@@ -183,8 +183,8 @@ def test_run_merged_with_itself_is_unchanged(runs, tmp_path: Path):
     n = len(original)
     np.testing.assert_allclose(merged[:n], original, atol=1e-6)
     np.testing.assert_allclose(merged[n:], original, atol=1e-6)
-    before = NeuralMap.load(runs["a"] / "map.npz")[0].voxel_block()
-    after = NeuralMap.load(out / "map.npz")[0].voxel_block()
+    before = load_map(runs["a"] / "map.npz")[0].voxel_block()
+    after = load_map(out / "map.npz")[0].voxel_block()
     np.testing.assert_array_equal(before.keys.numpy(), after.keys.numpy())
     np.testing.assert_allclose(after.latents.numpy(), before.latents.numpy(), atol=1e-5)
 
@@ -220,7 +220,7 @@ def test_version_2_map_loads_but_is_not_merged(runs, tmp_path: Path):
     del header["session"]
     arrays["header"] = np.array(json.dumps(header))
     np.savez_compressed(old / "map.npz", **arrays)
-    assert NeuralMap.load(old / "map.npz")[0].num_voxels > 0  # still a map
+    assert load_map(old / "map.npz")[0].num_voxels > 0  # still a map
     result = _python("slam.merge", str(runs["a"]), str(old), "--out", str(tmp_path / "out"))
     _one_line_error(result, "version 2", "re-run", "slam.run")
 
@@ -234,7 +234,7 @@ def test_runs_without_shared_place_are_reported(runs, tmp_path: Path):
 
 def test_bev_descriptor_recovers_a_planar_motion():
     """The LiDAR descriptor (bird's-eye ORB) matched across a known yaw and shift."""
-    from slam.algorithm.place import bev_descriptor, fit_matches, ratio_matches
+    from slam.algorithm.loops.place import bev_descriptor, fit_matches, ratio_matches
 
     rng = np.random.default_rng(0)
     clouds = [rng.uniform([-40, -40, 0], [40, 40, 0.1], (20000, 3))]
@@ -279,9 +279,9 @@ def test_merge_verification_is_not_pulled_by_surfaces_one_side_lacks():
     overlap that decides acceptance is measured at its own gate, whatever the ICP's gates."""
     from scipy.spatial.transform import Rotation
 
-    from slam.algorithm.loops import relative_motion
-    from slam.algorithm.merge import verify
-    from slam.algorithm.merge_config import MergeConfig
+    from common.geometry import relative_motion
+    from slam.algorithm.merge.config import MergeConfig
+    from slam.algorithm.merge.merge import verify
 
     rng = np.random.default_rng(0)
     reference = _planes(rng, ghost=False)

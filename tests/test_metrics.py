@@ -11,7 +11,6 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from frontends.errors import DatasetError
-from slam.app.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
 from slam.evaluation.metrics import (
     align_se3,
     ate_per_axis_rmse,
@@ -24,6 +23,7 @@ from slam.evaluation.metrics import (
     trajectory_metrics,
     visible_face_mask,
 )
+from slam.run_folder.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
 
 
 def _se3(rotvec=(0.0, 0.0, 0.0), t=(0.0, 0.0, 0.0)) -> np.ndarray:

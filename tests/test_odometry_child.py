@@ -101,8 +101,8 @@ def test_a_vanished_child_is_a_clear_error() -> None:
 
 def test_lidar_runs_put_kiss_icp_in_a_child_that_finish_ends() -> None:
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_map, build_odometry
-    from slam.app.config import RunConfig
+    from slam.assembly.builders import build_map, build_odometry
+    from slam.assembly.config import RunConfig
 
     cfg = RunConfig.model_validate({"mapping": {"device": "cpu"}})
     odometry = build_odometry(cfg, "lidar")

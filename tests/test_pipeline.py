@@ -18,8 +18,8 @@ from frontends.sources import make_source
 from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
 from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.submaps import SubmapRecord
-from slam.app.builders import build_map
-from slam.app.config import RunConfig
+from slam.assembly.builders import build_map
+from slam.assembly.config import RunConfig
 from slam.evaluation.metrics.mesh import mesh_metrics
 from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
 

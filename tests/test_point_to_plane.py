@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from common.geometry import transform_points
-from frontends.odometry.point_to_plane import _exp_se3, point_to_plane_hessian, point_to_plane_icp
+from common.point_to_plane import _exp_se3, point_to_plane_hessian, point_to_plane_icp
 
 
 def plane(rng, n: int, axis: int, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

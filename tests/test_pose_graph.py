@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam.algorithm.config import PoseGraphConfig
-from slam.algorithm.pose_graph import PoseGraph
+from slam.algorithm.graph.config import PoseGraphConfig
+from slam.algorithm.graph.pose_graph import PoseGraph
 
 
 def circle(num: int, radius_m: float = 10.0) -> np.ndarray:

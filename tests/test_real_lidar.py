@@ -14,8 +14,8 @@ import pytest
 
 from frontends.sources import make_source
 from frontends.sources.pcd_folder import pcd_scan_files, read_pcd_points
-from slam.app.config import default_config_path, load_run_config
-from slam.app.lidar_scale import scale_config, scan_extent_m
+from slam.assembly.config import default_config_path, load_run_config
+from slam.assembly.lidar_scale import scale_config, scan_extent_m
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA = REPO_ROOT.parent / "shared" / "data"

@@ -15,8 +15,8 @@ from frontends.sources import make_source
 from slam.algorithm.loops import make_loop_detector
 from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.viz import Logger, NullLogger
-from slam.app.builders import build_map
 from slam.app.recorder import RunRecorder, make_recorder
+from slam.assembly.builders import build_map
 from tests.test_pipeline import ROOM, FalseLoopInjector, room_config, room_odometry
 
 

@@ -22,10 +22,10 @@ from common.atomic_io import atomic_path, write_text_atomic
 from frontends.errors import DatasetError
 from frontends.sources.base import make_source
 from mapping.errors import MapFileError, WeightsFileError
+from mapping.map_io import load_map
 from mapping.networks import PriorModel
-from mapping.neural_map import NeuralMap
 from slam.app import cli
-from slam.app.config import set_overrides
+from slam.assembly.config import set_overrides
 from slam.evaluation.cli import EvalError, evaluate_run
 from tests.dataset_files import write_depth, write_rgb
 from tests.test_map_io import _model, saved  # noqa: F401  (fixture)
@@ -113,7 +113,7 @@ def test_corrupted_compressed_member_is_a_map_file_error(saved, tmp_path: Path) 
     bad = tmp_path / "flipped.npz"
     _flip_inside_member(path, bad, "latent_coeffs.npy")
     with pytest.raises(MapFileError, match=r"flipped\.npz") as info:
-        NeuralMap.load(bad, _model())
+        load_map(bad, _model())
     assert "\n" not in str(info.value)
 
 

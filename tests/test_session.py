@@ -13,12 +13,12 @@ import torch
 
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
-from mapping.map_io import VERSION, load_session
+from mapping.map_io import VERSION, load_map, load_session, save_map
 from mapping.networks import PriorModel
 from mapping.neural_map import NeuralMap
-from slam.algorithm.gravity import UpMeasurement
-from slam.algorithm.place import PlaceDescriptor
-from slam.algorithm.session import Edge, SessionRecord
+from slam.algorithm.graph.gravity import UpMeasurement
+from slam.algorithm.loops.place import PlaceDescriptor
+from slam.algorithm.merge.session import Edge, SessionRecord
 
 torch.set_num_threads(1)
 
@@ -130,7 +130,7 @@ def _saved_with_session(tmp_path: Path) -> Path:
     submap = nm.encode(3, d * 0.3, d, np.eye(4))
     nm.fuse(submap)
     path = tmp_path / "map.npz"
-    nm.save(path, [submap], session=_session(rng).to_arrays())
+    save_map(nm, path, [submap], session=_session(rng).to_arrays())
     return path
 
 
@@ -144,7 +144,7 @@ def test_older_session_layout_loads_as_a_map_but_is_refused(tmp_path: Path):
     data["header"] = np.array(json.dumps(header))
     old = tmp_path / "v3.npz"
     np.savez_compressed(old, **data)
-    assert NeuralMap.load(old, _model())[0].num_voxels > 0
+    assert load_map(old, _model())[0].num_voxels > 0
     with pytest.raises(MapFileError, match=r"v3\.npz: map format version 3 .*slam\.run") as info:
         load_session(old)
     assert "\n" not in str(info.value)

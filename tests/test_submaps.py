@@ -9,10 +9,10 @@ from common.geometry import transform_points
 from common.voxel_keys import KEY_LIMIT
 from common.voxel_keys import point_voxel_keys as voxel_keys
 from frontends.frame import Frame, point_ranges_m
-from slam.algorithm.config import SubmapConfig
 from slam.algorithm.submaps import (
     DENSE_GROUPING_CELLS_PER_POINT,
     Keyframer,
+    SubmapConfig,
     voxel_downsample,
     voxel_groups,
 )

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from slam.app.config import RunConfig
-from slam.app.threads import apply_thread_budget, machine_cores, plan_thread_budget
+from slam.assembly.config import RunConfig
+from slam.assembly.threads import apply_thread_budget, machine_cores, plan_thread_budget
 
 
 def test_plan_splits_the_budget() -> None:

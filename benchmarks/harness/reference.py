@@ -100,8 +100,8 @@ def kiss_slam(source, num_frames: int | None = None) -> dict[str, Any]:
     reason = kiss_slam_unavailable()
     if reason is not None:
         return {"skipped": reason}
-    from slam.app.trajectory_io import read_kitti
     from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
+    from slam.run_folder.trajectory_io import read_kitti
 
     data_args, T_cam_lidar = _kiss_slam_input(source)
     command = [

@@ -16,10 +16,10 @@ from kiss_icp.voxelization import voxel_down_sample
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from common.normals import estimate_normals
+from common.point_to_plane import point_to_plane_icp
 from frontends.errors import DatasetError
 from frontends.frame import Frame, point_ranges_m
 from frontends.odometry.base import Odometry, OdometryResult, register_odometry
-from frontends.odometry.point_to_plane import point_to_plane_icp
 
 logger = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ is extrapolated with constant velocity, a warning is logged and ``num_failures``
 
 Information: OpenCV does not return the Hessian of its cost, so after each registration the
 point-to-plane cost of the frame's points against the reference frame's points and normals is
-evaluated at the estimated pose (:func:`~frontends.odometry.point_to_plane.point_to_plane_hessian`,
+evaluated at the estimated pose (:func:`~common.point_to_plane.point_to_plane_hessian`,
 a few thousand points). ``covariance_factor * sigma^2 H^-1`` of each registration is chained from
 keyframe to keyframe (``Ad`` transforms); each result carries the covariance of the motion since
 the latest :meth:`RgbdOdometry.restart_covariance`, which the pipeline calls at every new submap
@@ -32,10 +32,10 @@ import logging
 import numpy as np
 
 from common.geometry import rotation_angle_rad
+from common.point_to_plane import adjoint, point_to_plane_hessian
 from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult, register_odometry
-from frontends.odometry.point_to_plane import adjoint, point_to_plane_hessian
 from frontends.odometry.rgbd_config import RgbdOdometryConfig
 
 __all__ = ["RgbdOdometry", "RgbdOdometryConfig"]

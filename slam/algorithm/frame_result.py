@@ -8,11 +8,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from slam.algorithm.loops import LoopCandidate
+from slam.algorithm.loops.base import LoopCandidate
 from slam.algorithm.remap import RemapEvent
 
 if TYPE_CHECKING:
-    from slam.algorithm.relocalise import Relocalisation
+    from slam.algorithm.merge.relocalise import Relocalisation
 
 
 @dataclass

@@ -18,9 +18,9 @@ pose graph; the *map worker* encodes, fuses and remaps. The main thread sees the
 :class:`~slam.algorithm.graph_view.GraphView`, updated at fixed frames, so results do not depend
 on timing.
 
-With a :class:`~slam.algorithm.relocalise.Relocaliser` (``slam.run --map``), each closed submap is
-also tried against a stored map until one verifies; the graph is then re-expressed in the map's
-frame, and every later result is in that frame.
+With a :class:`~slam.algorithm.merge.relocalise.Relocaliser` (``slam.run --map``), each closed
+submap is also tried against a stored map until one verifies; the graph is then re-expressed in the
+map's frame, and every later result is in that frame.
 """
 
 from __future__ import annotations
@@ -38,17 +38,17 @@ from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 from slam.algorithm.config import PipelineConfig
 from slam.algorithm.frame_result import FrameResult
+from slam.algorithm.graph.gravity import measure_up
+from slam.algorithm.graph.pose_graph import PoseGraph
 from slam.algorithm.graph_view import GraphSnapshot, GraphView
-from slam.algorithm.gravity import measure_up
 from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
 from slam.algorithm.map_worker import MapWorker
-from slam.algorithm.pose_graph import PoseGraph
 from slam.algorithm.remap import RemapEvent, Remapper
 from slam.algorithm.report import PipelineReport
 from slam.algorithm.submaps import Keyframer, KeyframeStep, SubmapRecord
 
 if TYPE_CHECKING:
-    from slam.algorithm.relocalise import Relocalisation, Relocaliser
+    from slam.algorithm.merge.relocalise import Relocalisation, Relocaliser
 
 logger = logging.getLogger(__name__)
 

@@ -15,9 +15,22 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import Field
 
-from slam.algorithm.config import RemapConfig
-from slam.algorithm.loops import relative_motion
+from common.config import Strict
+from common.geometry import relative_motion
+
+
+class RemapConfig(Strict):
+    """Remapping of submaps whose anchor moved after an optimisation."""
+
+    enabled: bool = Field(True, description="move submaps in the neural map after optimisation")
+    translation_threshold_m: float = Field(
+        0.005, ge=0, description="remap a submap whose anchor moved more than this"
+    )
+    rotation_threshold_deg: float = Field(
+        0.25, ge=0, description="remap a submap whose anchor turned more than this"
+    )
 
 
 @dataclass

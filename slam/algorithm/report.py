@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.algorithm.loops import LoopCandidate
+from slam.algorithm.loops.base import LoopCandidate
 from slam.algorithm.remap import RemapEvent
 
 

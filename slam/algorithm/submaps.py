@@ -20,12 +20,13 @@ from typing import NamedTuple
 
 import numpy as np
 from kiss_icp.voxelization import voxel_down_sample
+from pydantic import Field
 
+from common.config import Strict
 from common.geometry import rotation_angle_rad, transform_points
 from common.normals import estimate_normals
 from common.voxel_keys import KEY_LIMIT, point_voxel_keys
 from frontends.frame import Frame, point_ranges_m
-from slam.algorithm.config import SubmapConfig
 
 SURFACE_CELL_FACTOR = 4
 """Surface coverage (``max_surface_views``) is counted in cells of this many ``map_voxel_m``."""
@@ -35,6 +36,62 @@ DENSE_GROUPING_CELLS_PER_POINT = 8
 """:func:`voxel_groups` counts the points into the cells of their bounding box when it holds at
 most this many cells per point (one KITTI scan within 30 m at 0.35 m: ~2), and sorts their keys
 otherwise (counting costs about as much per cell as sorting per point)."""
+
+
+class SubmapConfig(Strict):
+    """Keyframing: when a submap closes and how its points are kept."""
+
+    max_distance_m: float = Field(
+        2.0, gt=0, description="close the submap when the sensor is this far from the anchor"
+    )
+    max_rotation_deg: float = Field(
+        30.0, gt=0, description="close the submap when the sensor turned this much from the anchor"
+    )
+    max_frames: int = Field(30, ge=1, description="close the submap after this many frames")
+    max_surface_views: float | None = Field(
+        None,
+        gt=1.0,
+        description=(
+            "close the submap once the surface it covers (distinct cells of 4 x map_voxel_m) "
+            "exceeds this multiple of the largest surface one of its frames saw. Consecutive "
+            "submaps share about one view of surface, so this bounds the storage overlap factor "
+            "near 1 + 1/max_surface_views however slowly the sensor moves, where a frame count "
+            "stores a lingering camera's view again every max_frames frames. None: off"
+        ),
+    )
+    min_range_m: float = Field(0.1, ge=0, description="points nearer to the sensor are dropped")
+    max_range_m: float = Field(8.0, gt=0, description="points farther from the sensor are dropped")
+    map_voxel_m: float = Field(
+        0.02,
+        gt=0,
+        description="points of a submap are averaged on a grid of this size before encoding",
+    )
+    loop_voxel_m: float = Field(
+        0.05, gt=0, description="grid size of the coarse submap cloud used for loop closure"
+    )
+    compact_every_points: int = Field(
+        400_000,
+        ge=1000,
+        description="re-average the accumulated points once this many are buffered",
+    )
+    normal_neighbours: int = Field(
+        12, ge=4, description="neighbours of the PCA normal fit (sources without normals)"
+    )
+    normal_radius_m: float | None = Field(
+        None, description="ignore normal-fit neighbours farther than this (None: no limit)"
+    )
+    max_map_points: int | None = Field(
+        None,
+        ge=100,
+        description="cap on the points a submap encodes (seeded random subset; None: no cap)",
+    )
+    keep_points: bool = Field(
+        False,
+        description="keep each submap's points after encoding (for re-encoding experiments)",
+    )
+    keep_keyframe_images: bool = Field(
+        True, description="keep the anchor frame's RGB-D images (needed by RGB-D loop closure)"
+    )
 
 
 def voxel_groups(points: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ Examples::
     python -m slam.run lidar scans/ --dataloader generic --serve     # headless: web viewer
     python -m slam.run rgbd my_rgbd/                                 # rgb/, depth/, intrinsics.txt
 
-This module turns the arguments into a validated :class:`~slam.app.config.RunConfig` and a run
+This module turns the arguments into a validated :class:`~slam.assembly.config.RunConfig` and a run
 folder, calls :func:`slam.app.runner.execute`, and reports errors in one line. ``--out DIR`` must
 name a new or empty folder: a run never writes into, or deletes, a folder holding anything it did
 not create. Bad input (unknown dataset, missing root, bad frame range, bad config key) ends the
@@ -35,7 +35,9 @@ from pydantic import ValidationError
 
 from frontends.errors import DatasetError
 from mapping.errors import MapFileError, WeightsFileError
-from slam.app.config import (
+from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
+from slam.app.summary import summary_lines
+from slam.assembly.config import (
     ConfigError,
     RunConfig,
     UsageError,
@@ -46,10 +48,8 @@ from slam.app.config import (
     set_origins,
     set_overrides,
 )
-from slam.app.datasets import DATASETS, DatasetEntry
-from slam.app.outputs import RUN_STATUS_FILE
-from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
-from slam.app.summary import summary_lines
+from slam.assembly.datasets import DATASETS, DatasetEntry
+from slam.run_folder.outputs import RUN_STATUS_FILE
 
 
 class _OneLineParser(argparse.ArgumentParser):

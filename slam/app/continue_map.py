@@ -4,14 +4,14 @@ The map folder's ``map.npz`` (its latents and session section; never its scans) 
 checked against the run's config before any frame is read (voxel size and latent storage; a
 LiDAR run whose voxel size comes from its first scan is checked after that scan). The run goes
 into ``OUT/session`` (a complete run folder of its own) and is relocalised live
-(:mod:`slam.algorithm.relocalise`): its first submap, and each later one until one verifies, is
-matched against the stored submaps and registered to the surface decoded from their latents.
-From then on the run's pose graph, poses and map are in the map's frame (``metrics.json`` of the
-session says where it was placed). A run that starts outside the stored map joins it when it
-enters it.
+(:mod:`slam.algorithm.merge.relocalise`): its first submap, and each later one until one
+verifies, is matched against the stored submaps and registered to the surface decoded from their
+latents. From then on the run's pose graph, poses and map are in the map's frame
+(``metrics.json`` of the session says where it was placed). A run that starts outside the
+stored map joins it when it enters it.
 
 After the last frame the session and the map are merged by
-:func:`slam.algorithm.merge.merge_sessions` (every submap of the session against every stored
+:func:`slam.algorithm.merge.merge.merge_sessions` (every submap of the session against every stored
 one, one pose graph over all sessions, the remap), and ``OUT`` receives what ``slam.merge``
 writes: poses of every session in the map's frame, ``sessions.csv`` (the map's sessions, then
 the new one), ``loops.csv``, ``map.npz``, ``mesh.ply``, ``metrics.json`` and the recording. When
@@ -28,10 +28,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from frontends.errors import DatasetError
-from slam.algorithm.merge import LATENT_STORAGE_FIELDS
+from slam.algorithm.merge.merge import LATENT_STORAGE_FIELDS
 
 if TYPE_CHECKING:
-    from slam.algorithm.relocalise import Relocaliser
+    from slam.algorithm.merge.relocalise import Relocaliser
 
 SESSION_FOLDER = "session"
 
@@ -50,7 +50,7 @@ class ContinuedMap:
     """What a ``--map`` run needs of the map it continues while it runs.
 
     Attributes:
-        relocaliser: places the run's submaps in the map (:mod:`slam.algorithm.relocalise`).
+        relocaliser: places the run's submaps in the map (:mod:`slam.algorithm.merge.relocalise`).
         mesh_path: the map's mesh, shown beneath the run in its recording.
     """
 
@@ -60,7 +60,7 @@ class ContinuedMap:
 
 def continued_map(previous: tuple, folder: Path) -> ContinuedMap:
     """The :class:`ContinuedMap` of the loaded map folder ``folder``."""
-    from slam.algorithm.relocalise import Relocaliser
+    from slam.algorithm.merge.relocalise import Relocaliser
 
     stored, stored_map = previous
     return ContinuedMap(Relocaliser(stored, stored_map), folder / "mesh.ply")
@@ -95,7 +95,7 @@ def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None
 def merge_into(previous: tuple, map_folder: Path, session_folder: Path, out: Path, viz: bool):
     """Relocalise and merge the finished run in ``session_folder`` into the stored map; write
     the merged run into ``out``; returns its metrics."""
-    from slam.algorithm.merge import MergeError
+    from slam.algorithm.merge.merge import MergeError
     from slam.app.merge_cli import load_run, merge_runs
 
     start = time.perf_counter()

@@ -25,7 +25,8 @@ import numpy as np
 
 from frontends.errors import DatasetError
 from mapping.errors import MapFileError
-from slam.app.config import UsageError
+from mapping.map_io import load_map
+from slam.assembly.config import UsageError
 
 logger = logging.getLogger("slam.merge")
 
@@ -51,9 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
 def load_run(folder: Path):
     """``(SessionInput, NeuralMap)`` of a run folder; a bad folder is a one-line error."""
     from mapping.map_io import load_session
-    from mapping.neural_map import NeuralMap
-    from slam.algorithm.merge import SessionInput
-    from slam.algorithm.session import SessionRecord
+    from slam.algorithm.merge.merge import SessionInput
+    from slam.algorithm.merge.session import SessionRecord
 
     path = folder / "map.npz"
     if not folder.is_dir():
@@ -65,12 +65,12 @@ def load_run(folder: Path):
         raise MapFileError(
             f"{path}: session section is inconsistent ({exc}); re-run slam.run"
         ) from exc
-    neural_map, submaps = NeuralMap.load(path)
+    neural_map, submaps = load_map(path)
     return SessionInput(str(folder), session, submaps), neural_map
 
 
 def _ground_truth(folder: Path, rows: int) -> np.ndarray | None:
-    from slam.app.trajectory_io import read_kitti
+    from slam.run_folder.trajectory_io import read_kitti
 
     path = folder / "poses_gt.kitti.txt"
     if not path.is_file():
@@ -143,10 +143,10 @@ def merge_runs(
     import trimesh
 
     from common.atomic_io import write_text_atomic
-    from slam.algorithm.merge import merge_sessions
+    from slam.algorithm.merge.merge import merge_sessions
     from slam.app.merge_outputs import merge_loops_csv, sessions_csv, write_recording
-    from slam.app.outputs import RunOutputs
-    from slam.app.threads import apply_plan, plan_thread_budget
+    from slam.assembly.threads import apply_plan, plan_thread_budget
+    from slam.run_folder.outputs import RunOutputs
 
     # torch on one thread fewer than the cores, as in a run: a pool as wide as the machine
     # spins against anything else running (a merge of the room took minutes, not seconds)
@@ -190,7 +190,7 @@ def merge_runs(
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
-    from slam.algorithm.merge import MergeError
+    from slam.algorithm.merge.merge import MergeError
 
     debug = "--debug" in (argv if argv is not None else sys.argv[1:])
     try:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.algorithm.merge import MergeResult
+from slam.algorithm.merge.merge import MergeResult
 
 LOOP_COLUMNS = (
     "kind",

@@ -12,6 +12,9 @@ nothing at all for the null logger.
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
 from common.geometry import transform_points
@@ -19,7 +22,7 @@ from frontends.frame import Frame
 from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.viz import Logger, NullLogger
-from slam.app.config import VizConfig
+from slam.assembly.config import RunConfig, VizConfig
 
 SCAN_LOG_MAX_POINTS = 30_000
 
@@ -172,3 +175,32 @@ def make_recorder(pipeline: SlamPipeline, viz: Logger, cfg: VizConfig) -> Record
     if isinstance(viz, NullLogger):
         return Recorder()
     return RunRecorder(pipeline, viz, cfg)
+
+
+def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
+    """Rerun logger for the configured sink, or :class:`NullLogger`."""
+    viz = cfg.viz
+    if viz.mode == "none":
+        return NullLogger()
+    from slam.app.rerun_logger import RerunLogger
+
+    options: dict[str, Any] = {
+        "voxel_size_m": cfg.mapping.voxel_size_m,
+        "up_axis": "+z" if sensor == "lidar" else "-y",
+    }
+    if viz.mode == "rrd":
+        options["rrd_path"] = viz.rrd_path or default_rrd
+    elif viz.mode == "spawn":
+        options["spawn"] = True
+    elif viz.mode == "serve":
+        options.update(
+            rrd_path=viz.rrd_path or default_rrd,
+            serve_port=viz.serve_grpc_port,
+            web_port=viz.serve_web_port,
+            serve_bind_ip=viz.serve_bind_ip,
+        )
+    else:
+        if not viz.connect_url:
+            raise ValueError("viz.mode 'connect' needs viz.connect_url")
+        options["connect_url"] = viz.connect_url
+    return RerunLogger(**options)

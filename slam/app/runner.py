@@ -1,7 +1,7 @@
 """Run the pipeline on one configured sequence and write its run folder.
 
 :func:`execute` builds the source, odometry, map and logger from a validated
-:class:`~slam.app.config.RunConfig`, feeds every frame to
+:class:`~slam.assembly.config.RunConfig`, feeds every frame to
 :class:`~slam.algorithm.pipeline.SlamPipeline`,
 writes the outputs as the run goes (so a crash keeps what was written) and returns the metrics.
 The command line around it is :mod:`slam.app.cli`.
@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Any
 
 from frontends.errors import DatasetError
-from slam.app.config import RunConfig
-from slam.app.datasets import DatasetEntry
 from slam.app.signals import Terminated
 from slam.app.summary import summary_lines
+from slam.assembly.config import RunConfig
+from slam.assembly.datasets import DatasetEntry
 
 logger = logging.getLogger("slam.run")
 
@@ -27,7 +27,7 @@ logger = logging.getLogger("slam.run")
 def _scale_lidar_config(cfg: RunConfig, source) -> None:
     """``source.lidar.scale_from_first_scan``: fill unset scale-dependent fields (see
     slam/lidar_scale.py)."""
-    from slam.app.lidar_scale import scale_config
+    from slam.assembly.lidar_scale import scale_config
 
     if source.sensor != "lidar" or not cfg.source.lidar.scale_from_first_scan:
         return
@@ -72,8 +72,8 @@ def execute(
     ``terminated`` or ``failed`` when an exception ends it.
     """
 
-    from slam.app.builders import build_source
-    from slam.app.outputs import RunOutputs
+    from slam.assembly.builders import build_source
+    from slam.run_folder.outputs import RunOutputs
 
     outputs = RunOutputs(folder)
     outputs.write_config(cfg)
@@ -122,9 +122,9 @@ def _record_failure(outputs, state: _RunState, exc: BaseException) -> None:
 
 def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunState, continued):
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.app.builders import build_logger, build_map, build_odometry
-    from slam.app.recorder import make_recorder
-    from slam.app.threads import apply_thread_budget
+    from slam.app.recorder import build_logger, make_recorder
+    from slam.assembly.builders import build_map, build_odometry
+    from slam.assembly.threads import apply_thread_budget
     from slam.evaluation.run_metrics import collect_metrics
 
     def say(line: str) -> None:
@@ -224,7 +224,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     if gt is not None and len(gt):
         outputs.write_ground_truth(source.to_dataset_frame(gt), pipeline.timestamps())
     if cfg.output.write_map:
-        from slam.algorithm.session import session_from_pipeline
+        from slam.algorithm.merge.session import session_from_pipeline
 
         setup = {
             "sensor": sensor,

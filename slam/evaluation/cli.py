@@ -57,7 +57,10 @@ import numpy as np
 import trimesh
 
 from frontends.errors import DatasetError
-from slam.evaluation.run_folder import (
+from slam.evaluation.run_metrics import observed_face_mask
+from slam.evaluation.run_plots import draw_plots
+from slam.evaluation.summary import length, mesh_lines
+from slam.run_folder.reader import (
     EvalError,
     GroundTruth,
     RunTrajectories,
@@ -69,9 +72,6 @@ from slam.evaluation.run_folder import (
     read_gt_poses,
     read_run_trajectories,
 )
-from slam.evaluation.run_metrics import observed_face_mask
-from slam.evaluation.run_plots import draw_plots
-from slam.evaluation.summary import length, mesh_lines
 
 __all__ = ["EvalError", "evaluate_run", "observed_face_mask", "read_gt_poses"]
 
@@ -156,9 +156,9 @@ def evaluate_run(
     """Recompute the metrics of ``run_dir`` (see the module docstring); returns ``metrics.json``'s
     new content and, with ``write``, writes it. ``figures_dir``: also write the documentation
     figures there (:mod:`slam.figures`)."""
-    from slam.app.outputs import RunOutputs
     from slam.evaluation.metrics.trajectory import align_se3
     from slam.evaluation.run_metrics import public
+    from slam.run_folder.outputs import RunOutputs
 
     if culling not in ("observed", "view"):
         raise EvalError(f"culling '{culling}': choose 'observed' or 'view'")
@@ -204,7 +204,7 @@ def evaluate_run(
     gt_mesh, mask = None, None
     if mesh is not None and gt.mesh_path is not None and gt.poses is not None:
         if num_samples is None:
-            from slam.app.config import OutputConfig
+            from slam.assembly.config import OutputConfig
 
             num_samples = cfg.output.mesh_samples if cfg is not None else 200_000
             # a run that did not score its mesh (0) is scored with the configuration's default

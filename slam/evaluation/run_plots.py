@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from slam.evaluation.run_folder import EvalError, GroundTruth, RunTrajectories, load_map_voxels
+from slam.run_folder.reader import EvalError, GroundTruth, RunTrajectories, load_map_voxels
 
 logger = logging.getLogger("slam.eval")
 

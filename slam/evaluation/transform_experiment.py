@@ -255,8 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m slam.eval transform``; returns the exit status."""
     from frontends.errors import DatasetError
-    from slam.app.builders import build_source
-    from slam.app.config import (
+    from slam.assembly.builders import build_source
+    from slam.assembly.config import (
         ConfigError,
         UsageError,
         default_config_path,
@@ -264,8 +264,8 @@ def main(argv: list[str] | None = None) -> int:
         set_nested,
         set_overrides,
     )
-    from slam.app.datasets import DATASETS
-    from slam.app.threads import apply_thread_budget
+    from slam.assembly.datasets import DATASETS
+    from slam.assembly.threads import apply_thread_budget
 
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)

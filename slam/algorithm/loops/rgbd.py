@@ -21,7 +21,7 @@ query anchor, ranked by the number of ORB matches that pass Lowe's ratio test. V
    residual, a small correction and a well-conditioned cost (smallest eigenvalue of the
    normalised Hessian). The ICP pose is the loop edge, so the edge depends on depth geometry
    only (7-Scenes colour is not registered to depth), and its covariance comes from the ICP
-   Hessian and residual (``IcpResult.covariance`` in :mod:`frontends.odometry.point_to_plane`).
+   Hessian and residual (``IcpResult.covariance`` in :mod:`common.point_to_plane`).
    The refined pose must also pass the keyframes' depth agreement check;
 5. keyframe refinement (``keyframe_refine``): the same ICP and checks once more, from the submap
    ICP's result, between the two anchor keyframes' own depth clouds (lifted from the depth
@@ -45,20 +45,20 @@ import logging
 
 import numpy as np
 
-from common.geometry import transform_points
+from common.geometry import relative_motion, transform_points
+from common.point_to_plane import IcpResult, point_to_plane_icp
 from frontends.depth import depth_to_points
 from frontends.frame import Frame, Intrinsics
-from frontends.odometry.point_to_plane import IcpResult, point_to_plane_icp
-from slam.algorithm.config import LoopClosureConfig, RgbdLoopConfig
-from slam.algorithm.loop_keyframes import (
+from slam.algorithm.loops.base import LoopCandidate, LoopDetector, Verification
+from slam.algorithm.loops.config import LoopClosureConfig, RgbdLoopConfig
+from slam.algorithm.loops.keyframes import (
     KeyframeFeatures,
     depth_agreement,
     lift_pixels,
     to_gray,
 )
-from slam.algorithm.loop_refine import RefineCloud, refine_scores
-from slam.algorithm.loops import LoopCandidate, LoopDetector, Verification, relative_motion
-from slam.algorithm.place import keyframe_descriptor
+from slam.algorithm.loops.place import keyframe_descriptor
+from slam.algorithm.loops.refine import RefineCloud, refine_scores
 from slam.algorithm.submaps import SubmapRecord
 
 logger = logging.getLogger(__name__)

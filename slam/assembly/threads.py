@@ -61,8 +61,8 @@ def plan_thread_budget(threads: int, map_worker: bool) -> ThreadBudget:
 def apply_thread_budget(cfg) -> ThreadBudget:
     """Set torch, OpenCV and BLAS threads and KISS-ICP's ``max_num_threads`` in ``cfg``.
 
-    ``cfg`` is a :class:`slam.app.config.RunConfig`; its odometry settings are updated in place, so
-    call this before the odometry is built. An explicit
+    ``cfg`` is a :class:`slam.assembly.config.RunConfig`; its odometry settings are updated in
+    place, so call this before the odometry is built. An explicit
     ``odometry.kiss_icp.registration.max_num_threads``
     (non-zero) is kept.
     """

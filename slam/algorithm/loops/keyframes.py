@@ -1,4 +1,4 @@
-"""Keyframe features for RGB-D loop closure (:mod:`slam.algorithm.loop_rgbd`): ORB keypoints
+"""Keyframe features for RGB-D loop closure (:mod:`slam.algorithm.loops.rgbd`): ORB keypoints
 lifted with depth, and the depth agreement of two keyframes under a relative pose."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from common.geometry import transform_points
-from slam.algorithm.loop_refine import RefineCloud
+from slam.algorithm.loops.refine import RefineCloud
 
 
 def compact_depth(depth: np.ndarray, scale: float | None) -> tuple[np.ndarray, float | None]:

@@ -1,14 +1,14 @@
 """Relocalisation of a live session in a stored map (``slam.run ... --map``).
 
 Every submap the live run closes, until one is placed, is matched against the stored map's
-submaps by place descriptor (:func:`slam.algorithm.merge.rank_matches`, the merge's candidate
+submaps by place descriptor (:func:`slam.algorithm.merge.merge.rank_matches`, the merge's candidate
 search) and verified by the merge's point-to-plane ICP and gates
-(:func:`slam.algorithm.merge.verify`). The stored side of the registration is the surface decoded
-from the stored submap's own latents (the stored run's scans are gone); the live side is the
+(:func:`slam.algorithm.merge.merge.verify`). The stored side of the registration is the surface
+decoded from the stored submap's own latents (the stored run's scans are gone); the live side is the
 submap's own points. The first verified match gives ``T_M_W``, the live world frame in the map's
 frame. The pipeline then re-expresses its pose graph in the map's frame
-(:meth:`slam.algorithm.pose_graph.PoseGraph.reframe`) and remaps the submaps it has encoded, so
-every later pose and submap is in the map's frame.
+(:meth:`slam.algorithm.graph.pose_graph.PoseGraph.reframe`) and remaps the submaps it has
+encoded, so every later pose and submap is in the map's frame.
 
 A run that starts outside the stored map is tried again at each submap it closes: it joins the
 map when it enters it.
@@ -24,9 +24,9 @@ import numpy as np
 
 from common.geometry import orthonormalize
 from mapping.neural_map import NeuralMap
-from slam.algorithm.merge import SessionInput, SurfaceDecoder, rank_matches, verify
-from slam.algorithm.merge_config import MergeConfig
-from slam.algorithm.place import PlaceDescriptor
+from slam.algorithm.loops.place import PlaceDescriptor
+from slam.algorithm.merge.config import MergeConfig
+from slam.algorithm.merge.merge import SessionInput, SurfaceDecoder, rank_matches, verify
 
 logger = logging.getLogger(__name__)
 

@@ -26,8 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from common.geometry import orthonormalize, transform_points
-from slam.algorithm.loops import relative_motion
+from common.geometry import orthonormalize, relative_motion, transform_points
 
 Aligner = Callable[[np.ndarray], np.ndarray]
 """Re-registers the query from an initial ``T_ref_query`` guess and returns the converged pose."""

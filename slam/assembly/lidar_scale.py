@@ -31,7 +31,7 @@ import logging
 import numpy as np
 from pydantic import BaseModel
 
-from slam.app.config import RunConfig
+from slam.assembly.config import RunConfig
 
 logger = logging.getLogger(__name__)
 

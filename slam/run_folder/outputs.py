@@ -29,9 +29,10 @@ import numpy as np
 import trimesh
 
 from common.atomic_io import atomic_path, write_text_atomic
-from slam.algorithm.loops import LoopCandidate
-from slam.app.config import RunConfig, dump_run_config
-from slam.app.trajectory_io import write_kitti, write_tum
+from mapping.map_io import save_map
+from slam.algorithm.loops.base import LoopCandidate
+from slam.assembly.config import RunConfig, dump_run_config
+from slam.run_folder.trajectory_io import write_kitti, write_tum
 
 logger = logging.getLogger(__name__)
 
@@ -147,10 +148,10 @@ class RunOutputs:
 
     def write_map(self, neural_map, submaps: Sequence, session=None) -> Path:
         """The neural map with its submaps and the run's session section
-        (:class:`~slam.algorithm.session.SessionRecord`, for merging); ``NeuralMap.save``
+        (:class:`~slam.algorithm.merge.session.SessionRecord`, for merging); ``NeuralMap.save``
         writes atomically."""
         path = self.path("map.npz")
-        neural_map.save(path, list(submaps), None if session is None else session.to_arrays())
+        save_map(neural_map, path, list(submaps), None if session is None else session.to_arrays())
         return path
 
     def write_status(

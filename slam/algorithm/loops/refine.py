@@ -1,5 +1,5 @@
 """The dense refinement's inputs and diagnostics for RGB-D loop closure
-(:mod:`slam.algorithm.loop_rgbd`): a thinned cloud with normals and its k-d tree, and the scores
+(:mod:`slam.algorithm.loops.rgbd`): a thinned cloud with normals and its k-d tree, and the scores
 a refinement adds to a loop candidate."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontends.odometry.point_to_plane import IcpResult
-from slam.algorithm.loops import relative_motion
+from common.geometry import relative_motion
+from common.point_to_plane import IcpResult
 from slam.algorithm.submaps import voxel_downsample
 
 

@@ -4,7 +4,7 @@
 2. Inter-session loop candidates: each submap of a later session is matched against the submaps
    of every earlier session by the stored place descriptors: ratio-test matches with every
    earlier submap (a brute-force Hamming match, cheap), a RANSAC fit only for the few with the
-   most matches (:func:`slam.algorithm.place.fit_matches`); the fitted ones are verified best
+   most matches (:func:`slam.algorithm.loops.place.fit_matches`); the fitted ones are verified best
    first, and the first that passes is the submap's edge (so a run merged with itself gets
    exactly the edges to its own twin submaps).
 3. Verification and the relative pose come from surface points *decoded from each submap's own
@@ -33,14 +33,13 @@ import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
-from common.geometry import orthonormalize, transform_points
-from frontends.odometry.point_to_plane import point_to_plane_hessian, point_to_plane_icp
+from common.geometry import orthonormalize, relative_motion, transform_points
+from common.point_to_plane import point_to_plane_hessian, point_to_plane_icp
 from mapping.neural_map import NeuralMap, Submap
-from slam.algorithm.loops import relative_motion
-from slam.algorithm.merge_config import MergeConfig
-from slam.algorithm.place import PlaceDescriptor, fit_matches, ratio_matches
-from slam.algorithm.pose_graph import GRAVITY_KEY, gravity_factor, gravity_frame_prior
-from slam.algorithm.session import Edge, SessionRecord
+from slam.algorithm.graph.pose_graph import GRAVITY_KEY, gravity_factor, gravity_frame_prior
+from slam.algorithm.loops.place import PlaceDescriptor, fit_matches, ratio_matches
+from slam.algorithm.merge.config import MergeConfig
+from slam.algorithm.merge.session import Edge, SessionRecord
 
 logger = logging.getLogger(__name__)
 
@@ -182,7 +181,7 @@ def _overlap(
 ) -> tuple[float, float]:
     """Fraction of ``query`` within ``gate_m`` of the reference surface under ``T``, and the
     robust spread of those points' point-to-plane residuals (the cost seen at ``T``,
-    :func:`~frontends.odometry.point_to_plane.point_to_plane_hessian`)."""
+    :func:`~common.point_to_plane.point_to_plane_hessian`)."""
     if not np.all(np.isfinite(T)):
         return 0.0, float("inf")
     seen = point_to_plane_hessian(reference[0], reference[1], query, T, gate_m, tree=tree)

@@ -9,16 +9,15 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from common.geometry import rotation_angle_rad
-from slam.algorithm.place import PlaceDescriptor
+from slam.algorithm.loops.place import PlaceDescriptor
 from slam.algorithm.submaps import SubmapRecord
 
 if TYPE_CHECKING:
-    from slam.algorithm.config import LoopClosureConfig
+    pass
 
 RelativeCovariance = Callable[[int, int], np.ndarray]
 """``(i, j) ->`` the pose graph's 6x6 covariance of ``T_Ai_Aj``
-(:meth:`slam.algorithm.pose_graph.PoseGraph.relative_covariance`)."""
+(:meth:`slam.algorithm.graph.pose_graph.PoseGraph.relative_covariance`)."""
 
 
 @dataclass
@@ -111,23 +110,3 @@ class LoopDetector(ABC):
         pipeline's :meth:`~slam.algorithm.pipeline.SlamPipeline.finish`); the place descriptors
         stay for the session. Nothing by default."""
         return
-
-
-def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
-    """Translation (m) and rotation (deg) of ``inv(T_a) @ T_b``."""
-    D = np.linalg.inv(T_a) @ T_b
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle_rad(D[:3, :3])))
-
-
-def make_loop_detector(lc: LoopClosureConfig, sensor: str) -> LoopDetector | None:
-    """The loop detector for a sensor (None when loop closure is off)."""
-    if not lc.enabled:
-        return None
-    method = sensor if lc.method == "auto" else lc.method
-    if method == "lidar":
-        from slam.algorithm.loop_lidar import LidarLoopDetector
-
-        return LidarLoopDetector(lc)
-    from slam.algorithm.loop_rgbd import RgbdLoopDetector
-
-    return RgbdLoopDetector(lc)

@@ -7,7 +7,7 @@ loop closure cannot see it; the vertical error between revisits stays. What a cu
 change is the direction of gravity seen from each submap. Walls and poles are vertical, so their
 normals are horizontal; the direction most orthogonal to them is the local up, independent of the
 road's slope. One such measurement per submap, as a factor on the anchor's tilt
-(:meth:`slam.algorithm.pose_graph.PoseGraph.add_gravity`), takes the curvature out.
+(:meth:`slam.algorithm.graph.pose_graph.PoseGraph.add_gravity`), takes the curvature out.
 
 The measurement is taken on the anchor's own scan, in the anchor frame: a submap's accumulated
 cloud carries the odometry's drift within the submap and coarser normals, and was measured to
@@ -28,7 +28,7 @@ import numpy as np
 from common.geometry import so3_exp
 from common.normals import estimate_normals
 from frontends.frame import Frame, point_ranges_m
-from slam.algorithm.config import GravityConfig
+from slam.algorithm.graph.config import GravityConfig
 
 _GATES_RAD = (1.0, 0.5, 0.25, 0.125, 0.125, 0.125)
 """Gates on the angle between a normal and the horizontal, one Gauss-Newton step each, as

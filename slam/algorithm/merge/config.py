@@ -1,4 +1,4 @@
-"""Settings of a multi-session merge (:mod:`slam.algorithm.merge`)."""
+"""Settings of a multi-session merge (:mod:`slam.algorithm.merge.merge`)."""
 
 from __future__ import annotations
 

@@ -24,11 +24,11 @@ map of the reference cloud, coarse then fine) and accepted only when
   constrained. A featureless straight street lets ICP slide along it.
 
 The same Hessian and the inlier residual give the edge's covariance
-(:meth:`frontends.odometry.point_to_plane.IcpResult.covariance`).
+(:meth:`common.point_to_plane.IcpResult.covariance`).
 
 A candidate that passes these is then checked against the pose graph (a Mahalanobis gate on the
 graph's accumulated uncertainty between the two anchors) and for ambiguity (re-registration from
-the other peaks of the score along the street); see :mod:`slam.algorithm.loop_ambiguity`.
+the other peaks of the score along the street); see :mod:`slam.algorithm.loops.ambiguity`.
 """
 
 from __future__ import annotations
@@ -42,24 +42,23 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from common.geometry import orthonormalize, transform_points
+from common.geometry import orthonormalize, relative_motion, transform_points
 from common.normals import estimate_normals
+from common.point_to_plane import point_to_plane_hessian, point_to_plane_icp
 from common.voxel_keys import point_voxel_keys
-from frontends.odometry.point_to_plane import point_to_plane_hessian, point_to_plane_icp
-from slam.algorithm.config import LidarLoopConfig, LoopClosureConfig
-from slam.algorithm.loop_ambiguity import (
+from slam.algorithm.loops.ambiguity import (
     find_ambiguity,
     inlier_score,
     mahalanobis_distance2,
 )
-from slam.algorithm.loops import (
+from slam.algorithm.loops.base import (
     LoopCandidate,
     LoopDetector,
     RelativeCovariance,
     Verification,
-    relative_motion,
 )
-from slam.algorithm.place import bev_descriptor
+from slam.algorithm.loops.config import LidarLoopConfig, LoopClosureConfig
+from slam.algorithm.loops.place import bev_descriptor
 from slam.algorithm.submaps import SubmapRecord
 
 logger = logging.getLogger(__name__)
@@ -230,7 +229,7 @@ class IcpVerifier:
 
     def _check_ambiguity(self, clouds: _Clouds, verification: Verification) -> Verification:
         """Reject an accepted ``verification`` when another registration scores about as well
-        (:func:`slam.algorithm.loop_ambiguity.find_ambiguity`), on the structure above the
+        (:func:`slam.algorithm.loops.ambiguity.find_ambiguity`), on the structure above the
         ground; the profile reaches the reference structure's RMS radius at most."""
         c = self.cfg
         if not (c.ambiguity_check and verification.accepted):

@@ -12,6 +12,7 @@ import numpy as np
 
 from frontends.errors import DatasetError
 from frontends.frame import Intrinsics
+from mapping.map_io import load_map
 
 logger = logging.getLogger("slam.eval")
 
@@ -44,7 +45,7 @@ class GroundTruth:
 
 def read_run_trajectories(run_dir: Path) -> RunTrajectories:
     """Both trajectories of a run folder (TUM files carry the timestamps)."""
-    from slam.app.trajectory_io import read_kitti, read_tum
+    from slam.run_folder.trajectory_io import read_kitti, read_tum
 
     run_dir = Path(run_dir)
     if (run_dir / "poses_slam.tum.txt").is_file():  # a malformed one is reported, not skipped
@@ -67,7 +68,7 @@ def check_run_finished(run_dir: Path) -> None:
 
     A run folder without a status file (written before it existed) is taken as finished.
     """
-    from slam.app.outputs import RUN_STATUS_FILE, read_run_status
+    from slam.run_folder.outputs import RUN_STATUS_FILE, read_run_status
 
     status = read_run_status(Path(run_dir))
     if status is None or status.get("state") == "finished":
@@ -92,7 +93,7 @@ def read_gt_poses(path: Path, timestamps: np.ndarray, num_frames: int) -> np.nda
     TUM poses are associated with the run's timestamps (nearest within 20 ms); frames without one
     get a row of NaN (they are not scored), and at least two frames need one.
     """
-    from slam.app.trajectory_io import read_kitti, read_tum
+    from slam.run_folder.trajectory_io import read_kitti, read_tum
 
     path = Path(path)
     try:
@@ -129,7 +130,7 @@ def read_gt_poses(path: Path, timestamps: np.ndarray, num_frames: int) -> np.nda
 
 
 def _load_run_config(run_dir: Path):
-    from slam.app.config import load_run_config
+    from slam.assembly.config import load_run_config
 
     path = Path(run_dir) / "config.yaml"
     return load_run_config(path) if path.is_file() else None
@@ -151,7 +152,7 @@ def _to_loader_frame(cfg, poses: np.ndarray) -> np.ndarray:
 
 def _source_ground_truth(cfg) -> GroundTruth:
     """Rebuild the run's source from its config (generated data may be regenerated)."""
-    from slam.app.builders import build_source
+    from slam.assembly.builders import build_source
 
     source = build_source(cfg)
     intrinsics = source[0].intrinsics if len(source) else None
@@ -218,12 +219,11 @@ def find_ground_truth(
 def load_map_voxels(run_dir: Path) -> tuple[np.ndarray, float, dict[int, np.ndarray]]:
     """Voxel centres (world W), voxel size and current anchor poses ``T_W_A`` by submap id of the
     run's saved map."""
-    from mapping.neural_map import NeuralMap
 
     candidates = sorted(Path(run_dir).glob("map.*"))
     if not candidates:
         raise EvalError(f"{run_dir}: no map file (map.npz); the run was made with write_map off")
-    neural_map, submaps = NeuralMap.load(candidates[0])
+    neural_map, submaps = load_map(candidates[0])
     centers, weights = neural_map.voxel_centers()
     anchors = {s.submap_id: np.asarray(s.T_W_A) for s in submaps}
     return np.asarray(centers)[np.asarray(weights) > 0], neural_map.voxel_size_m, anchors

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 from frontends.odometry.base import Odometry, make_odometry
 from frontends.sources.base import Source, make_source
-from slam.algorithm.viz import Logger, NullLogger
-from slam.app.config import ConfigError, RunConfig
+from slam.assembly.config import ConfigError, RunConfig
 
 
 def frame_slice(text: str | None) -> slice | None:
@@ -125,32 +123,3 @@ def build_map(cfg: RunConfig):
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     return NeuralMap(cfg.mapping)
-
-
-def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
-    """Rerun logger for the configured sink, or :class:`NullLogger`."""
-    viz = cfg.viz
-    if viz.mode == "none":
-        return NullLogger()
-    from slam.app.rerun_logger import RerunLogger
-
-    options: dict[str, Any] = {
-        "voxel_size_m": cfg.mapping.voxel_size_m,
-        "up_axis": "+z" if sensor == "lidar" else "-y",
-    }
-    if viz.mode == "rrd":
-        options["rrd_path"] = viz.rrd_path or default_rrd
-    elif viz.mode == "spawn":
-        options["spawn"] = True
-    elif viz.mode == "serve":
-        options.update(
-            rrd_path=viz.rrd_path or default_rrd,
-            serve_port=viz.serve_grpc_port,
-            web_port=viz.serve_web_port,
-            serve_bind_ip=viz.serve_bind_ip,
-        )
-    else:
-        if not viz.connect_url:
-            raise ValueError("viz.mode 'connect' needs viz.connect_url")
-        options["connect_url"] = viz.connect_url
-    return RerunLogger(**options)

@@ -6,8 +6,8 @@ other runs without the raw data (DESIGN section 10).
   (``[rot, trans]``) of the noise it entered the graph with;
 * every frame's anchor and pose relative to it (``T_A_S``) and its timestamp, so a merge can
   write every frame's pose after the anchors moved;
-* each submap's place descriptor (:mod:`slam.algorithm.place`);
-* the up directions measured on anchor scans (:mod:`slam.algorithm.gravity`), so that a merge
+* each submap's place descriptor (:mod:`slam.algorithm.loops.place`);
+* the up directions measured on anchor scans (:mod:`slam.algorithm.graph.gravity`), so that a merge
   keeps the gravity factors (optional: absent in runs without them and in older files);
 * the sensor setup (JSON) and the fixed map from the loader's frames to the dataset's own
   (``dataset_mirror``), so merged trajectories are written in the dataset's frames.
@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.algorithm.gravity import UpMeasurement
-from slam.algorithm.place import PlaceDescriptor
+from slam.algorithm.graph.gravity import UpMeasurement
+from slam.algorithm.loops.place import PlaceDescriptor
 
 
 def pack_relative_poses(T: np.ndarray) -> np.ndarray:

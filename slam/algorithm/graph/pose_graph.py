@@ -5,7 +5,7 @@ closures are ``BetweenFactorPose3``. Edge noise (``use_edge_covariances``): an e
 with a covariance from its registration uses it, plus a floor (``loop_min_sigma_*``,
 ``odometry_min_sigma_*``) added in quadrature so that a very confident ICP cannot pin the graph.
 Loop covariances come from the dense loop refinement or the LiDAR ICP (``factor * sigma^2 H^-1``
-of the point-to-plane cost, :mod:`frontends.odometry.point_to_plane`); odometry covariances from
+of the point-to-plane cost, :mod:`common.point_to_plane`); odometry covariances from
 the RGB-D odometry's per-frame registration Hessians, chained from one anchor to the next. Edges
 without one use the configured sigmas (odometry: growing with the distance travelled and the
 angle turned).
@@ -28,7 +28,7 @@ Robust back-ends (``online_gnc``), each consistent from the first loop to the fi
 
 Gravity (``gravity.enabled``): a node ``G`` holds the gravity frame (its z axis is up; its heading
 and position are fixed by a prior, its tilt is free), and each submap whose walls give an up
-direction (:mod:`slam.algorithm.gravity`) gets a factor between ``G`` and its anchor that only
+direction (:mod:`slam.algorithm.graph.gravity`) gets a factor between ``G`` and its anchor that only
 constrains the anchor's tilt. Like the prior and the odometry, these are known inliers for GNC.
 
 GTSAM orders the Pose3 tangent space as ``[rx, ry, rz, tx, ty, tz]``.
@@ -43,8 +43,8 @@ import gtsam
 import numpy as np
 
 from common.geometry import orthonormalize, rotation_angle_rad, so3_exp
-from slam.algorithm.config import PoseGraphConfig
-from slam.algorithm.gravity import UpMeasurement
+from slam.algorithm.graph.config import PoseGraphConfig
+from slam.algorithm.graph.gravity import UpMeasurement
 
 logger = logging.getLogger(__name__)
 
@@ -421,7 +421,7 @@ class PoseGraph:
         """6x6 marginal covariance (``[rot, trans]``) of ``T_Ai_Aj`` at the current estimate,
         from the chain and the inlier loops: the odometry's accumulated uncertainty between
         the two anchors where no loop ties them yet."""
-        from slam.algorithm.loop_ambiguity import relative_pose_covariance
+        from slam.algorithm.loops.ambiguity import relative_pose_covariance
 
         marginals = gtsam.Marginals(self._inlier_graph(), self._estimate)
         joint = marginals.jointMarginalCovariance(gtsam.KeyVector([i, j])).fullMatrix()

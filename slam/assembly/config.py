@@ -14,18 +14,16 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, ValidationError, field_validator
 
+from common.config import Strict
 from frontends.odometry.kiss import KissIcpConfig
 from frontends.odometry.rgbd import RgbdOdometryConfig
 from frontends.sources._io import DepthOptions
 from mapping.config import MapConfig
-from slam.algorithm.config import (
-    LoopClosureConfig,
-    PipelineConfig,
-    PoseGraphConfig,
-    RemapConfig,
-    Strict,
-    SubmapConfig,
-)
+from slam.algorithm.config import PipelineConfig
+from slam.algorithm.graph.config import PoseGraphConfig
+from slam.algorithm.loops.config import LoopClosureConfig
+from slam.algorithm.remap import RemapConfig
+from slam.algorithm.submaps import SubmapConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
