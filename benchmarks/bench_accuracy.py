@@ -32,9 +32,10 @@ from typing import Any
 import numpy as np
 
 from benchmarks.harness.checkout import checkout
-from benchmarks.harness.child import in_child
+from benchmarks.harness.child import UnsupportedRevision, in_child
 from benchmarks.harness.machine import git_revision, machine_line
 from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
+from benchmarks.harness.repeat import repeat_runs, repeats_line
 from common.atomic_io import write_text_atomic
 from slam.assembly.config import merge_overrides
 
@@ -54,11 +55,8 @@ def _per_axis_ate(est: np.ndarray, gt: np.ndarray) -> list[float]:
 def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth: np.ndarray):
     """Fraction of keyframe ``a``'s depth that agrees (3 cm) with keyframe ``b``'s, moved by the
     loop edge and by the ground truth: a check of the ground truth that needs no ground truth."""
-    try:
-        from slam.algorithm.loops.keyframes import depth_agreement
-        from slam.algorithm.loops.rgbd import RgbdVerifier
-    except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
-        return None, None
+    from slam.algorithm.loops.keyframes import depth_agreement
+    from slam.algorithm.loops.rgbd import RgbdVerifier
 
     verifier = RgbdVerifier(pipeline.cfg.loop_closure.rgbd)
     fa, fb = verifier.features(source[a]), verifier.features(source[b])
@@ -76,11 +74,8 @@ def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[s
     more consistent with the sensor. Reported for the ground truth, the odometry and the SLAM
     poses, so that a trajectory error against the ground truth can be put into proportion.
     """
-    try:
-        from slam.algorithm.loops.keyframes import depth_agreement
-        from slam.algorithm.loops.rgbd import RgbdVerifier
-    except ImportError:  # an older checkout (the "before" runs) has no depth_agreement
-        return None
+    from slam.algorithm.loops.keyframes import depth_agreement
+    from slam.algorithm.loops.rgbd import RgbdVerifier
 
     verifier = RgbdVerifier(pipeline.cfg.loop_closure.rgbd)
     sets = {"gt": gt, "odometry": pipeline.odometry_poses(), "slam": pipeline.slam_poses()}
@@ -235,9 +230,7 @@ def _run(
     wall = time.perf_counter() - start
     out = _summary(pipeline, wall, source.gt_poses, source, diagnose)
     if source.sensor == "rgbd":
-        consistency = _pose_consistency(pipeline, source, source.gt_poses)
-        if consistency is not None:
-            out["pose_consistency"] = consistency
+        out["pose_consistency"] = _pose_consistency(pipeline, source, source.gt_poses)
     return out
 
 
@@ -298,6 +291,7 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
         "ground truth): median over frame pairs (k, k+20) of the fraction of frame k's depth "
         "pixels that, moved into frame k+20 by the pair's relative pose, agree with its depth "
         "within 3 cm; higher = more consistent with the sensor.",
+        repeats_line(deterministic="Accuracy is the same in every run (deterministic)."),
         "",
         "| run | label | revision | ATE odometry [cm] | ATE SLAM [cm] | SLAM per axis x / y / z "
         "[cm] | loops verified / kept | loop error median [cm / deg] | loop error max "
@@ -309,6 +303,9 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
         for label, runs in saved["runs"].items():
             r = runs.get(key)
             if r is None:
+                continue
+            if "unsupported" in r:
+                lines.append(f"| {title} | {label} | {runs['_revision']} | {r['unsupported']} |")
                 continue
             err = np.array([[e["error_m"], e["error_deg"]] for e in r["loops"]]).reshape(-1, 2)
             median = (
@@ -337,7 +334,7 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
     for key, (title, *_rest) in SCENARIOS.items():
         for label, runs in saved["runs"].items():
             r = runs.get(key)
-            if r is None:
+            if r is None or "unsupported" in r:
                 continue
             rejected = ", ".join(f"{k}: {v}" for k, v in sorted(r["rejected_by_stage"].items()))
             lines += [
@@ -422,14 +419,17 @@ def main(argv: list[str] | None = None) -> int:
                 if dataset == "7scenes" and not (DATA / "7scenes_redkitchen").is_dir():
                     log.warning("no 7-Scenes data under %s: skipped", DATA)
                     continue
-                runs[key] = r = in_child(
-                    _run,
-                    config_name,
-                    merge_overrides(overrides, args.override),
-                    dataset,
-                    args.diagnose_loops,
-                    code=code,
-                )
+                run_args = (config_name, merge_overrides(overrides, args.override), dataset)
+                try:
+                    runs[key] = r = repeat_runs(
+                        lambda code=code, run_args=run_args: in_child(
+                            _run, *run_args, args.diagnose_loops, code=code
+                        ),
+                        ("wall_s", "fps"),
+                    )
+                except UnsupportedRevision as error:
+                    runs[key] = {"unsupported": str(error)}
+                    continue
                 log.info(
                     "%s %s: ATE odometry %s cm, SLAM %s cm, loops verified/kept %d/%d, %.1f fps",
                     key,

@@ -1,4 +1,4 @@
-"""Keyframing cost per LiDAR scan: ``Keyframer.add`` on generated KITTI-00 scans (issue 11).
+"""Keyframing cost per LiDAR scan: ``Keyframer.add`` on generated KITTI-00 scans.
 
     python -m benchmarks.bench_keyframing [--frames N] [--before REV] [--quick]
 
@@ -9,8 +9,9 @@ a process with one BLAS thread, as the pipeline runs it. Reports the CPU time of
 thread (``time.thread_time``, so other processes on the machine inflate it less than wall time)
 per frame, split into frames that only accumulate and frames that also close a submap
 (compaction, normals, loop cloud), and what was closed (submaps, map points), so that two
-revisions can be checked to produce the same map. ``--before REV`` measures revision REV too,
-checked out beside this tree, in the same invocation.
+revisions can be checked to produce the same map. Each revision runs ``REPEATS`` times (its
+own process each); the timings are their median (min-max). ``--before REV`` measures revision
+REV too, checked out beside this tree, in the same invocation.
 """
 
 from __future__ import annotations
@@ -29,15 +30,17 @@ import numpy as np
 
 from benchmarks.bench_throughput import _config
 from benchmarks.harness.checkout import checkout
-from benchmarks.harness.child import in_child
+from benchmarks.harness.child import UnsupportedRevision, in_child
 from benchmarks.harness.kitti import kitti_source, window
 from benchmarks.harness.machine import machine_line
 from benchmarks.harness.paths import RESULTS_DIR
+from benchmarks.harness.repeat import repeat_runs, repeats_line
 from common.atomic_io import write_text_atomic
 
 RESULTS = RESULTS_DIR / "keyframing.json"
 REPORT = RESULTS_DIR / "keyframing.md"
 QUICK_FRAMES = 120
+TIMING_KEYS = ("cpu_ms_per_frame", "accumulate_cpu_ms_median", "close_cpu_ms_mean")
 
 log = logging.getLogger("benchmarks.bench_keyframing")
 
@@ -92,12 +95,16 @@ def write_report(saved: dict) -> None:
         f"`Keyframer.add` on {window(saved['quick']).describe(saved['frames'])} with "
         "ground-truth poses, `configs/kitti.yaml` submap settings, one thread; CPU time of that "
         "thread. *close* includes compaction, normals and the loop cloud of the closed submap.",
+        repeats_line(deterministic="Submaps and map points are the same in every run."),
         "",
         "| code | date | load | points/scan | ms/frame | accumulate median ms | close mean ms "
         "| submaps | map points |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for key, r in saved["runs"].items():
+        if "unsupported" in r:
+            lines.append(f"| {key} | {r['unsupported']} |||||||")
+            continue
         lines.append(
             f"| {key} | {r['date']} | {r['load_start']:.1f}-{r['load_end']:.1f} "
             f"| {r['points_per_frame']:.0f} | {r['cpu_ms_per_frame']:.1f} "
@@ -134,7 +141,13 @@ def main(argv: list[str] | None = None) -> int:
             codes[f"before {args.before}"] = stack.enter_context(checkout(args.before))
         codes["after"] = None
         for label, code in codes.items():
-            saved["runs"][label] = in_child(measure, args.quick, args.frames, code=code)
+            try:
+                saved["runs"][label] = repeat_runs(
+                    lambda code=code: in_child(measure, args.quick, args.frames, code=code),
+                    TIMING_KEYS,
+                )
+            except UnsupportedRevision as error:
+                saved["runs"][label] = {"unsupported": str(error)}
             log.info("%s: %s", label, saved["runs"][label])
     write_text_atomic(RESULTS, json.dumps(saved, indent=2))
     write_report(saved)

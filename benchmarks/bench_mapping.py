@@ -24,6 +24,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,6 +33,7 @@ from scipy.spatial.transform import Rotation
 
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import RESULTS_DIR
+from benchmarks.harness.repeat import REPEATS, Timing, repeats_line, timed
 from common.atomic_io import write_text_atomic
 from mapping.analytic_prior import planar_prior
 from mapping.compact_block import CompactBlock
@@ -41,6 +43,7 @@ from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.neural_map import NeuralMap, Submap
 from mapping.transform import transform_block
 from mapping.voxel_block import VoxelBlock
+from slam.evaluation.metrics.mesh import mesh_metrics
 
 log = logging.getLogger("benchmarks.bench_mapping")
 
@@ -163,17 +166,8 @@ def mesh_distance(a: trimesh.Trimesh, b: trimesh.Trimesh, samples: int) -> tuple
     """Mean distance a -> b and b -> a (metres)."""
     if len(a.faces) == 0 or len(b.faces) == 0:
         return float("inf"), float("inf")
-    try:
-        from slam.evaluation.metrics.mesh import mesh_metrics
-
-        m = mesh_metrics(a, b, num_samples=samples)
-        return m.accuracy_m, m.completion_m
-    except ImportError:
-        from scipy.spatial import cKDTree
-
-        sa, _ = trimesh.sample.sample_surface(a, samples, seed=0)
-        sb, _ = trimesh.sample.sample_surface(b, samples, seed=1)
-        return float(cKDTree(sb).query(sa)[0].mean()), float(cKDTree(sa).query(sb)[0].mean())
+    m = mesh_metrics(a, b, num_samples=samples)
+    return m.accuracy_m, m.completion_m
 
 
 def pose(axis, degrees: float, t) -> np.ndarray:
@@ -196,16 +190,24 @@ class Variant:
     table_nodes: int = 0  # mapping.encoder_table_nodes of the encoding (0: the network)
 
 
-def timed(fn, repeats: int) -> tuple[float, float]:
-    """Median wall and CPU seconds (all threads) of ``fn()`` over ``repeats`` runs (+1 warm-up)."""
-    fn()
-    wall, cpu = [], []
+def wall_cpu(fn, repeats: int) -> tuple[Timing, Timing]:
+    """Wall and CPU seconds (all threads) of ``fn()`` over ``repeats`` runs (+1 warm-up)."""
+    measured = timed(fn, repeats, warmup=True)
+    return measured["wall_s"], measured["cpu_s"]
+
+
+def cold_mesh(cfg, model, block, repeats: int) -> tuple[Timing, Timing, Any]:
+    """Wall and CPU seconds of meshing a fresh map of ``block`` from cold, ``repeats`` times
+    (each on a map built anew: a second extraction of one map is not cold); the last mesh."""
+    walls, cpus, mesh = [], [], None
     for _ in range(repeats):
+        neural_map = NeuralMap(cfg, model)
+        neural_map.fuse(fresh_submap(block))
         t, c = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - t)
-        cpu.append(time.process_time() - c)
-    return float(np.median(wall)), float(np.median(cpu))
+        mesh = neural_map.extract_mesh()
+        walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    return Timing(walls), Timing(cpus), mesh
 
 
 # ---------------------------------------------------------------------------- experiments
@@ -215,9 +217,10 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
     room = room_mesh(size)
     points, normals = sample_surface(room, density)
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
-    t = time.perf_counter()
-    base = encode_points(model, torch.from_numpy(points), torch.from_numpy(normals), V)
-    encode_s = time.perf_counter() - t
+    encoded = timed(
+        lambda: encode_points(model, torch.from_numpy(points), torch.from_numpy(normals), V)
+    )
+    base, encode_s = encoded["result"], encoded["wall_s"]
     sources = {
         (pairs, nodes): encode_points(
             model,
@@ -337,7 +340,7 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
 
 
 def speed(model, quick: bool, lines: list[str]) -> None:
-    repeats = 1 if quick else 5
+    repeats = REPEATS if quick else 5
     room = room_mesh((2.4, 2.0, 2.2) if quick else (5.0, 4.0, 2.6))
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")
     nm = NeuralMap(cfg, model)
@@ -346,7 +349,7 @@ def speed(model, quick: bool, lines: list[str]) -> None:
     keep = 10000 if quick else 30000
     frame_pts, frame_nrm, hits = depth_frame_points(room, keep=keep)
     frame_sub = nm.encode(1, frame_pts, frame_nrm, np.eye(4))
-    enc = timed(lambda: nm.encode(1, frame_pts, frame_nrm, np.eye(4)), repeats)
+    enc = wall_cpu(lambda: nm.encode(1, frame_pts, frame_nrm, np.eye(4)), repeats)
     size = (
         f"{len(frame_pts):,} points (of {hits:,} hits) -> {frame_sub.original.num_voxels:,} voxels"
     )
@@ -361,14 +364,16 @@ def speed(model, quick: bool, lines: list[str]) -> None:
         )
     )
     pts_t, nrm_t = torch.from_numpy(frame_pts), torch.from_numpy(frame_nrm)
-    enc_net = timed(
+    enc_net = wall_cpu(
         lambda: encode_points(nm.model, pts_t, nrm_t, V, jacobian_pairs_per_voxel=JACOBIAN_PAIRS),
         repeats,
     )
     rows.append(("encode, the same by the encoder network", "same", enc_net, "frames", "-"))
-    enc_all = timed(lambda: encode_points(nm.model, pts_t, nrm_t, V), repeats)
+    enc_all = wall_cpu(lambda: encode_points(nm.model, pts_t, nrm_t, V), repeats)
     rows.append(("encode, network, Jacobians from every pair", "same", enc_all, "frames", "-"))
-    enc_nj = timed(lambda: encode_points(nm.model, pts_t, nrm_t, V, with_jacobian=False), repeats)
+    enc_nj = wall_cpu(
+        lambda: encode_points(nm.model, pts_t, nrm_t, V, with_jacobian=False), repeats
+    )
     rows.append(("encode, network, latents only (no Jacobians)", "same", enc_nj, "frames", "-"))
 
     points, normals = sample_surface(room, 800 if quick else 1200, seed=1)
@@ -378,13 +383,13 @@ def speed(model, quick: bool, lines: list[str]) -> None:
     order = np.argsort(np.linalg.norm(centres - points[0], axis=1))
     sub_block = big.select(torch.from_numpy(np.sort(order[: min(2000, len(order))])))
     D = pose([0.3, -0.5, 0.8], 2.0, [0.013, -0.02, 0.004])
-    tr = timed(lambda: transform_block(sub_block, D, V), 10 * repeats)
+    tr = wall_cpu(lambda: transform_block(sub_block, D, V), 10 * repeats)
     n_sub = f"{sub_block.num_voxels:,} voxels"
     rows.append(
         ("transform + re-grid (ours: gaussian, Jacobian)", n_sub, tr, "submaps", ">= 100/s")
     )
     if not quick:
-        tr_paper = timed(
+        tr_paper = wall_cpu(
             lambda: transform_block(sub_block, D, V, weighting="uniform", use_jacobian=False),
             10 * repeats,
         )
@@ -398,19 +403,17 @@ def speed(model, quick: bool, lines: list[str]) -> None:
         big_map.fuse(moving)
         big_map.remove(moving)
 
-    fr = timed(fuse_remove, 20 * repeats)
+    fr = wall_cpu(fuse_remove, 20 * repeats)
     rows.append(
         (
             f"fuse or remove (map of {big_map.num_voxels:,} voxels)",
             n_sub,
-            (fr[0] / 2, fr[1] / 2),
+            (fr[0].scaled(0.5), fr[1].scaled(0.5)),
             "ops",
             ">= 1000/s",
         )
     )
-    t, c = time.perf_counter(), time.process_time()
-    mesh = big_map.extract_mesh()
-    mesh_t = (time.perf_counter() - t, time.process_time() - c)
+    *mesh_t, mesh = cold_mesh(cfg, model, big, repeats)
     rows.append(
         (
             f"mesh the whole map, cold (s = {cfg.mesh_subdivisions})",
@@ -422,14 +425,13 @@ def speed(model, quick: bool, lines: list[str]) -> None:
     )
     big_map.fuse(moving)
     big_map.extract_mesh()
-    t, c = time.perf_counter(), time.process_time()
-    big_map.move(moving, D)
-    big_map.extract_mesh()
-    remesh_t = (time.perf_counter() - t, time.process_time() - c)
+    remesh_t = wall_cpu(lambda: (big_map.move(moving, D), big_map.extract_mesh()), repeats)
     rows.append(("move one submap + incremental re-mesh", n_sub, remesh_t, "", "-"))
 
     lines += [
         "### Speed and memory",
+        "",
+        repeats_line(),
         "",
         "| operation | size | wall | CPU (all threads) | rate (wall) | goal |",
         "|---|---|---|---|---|---|",
@@ -459,8 +461,8 @@ def speed(model, quick: bool, lines: list[str]) -> None:
     ]
 
 
-def _fmt_s(seconds: float) -> str:
-    return f"{seconds:.2f} s" if seconds >= 1 else f"{1000 * seconds:.1f} ms"
+def _fmt_s(seconds: Timing) -> str:
+    return f"{seconds:.2f} s" if seconds >= 1 else f"{seconds.scaled(1000):.1f} ms"
 
 
 def build_parser() -> argparse.ArgumentParser:

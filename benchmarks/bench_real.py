@@ -228,7 +228,7 @@ def write_report(path: Path, results: dict, command: str) -> None:
     count = results["mulran_keyframes"]
     which = "all 331" if count == MULRAN_KEYFRAMES else f"the first {count} of 331"
     lines = [
-        *section_header("Real LiDAR scans (issue 23, item 4)", command),
+        *section_header("Real LiDAR scans", command),
         "",
         f"MulRan Riverside02: {which} Ouster OS1-64 keyframes (median 5.7 m apart, 0.1-45 m), "
         "scored against the reference poses "
@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     command = os.environ.get("BENCH_INVOKED_AS", command)
     if not (MULRAN / "scans").is_dir() or not KITTI_RAW.is_dir():
         log.warning("real scans not found under %s; bench_real skipped", DATA)
-        lines = section_header("Real LiDAR scans (issue 23, item 4)", command)
+        lines = section_header("Real LiDAR scans", command)
         write_text_atomic(
             args.out, "\n".join([*lines, "", f"Skipped: no real scans under {DATA}.", ""])
         )

@@ -1,4 +1,4 @@
-"""Issue 24's reliability cases, run as a user would, before and after the fixes.
+"""Reliability cases, run as a user would, before and after the fixes.
 
     python benchmarks/bench_reliability.py [--quick] [--before REV] [--out FILE]
 
@@ -454,7 +454,7 @@ def main(argv: list[str] | None = None) -> int:
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
                           text=True).stdout.strip()  # fmt: skip
     lines = [
-        "# Reliability cases of issue 24, before and after",
+        "# Reliability cases, before and after",
         "",
         f"`python benchmarks/bench_reliability.py{' --quick' if args.quick else ''}"
         f"{f' --before {args.before}' if args.before else ''}` at {head} (plus uncommitted "

@@ -5,12 +5,13 @@
     python -m benchmarks.bench_throughput --report-only
 
 The sequence is benchmarks.harness.kitti's generated KITTI-00 LiDAR (the full window: all 4,541
-poses, 2048 firings per revolution; ``--quick``: the first 150 scans of the quick window);
+poses, 2048 firings per revolution; ``--quick``: the first 100 scans of the quick window);
 ``--frames N`` runs the first N scans (KISS-SLAM: ``--n-scans N``). Every method runs in its own
 process, one after the other, so its peak memory is its own. Ours runs as ``slam.app.runner``
 does with ``--no-viz``: configs/kitti.yaml, the whole pipeline, the final optimisation, the final
 mesh and ``map.npz``; RSS is sampled every 1,000 frames and at the end, each sample with a
-per-object breakdown (:mod:`benchmarks.memory_breakdown`). ``--before REV`` also measures ours
+per-object breakdown (:mod:`benchmarks.memory_breakdown`). Each method runs ``REPEATS`` times;
+timings are their median (min-max), the rest is the first run's. ``--before REV`` also measures ours
 with revision REV, checked out beside this tree, in the same invocation. ``--profile`` runs ours
 under cProfile instead, with the workers inline (the same work, all on the profiled thread), and
 writes the top functions by CPU time of the process (KISS-ICP's thread pool included) to
@@ -36,11 +37,13 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.harness.checkout import checkout
-from benchmarks.harness.child import in_child
+from benchmarks.harness.child import UnsupportedRevision, in_child
 from benchmarks.harness.kitti import KITTI_POSES, have_kitti, kitti_source, window
 from benchmarks.harness.machine import machine_line
 from benchmarks.harness.paths import RESULTS_DIR
 from benchmarks.harness.reference import kiss_icp_alone, kiss_slam
+from benchmarks.harness.repeat import REPEATS, repeat_runs, restore_all
+from benchmarks.memory_breakdown import memory_breakdown, trim_mb
 from benchmarks.micro_encode import scenario_micro
 from benchmarks.throughput_report import RSS_EVERY, write_report
 from common.atomic_io import write_text_atomic
@@ -48,8 +51,10 @@ from mapping.map_io import save_map
 from slam.assembly.threads import machine_cores
 
 METHODS = ("ours", "kiss_icp", "kiss_slam", "micro", "rgbd")
-QUICK_FRAMES = 150
+QUICK_FRAMES = 100
 RESULTS = RESULTS_DIR / "throughput.json"
+TIMING_KEYS = ("wall_s", "cpu_s", "fps", "stage_s", "stage_cpu_s", "cpu_threads_s")
+"""What :func:`_measure` repeats (every method that has them); the rest is the first run's."""
 
 log = logging.getLogger("benchmarks.bench_throughput")
 
@@ -75,12 +80,8 @@ def _phase_peak() -> float:
     return peak
 
 
-def _breakdown(pipeline, baseline_mb: float) -> dict[str, float] | None:
-    """The per-object memory breakdown where this code has the module (not in old revisions)."""
-    try:
-        from benchmarks.memory_breakdown import memory_breakdown, trim_mb
-    except ImportError:
-        return None
+def _breakdown(pipeline, baseline_mb: float) -> dict[str, float]:
+    """The per-object memory breakdown, with what trimming the heap returned."""
     out = memory_breakdown(pipeline, baseline_mb)
     returned = trim_mb()
     out["trim_returned"] = float("nan") if returned is None else returned
@@ -88,12 +89,10 @@ def _breakdown(pipeline, baseline_mb: float) -> dict[str, float] | None:
 
 
 def _child_usage(odometry) -> Callable[[], Any] | None:
-    """How to read the CPU time and memory of the odometry's child process, where this code
-    runs it in one (``odometry.child_process``), else None: the run's figures must include it."""
-    try:
-        from frontends.odometry.child_process import ChildProcessOdometry
-    except ImportError:  # revisions before it
-        return None
+    """How to read the CPU time and memory of the odometry's child process where it runs in one
+    (``odometry.child_process``), else None: the run's figures must include it."""
+    from frontends.odometry.child_process import ChildProcessOdometry
+
     return odometry.usage if isinstance(odometry, ChildProcessOdometry) else None
 
 
@@ -124,16 +123,9 @@ def _config(extra: dict[str, Any] | None = None):
 
 
 def _apply_thread_budget(cfg) -> str:
-    """The run's thread budget where this code has one (issue 11), else slam.app.runner's old
-    setting."""
-    try:
-        from slam.assembly.threads import apply_thread_budget
-    except ImportError:
-        import torch
+    """Apply the run's thread budget, as ``slam.run`` does; its description."""
+    from slam.assembly.threads import apply_thread_budget
 
-        torch.set_num_threads(cfg.torch_threads)
-        kiss_threads = cfg.odometry.kiss_icp.registration.max_num_threads
-        return f"torch {cfg.torch_threads}, KISS-ICP {kiss_threads or 'all'}"
     return apply_thread_budget(cfg).describe()
 
 
@@ -334,7 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _measure(name: str, args, code: Path | None) -> dict:
     """One method in its own process; ``code``: the checkout whose ``slam`` it imports."""
     if name == "kiss_slam":
-        return scenario_kiss_slam(args.quick, args.frames, args.relief)
+        return repeat_runs(
+            lambda: scenario_kiss_slam(args.quick, args.frames, args.relief), TIMING_KEYS
+        )
     calls = {
         "ours": (
             scenario_ours,
@@ -345,17 +339,17 @@ def _measure(name: str, args, code: Path | None) -> dict:
         "rgbd": (scenario_rgbd, ()),
     }
     fn, fn_args = calls[name]
+    repeats = 1 if args.profile or name == "micro" else REPEATS  # micro repeats each call
     try:
-        return in_child(fn, *fn_args, code=code)
-    except Exception as exc:  # an old revision may lack what the scenario calls
-        log.exception("%s failed", name)
-        return {"skipped": f"failed: {exc.__class__.__name__}: {exc}"}
+        return repeat_runs(lambda: in_child(fn, *fn_args, code=code), TIMING_KEYS, repeats)
+    except UnsupportedRevision as error:
+        return {"skipped": str(error)}
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.report_only:
-        write_report(json.loads(RESULTS.read_text()))
+        write_report(restore_all(json.loads(RESULTS.read_text())))
         return 0
     if not have_kitti():
         log.error("no %s: the throughput benchmark needs KITTI 00's poses", KITTI_POSES)

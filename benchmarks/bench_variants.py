@@ -1,4 +1,4 @@
-"""LiDAR accuracy on data variants that no single generator setting defines (issue 23, item 1).
+"""LiDAR accuracy on data variants that no single generator setting defines.
 
     python -m benchmarks.bench_variants [--quick] [--variants NAME ...] [--set KEY=VALUE ...]
 
@@ -250,7 +250,7 @@ def write_report(path: Path, results: dict) -> None:
     w = window(results["quick"])
     runs = results["runs"]
     lines = [
-        "## LiDAR accuracy on data variants (issue 23)",
+        "## LiDAR accuracy on data variants",
         "",
         f"- Command: `{results['command']}`",
         f"- Date: {results['date']}",
@@ -303,7 +303,7 @@ def write_report(path: Path, results: dict) -> None:
             lines.append(f"- {label}: {name} ({abs(key(runs[name])):.2f})")
         lines += [
             "",
-            f"Targets of issue 23 per variant: z ratio <= {Z_RATIO_TARGET}, and every kept loop "
+            f"Targets per variant: z ratio <= {Z_RATIO_TARGET}, and every kept loop "
             f"within {LOOP_TARGET_M:.0f} m and {LOOP_TARGET_DEG:.0f} deg of the truth:",
             "",
         ]

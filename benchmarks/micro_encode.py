@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.harness.repeat import timed
+
 
 def scenario_micro(_: int = 0) -> dict:
     """Encode one 30k-point depth frame with Jacobians: by the encoder network over every pair
@@ -23,14 +25,9 @@ def scenario_micro(_: int = 0) -> dict:
     from mapping.networks import load_default_prior
     from mapping.neural_map import NeuralMap
 
-    def timed(fn, repeats: int = 15) -> tuple[float, float]:
-        walls, cpus = [], []
-        for _ in range(repeats):
-            t, c = time.perf_counter(), time.process_time()
-            fn()
-            walls.append(time.perf_counter() - t)
-            cpus.append(time.process_time() - c)
-        return float(np.median(walls)), float(np.median(cpus))
+    def wall_cpu(fn) -> tuple[float, float]:
+        measured = timed(fn, repeats=15)
+        return measured["wall_s"], measured["cpu_s"]
 
     def rel_errors(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Per-voxel relative difference of ``a`` to ``b``."""
@@ -45,11 +42,11 @@ def scenario_micro(_: int = 0) -> dict:
     for threads in (1, 2):
         torch.set_num_threads(threads)
         block = encode_points(model, p, n, V)
-        wall, cpu = timed(lambda: encode_points(model, p, n, V))
+        wall, cpu = wall_cpu(lambda: encode_points(model, p, n, V))
         out[f"encode_wall_s_{threads}t"], out[f"encode_cpu_s_{threads}t"] = wall, cpu
     out["encode_voxels"] = block.num_voxels
     torch.set_num_threads(1)
-    out["encode_nojac_wall_s_1t"] = timed(
+    out["encode_nojac_wall_s_1t"] = wall_cpu(
         lambda: encode_points(model, p, n, V, with_jacobian=False)
     )[0]
     cap = MapConfig().jacobian_pairs_per_voxel
@@ -60,7 +57,7 @@ def scenario_micro(_: int = 0) -> dict:
     )
     for threads in (1, 2):
         torch.set_num_threads(threads)
-        out[f"encode_capped_wall_s_{threads}t"], out[f"encode_capped_cpu_s_{threads}t"] = timed(
+        out[f"encode_capped_wall_s_{threads}t"], out[f"encode_capped_cpu_s_{threads}t"] = wall_cpu(
             lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap)
         )
     # the product's default: the encoder's latent table (built once per process, timed here)
@@ -80,7 +77,7 @@ def scenario_micro(_: int = 0) -> dict:
         out[f"encode_table_{name}_rel_diff_max"] = float(error.max())
     for threads in (1, 2):
         torch.set_num_threads(threads)
-        out[f"encode_table_wall_s_{threads}t"], out[f"encode_table_cpu_s_{threads}t"] = timed(
+        out[f"encode_table_wall_s_{threads}t"], out[f"encode_table_cpu_s_{threads}t"] = wall_cpu(
             lambda: encode_points(model, p, n, V, jacobian_pairs_per_voxel=cap, table_nodes=nodes)
         )
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=4.0, device="cpu")

@@ -10,7 +10,9 @@ times out or writes no section is reported with the tail of its log (``benchmark
 and does not stop the others. ``--before REV`` passes ``--before REV`` to the benchmarks that
 compare revisions (:data:`BEFORE_AFTER`): each checks out REV beside this tree and measures both
 in the same invocation. ``--assemble`` rebuilds ``BENCHMARKS.md`` from ``results/run_all.json``
-and the sections without running anything.
+and the sections without running anything. The report ends with a "History" section that links
+(never inlines) the archived runs of ``benchmarks/archive/``, and must stay under
+:data:`MAX_REPORT_BYTES`.
 
 ``--quick`` passes ``--quick`` to every benchmark and holds the run to a wall-clock budget
 (30 minutes by default): each benchmark may use at most twice its fair share of the time that is
@@ -32,6 +34,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from benchmarks.harness.history import history_lines
 from benchmarks.harness.machine import load_average, machine_description, now
 from benchmarks.harness.paths import REPO, RESULTS_DIR, WORK_DIR
 from common.atomic_io import write_text_atomic
@@ -42,9 +45,9 @@ BENCH_DIR = REPO / "benchmarks"
 LOG_DIR = WORK_DIR / "logs"
 STATUS_NAME = "run_all.json"
 OUTPUT_FILE = REPO / "BENCHMARKS.md"
-ARCHIVE_DIR = BENCH_DIR / "archive" / "full-runs"
-"""Full-length runs (longer than a quick invocation allows), each a section written by its own
-script; :func:`assemble` appends them after this invocation's sections, marked as such."""
+MAX_REPORT_BYTES = 60_000
+"""The assembled report's size limit: over it, :func:`assemble` says so at the top of the
+report and :func:`main` fails."""
 
 BENCHMARKS = (
     "odometry",
@@ -174,15 +177,10 @@ def header_lines(record: dict) -> list[str]:
     ]
 
 
-def assemble(
-    record: dict,
-    *,
-    results_dir: Path = RESULTS_DIR,
-    output: Path = OUTPUT_FILE,
-    archive_dir: Path | None = ARCHIVE_DIR,
-) -> Path:
+def assemble(record: dict, *, results_dir: Path = RESULTS_DIR, output: Path = OUTPUT_FILE) -> Path:
     """Write ``output`` from an invocation ``record`` and the sections in ``results_dir``, then
-    the full-length runs kept in ``archive_dir`` (see :func:`archived_lines`)."""
+    the "History" section that links the archived runs; a report over
+    :data:`MAX_REPORT_BYTES` starts with a warning (:func:`main` then fails)."""
     statuses = record.get("benchmarks", [])
     lines = header_lines(record)
     lines += ["| benchmark | status | wall time [s] | command |", "|---|---|---:|---|"]
@@ -201,36 +199,24 @@ def assemble(
             lines += ["", "```text", state["detail"].strip(), "```", ""]
         elif section.is_file():
             lines += [section.read_text().rstrip(), ""]
-    if archive_dir is not None:
-        lines += archived_lines(archive_dir)
-    write_text_atomic(output, "\n".join(lines).rstrip() + "\n")
+    lines += history_lines()
+    text = "\n".join(lines).rstrip() + "\n"
+    too_large = check_size(text)
+    if too_large:
+        text = text.replace("\n", f"\n\n**Warning: {too_large}.**\n", 1)
+    write_text_atomic(output, text)
     return output
 
 
-def archived_lines(archive_dir: Path) -> list[str]:
-    """The archived full-length sections, after a heading that says they are not this
-    invocation's: each states its own command, revision, date and machine."""
-    sections = sorted(p for p in archive_dir.glob("*.md") if p.name != "README.md")
-    if not sections:
-        return []
-    where = archive_dir.relative_to(REPO) if archive_dir.is_relative_to(REPO) else archive_dir
-    lines = [
-        '<a id="full-length-runs"></a>',
-        "",
-        "# Full-length runs (not part of the invocation above)",
-        "",
-        f"Kept in `{where}`: runs longer than a quick invocation allows, each made by the script",
-        "and command its section names, on the machine and at the revision it states.",
-        "",
-    ]
-    for path in sections:
-        text = path.read_text().rstrip()
-        if text.startswith("# "):  # every heading one level below this one
-            text = "\n".join(
-                "#" + line if line.startswith("#") else line for line in text.split("\n")
-            )
-        lines += [f'<a id="full-{path.stem}"></a>', "", text, ""]
-    return lines
+def check_size(text: str, limit: int = MAX_REPORT_BYTES) -> str | None:
+    """Why ``text`` is too large for the report, or None when it fits ``limit`` bytes."""
+    size = len(text.encode())
+    if size <= limit:
+        return None
+    return (
+        f"BENCHMARKS.md is {size / 1000:.0f} kB, over its {limit / 1000:.0f} kB limit: a "
+        "section prints too much (keep long runs in benchmarks/archive/ and link them)"
+    )
 
 
 def clear_results(results_dir: Path = RESULTS_DIR) -> None:
@@ -322,7 +308,12 @@ def main(argv: list[str] | None = None) -> int:
         finished=now(), total_seconds=round(time.time() - started, 1), load_end=load_average()
     )
     write_text_atomic(status_file, json.dumps(record, indent=2) + "\n")
-    log.info("wrote %s (%.0f s total)", assemble(record), record["total_seconds"])
+    report = assemble(record)
+    log.info("wrote %s (%.0f s total)", report, record["total_seconds"])
+    too_large = check_size(report.read_text())
+    if too_large:
+        log.error("%s", too_large)
+        return 1
     return 0 if all(s["status"] == "ok" for s in record["benchmarks"]) else 1
 
 

@@ -34,7 +34,7 @@ def _f(value, digits: int = 1) -> str:
 def write_report(saved: dict) -> None:
     results = saved["runs"]
     lines = [
-        "## LiDAR throughput (issue 11)",
+        "## LiDAR throughput",
         "",
         f"- Command: `{saved['command']}`",
         f"- Machine: {saved['machine']}",
@@ -241,7 +241,7 @@ MEMORY_PARTS = (
 
 def _cpu_floor_lines(saved: dict) -> list[str]:
     """Ours' CPU time over the machine's cores: the wall time no schedule of the same work can
-    beat, set against KISS-SLAM's wall (issue 25's target)."""
+    beat, set against KISS-SLAM's wall."""
     cores = saved.get("cores")
     if not cores:
         return []
@@ -341,7 +341,7 @@ def _per_axis_lines(results: dict) -> list[str]:
         return []
     return [
         "",
-        "Per-axis ATE [m] (x / y / z, z up; issue 12's vertical drift), where recorded:",
+        "Per-axis ATE [m] (x / y / z, z up), where recorded:",
         "",
         "| run | method | odometry x / y / z | SLAM x / y / z |",
         "|---|---|---|---|",

@@ -13,8 +13,10 @@ import pytest
 
 from benchmarks import bench_variants, run_all
 from benchmarks.harness.child import in_child_measured, run_command
+from benchmarks.harness.history import ARCHIVE_DIR, ARCHIVED, archived_files
 from benchmarks.harness.machine import git_revision, machine_description
 from benchmarks.harness.reference import kiss_slam_unavailable
+from benchmarks.harness.repeat import REPEATS, Timing, repeat_runs, restore_all, timed
 
 BENCH_DIR = Path(run_all.__file__).resolve().parent
 
@@ -90,29 +92,61 @@ def test_assembled_report_names_command_revision_and_only_this_invocations_secti
     assert "Stale prior section" not in text
 
 
-def test_archived_full_runs_follow_the_invocation_marked_as_such(tmp_path):
-    results, archive = tmp_path / "results", tmp_path / "archive"
+def test_report_links_the_archive_and_inlines_none_of_it(tmp_path):
+    results = tmp_path / "results"
     results.mkdir()
-    archive.mkdir()
     (results / "odometry.md").write_text("## Odometry\n")
-    (archive / "README.md").write_text("# why each run is kept\n")
-    (archive / "merge-full.md").write_text("## Multi-session merge\n\n- Command: `x`\n")
-    (archive / "profile.md").write_text("# Profile\n\n## after\n")
+    text = run_all.assemble(
+        _record("python -m benchmarks.run_all --quick"),
+        results_dir=results,
+        output=tmp_path / "B.md",
+    ).read_text()
+    history = text.split("## History")[1]
+    assert "## Odometry" not in history and "Full-length runs" not in text
+    for name in ARCHIVED:
+        assert f"(benchmarks/archive/{name})" in history
+    assert history.count("\n- [") == len(ARCHIVED)
+
+
+def test_history_lists_exactly_the_archived_reports():
+    assert sorted(ARCHIVED) == archived_files()
+    for name in ARCHIVED:
+        assert (ARCHIVE_DIR / name).is_file()
+
+
+def test_report_over_its_size_limit_is_flagged(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "odometry.md").write_text("## Odometry\n")
     record = _record("python -m benchmarks.run_all --quick")
-    text = run_all.assemble(
-        record, results_dir=results, output=tmp_path / "B.md", archive_dir=archive
-    ).read_text()
-    invocation, archived = text.split("# Full-length runs (not part of the invocation above)")
-    assert "## Odometry" in invocation and "Multi-session merge" not in invocation
-    assert "## Multi-session merge" in archived and "\n## Profile" in archived
-    assert "\n### after" in archived
-    assert "why each run is kept" not in text
-    empty = tmp_path / "empty"
-    empty.mkdir()
-    text = run_all.assemble(
-        record, results_dir=results, output=tmp_path / "C.md", archive_dir=empty
-    ).read_text()
-    assert "Full-length runs" not in text
+    small = run_all.assemble(record, results_dir=results, output=tmp_path / "B.md").read_text()
+    assert run_all.check_size(small) is None and "Warning" not in small
+    (results / "odometry.md").write_text("## Odometry\n" + "x" * run_all.MAX_REPORT_BYTES)
+    large = run_all.assemble(record, results_dir=results, output=tmp_path / "C.md").read_text()
+    assert run_all.check_size(large) is not None
+    assert large.splitlines()[2].startswith("**Warning: BENCHMARKS.md is")
+
+
+def test_timings_are_medians_shown_with_their_range():
+    timing = Timing([1.0, 3.0, 2.5])
+    assert timing == 2.5 and f"{timing:.1f}" == "2.5 (1.0-3.0)"
+    assert f"{timing.scaled(1000):.0f}" == "2500 (1000-3000)"
+    assert json.loads(json.dumps({"t": timing})) == {"t": 2.5}
+    runs = iter([{"wall_s": 2.0, "stage_s": {"a": 1.0}, "ate": 0.1}, {"wall_s": 1.0}])
+    calls = []
+
+    def run():
+        calls.append(1)
+        return next(runs, {"wall_s": 3.0, "stage_s": {"a": 2.0}, "ate": 0.1})
+
+    result = repeat_runs(run, ("wall_s", "stage_s", "fps"), repeats=REPEATS)
+    assert len(calls) == REPEATS >= 3 and result["repeats"] == REPEATS
+    assert f"{result['wall_s']:.0f}" == "2 (1-3)" and result["ate"] == 0.1
+    assert restore_all(json.loads(json.dumps({"run": result})))["run"]["wall_s"] == result["wall_s"]
+    skipped = repeat_runs(lambda: calls.append(1) or {"skipped": "no data"}, ("wall_s",))
+    assert skipped == {"skipped": "no data"}
+    measured = timed(lambda: 7, repeats=3, warmup=True)
+    assert measured["result"] == 7 and len(measured["wall_s"].samples) == 3
 
 
 def test_clear_results_leaves_nothing_from_an_earlier_invocation(tmp_path):

@@ -21,6 +21,11 @@ CODE_UNDER_TEST = ("slam", "frontends", "mapping", "common")
 """Top-level packages that ``code=`` swaps for a checkout's."""
 
 
+class UnsupportedRevision(RuntimeError):
+    """A checkout whose modules do not have today's layout (names, paths) cannot be measured by
+    today's benchmark code; its before/after row says so in one line."""
+
+
 @dataclass
 class Usage:
     """What a child process cost."""
@@ -58,7 +63,8 @@ def _measured(fn, args: tuple) -> tuple[Any, Usage]:
 
 def in_child_measured(fn, *args, code: Path | None = None) -> tuple[Any, Usage]:
     """``fn(*args)`` in a spawned interpreter (``code``: the checkout whose packages it
-    imports); its result and what the call cost there."""
+    imports); its result and what the call cost there. A checkout that lacks a module or name
+    the benchmark imports raises :class:`UnsupportedRevision`."""
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(
         max_workers=1,
@@ -66,7 +72,12 @@ def in_child_measured(fn, *args, code: Path | None = None) -> tuple[Any, Usage]:
         initializer=_use_code,
         initargs=(None if code is None else str(code),),
     ) as pool:
-        return pool.submit(_measured, fn, args).result()
+        try:
+            return pool.submit(_measured, fn, args).result()
+        except ImportError as error:
+            if code is None:
+                raise
+            raise UnsupportedRevision(f"unsupported: another module layout ({error})") from error
 
 
 def in_child(fn, *args, code: Path | None = None) -> Any:
