@@ -197,7 +197,7 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
         raise MapFileError(
             f"{path}: not a readable neural map file (truncated or foreign: "
-            f"{exc.__class__.__name__}); re-save the map with NeuralMap.save"
+            f"{exc.__class__.__name__}); write it again with slam.run"
         ) from exc
 
 

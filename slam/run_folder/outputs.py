@@ -148,7 +148,7 @@ class RunOutputs:
 
     def write_map(self, neural_map, submaps: Sequence, session=None) -> Path:
         """The neural map with its submaps and the run's session section
-        (:class:`~slam.algorithm.merge.session.SessionRecord`, for merging); ``NeuralMap.save``
+        (:class:`~slam.algorithm.merge.session.SessionRecord`, for merging); ``save_map``
         writes atomically."""
         path = self.path("map.npz")
         save_map(neural_map, path, list(submaps), None if session is None else session.to_arrays())
