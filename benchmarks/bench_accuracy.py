@@ -211,8 +211,9 @@ def _run(
 
     from frontends.sources import make_source
     from slam.algorithm.pipeline import SlamPipeline
-    from slam.assembly.builders import build_map, build_odometry, source_kwargs
+    from slam.assembly.builders import build_map, build_odometry
     from slam.assembly.config import default_config_path, load_run_config
+    from slam.assembly.datasets import source_kwargs
 
     torch.set_num_threads(1)
     base = {

@@ -298,7 +298,7 @@ def case_map_mode(code: Path, work: Path, base: Path) -> Outcome:
 
 def _tum_snippet(root: Path, sequence: str) -> str:
     return (
-        "from frontends.sources.base import make_source\n"
+        "from frontends.sources import make_source\n"
         f"s = make_source('tum', root={str(root)!r}, sequence={sequence!r})\n"
         "print(len(s), 'frames')"
     )

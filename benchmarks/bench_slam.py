@@ -215,8 +215,9 @@ def scenario_lidar(quick: bool, odometry_mode: str) -> dict:
 def scenario_room() -> dict:
     _child_setup()
     from frontends.sources import make_source
-    from slam.assembly.builders import build_map, build_odometry, source_kwargs
+    from slam.assembly.builders import build_map, build_odometry
     from slam.assembly.config import default_config_path, load_run_config
+    from slam.assembly.datasets import source_kwargs
     from slam.evaluation.metrics.mesh import mesh_metrics
 
     cfg = load_run_config(
@@ -272,8 +273,9 @@ def scenario_7scenes() -> dict | None:
     if not (DATA / "7scenes_redkitchen").is_dir():
         return None
     from frontends.sources import make_source
-    from slam.assembly.builders import build_odometry, source_kwargs
+    from slam.assembly.builders import build_odometry
     from slam.assembly.config import default_config_path, load_run_config
+    from slam.assembly.datasets import source_kwargs
 
     cfg = load_run_config(
         default_config_path("7scenes"),

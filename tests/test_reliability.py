@@ -20,7 +20,7 @@ import torch
 from benchmarks.harness.net import free_port, listening_addresses
 from common.atomic_io import atomic_path, write_text_atomic
 from frontends.errors import DatasetError
-from frontends.sources.base import make_source
+from frontends.sources import make_source
 from mapping.errors import MapFileError, WeightsFileError
 from mapping.map_io import load_map
 from mapping.networks import PriorModel

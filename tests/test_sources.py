@@ -12,7 +12,7 @@ import pytest
 from frontends.depth import depth_to_points
 from frontends.errors import DatasetError
 from frontends.frame import Intrinsics
-from frontends.sources.base import make_source
+from frontends.sources import make_source
 from frontends.sources.kitti import (
     camera_to_lidar_poses,
     read_kitti_bin,

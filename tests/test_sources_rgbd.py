@@ -13,8 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from frontends.errors import DatasetError
 from frontends.frame import Intrinsics
+from frontends.sources import make_source
 from frontends.sources._io import DepthOptions, associate
-from frontends.sources.base import make_source
 from frontends.sources.tum import FLIP_Y, icl_folder_candidates
 from tests.dataset_files import (
     assert_one_line_error,

@@ -1,16 +1,14 @@
-"""Source interface and registry.
+"""The source interface.
 
 A source is a random-access sequence of :class:`~frontends.frame.Frame`. Concrete sources live in
-one module each and register themselves with :func:`register_source`; ``make_source`` imports the
-modules lazily so that an unused dataset family costs nothing.
+one module each; :data:`frontends.sources.SOURCES` names them.
 """
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -21,20 +19,6 @@ from frontends.errors import DatasetError
 from frontends.frame import Frame
 
 SensorKind = Literal["lidar", "rgbd"]
-
-SOURCES: dict[str, Callable[..., Source]] = {}
-
-# name -> module that registers it (imported on first use).
-_SOURCE_MODULES: dict[str, str] = {
-    "kitti": "frontends.sources.kitti",
-    "tum": "frontends.sources.tum",
-    "icl": "frontends.sources.tum",
-    "replica": "frontends.sources.replica",
-    "7scenes": "frontends.sources.sevenscenes",
-    "generated": "frontends.sources.generated",
-    "lidar": "frontends.sources.lidar",
-}
-
 
 class Source(ABC):
     """A recorded sequence.
@@ -132,28 +116,3 @@ class Source(ABC):
     def gt_mesh_path(self) -> Path | None:
         """Ground-truth mesh in the world frame of ``gt_poses``, when the dataset has one."""
         return None
-
-
-def register_source(name: str) -> Callable[[type[Source]], type[Source]]:
-    """Class decorator adding a source to :data:`SOURCES` under ``name``."""
-
-    def wrap(cls: type[Source]) -> type[Source]:
-        SOURCES[name] = cls
-        return cls
-
-    return wrap
-
-
-def source_class(name: str) -> type[Source]:
-    """The class registered as ``name`` (imports its module)."""
-    module = _SOURCE_MODULES.get(name)
-    if module is None:
-        known = ", ".join(sorted(_SOURCE_MODULES))
-        raise DatasetError(f"unknown source '{name}'; choose one of: {known}")
-    importlib.import_module(module)
-    return SOURCES[name]
-
-
-def make_source(name: str, **kwargs) -> Source:
-    """Build the source registered as ``name`` (keyword arguments go to its constructor)."""
-    return source_class(name)(**kwargs)

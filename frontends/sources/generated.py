@@ -24,7 +24,7 @@ import numpy as np
 from common.atomic_io import write_text_atomic
 from frontends.errors import DatasetError
 from frontends.frame import Frame
-from frontends.sources.base import SensorKind, Source, register_source
+from frontends.sources.base import SensorKind, Source
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,6 @@ def _cache_key(params: dict[str, Any]) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
-@register_source("generated")
 class GeneratedSource(Source):
     """A generated LiDAR (``kind="lidar"``) or RGB-D (``kind="rgbd"``) sequence.
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from frontends.frame import Frame
 from frontends.sources._io import fail, load_table, require_dir, require_file
-from frontends.sources.base import SensorKind, Source, register_source
+from frontends.sources.base import SensorKind, Source
 
 BYTES_PER_POINT = 16  # four float32
 
@@ -74,7 +74,6 @@ def read_kitti_poses(path: Path) -> np.ndarray:
     return poses
 
 
-@register_source("kitti")
 class KittiSource(Source):
     """One KITTI odometry sequence.
 

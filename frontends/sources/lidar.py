@@ -42,7 +42,7 @@ import numpy as np
 from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.sources._io import fail, load_table, one_line, read_tum_trajectory
-from frontends.sources.base import SensorKind, Source, register_source
+from frontends.sources.base import SensorKind, Source
 from frontends.sources.pcd_folder import PcdFolder
 
 log = logging.getLogger(__name__)
@@ -240,7 +240,6 @@ def _with_field_constants(read_point_cloud):
     return read
 
 
-@register_source("lidar")
 class LidarSource(Source):
     """A LiDAR recording read by a ``kiss_icp.datasets`` dataloader (see the module docstring).
 

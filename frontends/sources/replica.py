@@ -30,7 +30,6 @@ from frontends.sources._io import (
     load_table,
     require_dir,
 )
-from frontends.sources.base import register_source
 
 REPLICA_INTRINSICS = Intrinsics(fx=600.0, fy=600.0, cx=599.5, cy=339.5, width=1200, height=680)
 """NICE-SLAM's Replica camera (as in its cam_params.json)."""
@@ -61,7 +60,6 @@ def read_cam_params(path: Path) -> tuple[Intrinsics, float]:
     return intrinsics, scale
 
 
-@register_source("replica")
 class ReplicaSource(RgbdSource):
     """One Replica scene (e.g. ``office0``) in the NICE-SLAM layout.
 

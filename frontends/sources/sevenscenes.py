@@ -32,7 +32,6 @@ from frontends.sources._io import (
     require_dir,
     require_file,
 )
-from frontends.sources.base import register_source
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +49,6 @@ def sequence_folder_name(sequence: str) -> str:
     return text
 
 
-@register_source("7scenes")
 class SevenScenesSource(RgbdSource):
     """One 7-Scenes sequence.
 

@@ -63,7 +63,6 @@ from frontends.sources._io import (
     require_dir,
     require_file,
 )
-from frontends.sources.base import register_source
 
 log = logging.getLogger(__name__)
 
@@ -282,7 +281,6 @@ def _folder_intrinsics(folder: Path) -> tuple[Intrinsics, float] | None:
     return read_intrinsics(path) if path.is_file() else None
 
 
-@register_source("tum")
 class TumSource(_PairedSource):
     """A TUM RGB-D sequence.
 
@@ -379,7 +377,6 @@ def icl_gt_candidates(sequence: str) -> list[str]:
     return names
 
 
-@register_source("icl")
 class IclSource(_PairedSource):
     """An ICL-NUIM sequence (TUM-compatible release, or the small color/depth/pose.txt layout).
 

@@ -2,83 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from frontends.odometry.base import Odometry, make_odometry
-from frontends.sources.base import Source, make_source
+from frontends.sources import Source, make_source
 from slam.assembly.config import ConfigError, RunConfig
-
-
-def frame_slice(text: str | None) -> slice | None:
-    """``"A:B[:STEP]"`` as a slice (validated by the runner), None for all frames."""
-    if text is None:
-        return None
-    parts = [int(p) if p.strip() else None for p in text.split(":")]
-    return slice(*parts)
-
-
-def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
-    """Keyword arguments of ``make_source`` for the configured dataset."""
-    src = cfg.source
-    frames = frame_slice(src.frames)
-    depth = src.depth.model_dump()
-    if src.dataset == "generated":
-        g = cfg.generated
-        kwargs: dict[str, Any] = {
-            "kind": g.kind,
-            "root": src.root,
-            "num_frames": g.num_frames,
-            "seed": g.seed,
-            "frames": frames,
-        }
-        if g.kind == "lidar":
-            kwargs.update(
-                trajectory=g.trajectory,
-                kitti_poses=g.kitti_poses,
-                kitti_calib=g.kitti_calib,
-                start=g.start,
-                step=g.step,
-                azimuth_steps=g.azimuth_steps,
-                terrain_relief_m=g.terrain_relief_m,
-                street_style=g.street_style,
-                range_noise_m=g.range_noise_m,
-                dropout=g.dropout,
-                loader_options={"max_range_m": src.kitti.max_range_m},
-            )
-        else:
-            kwargs.update(width=g.width, height=g.height, loader_options={"depth_options": depth})
-        return kwargs
-    if src.dataset == "lidar":
-        lidar = src.lidar
-        return {
-            "root": src.root,
-            "dataloader": lidar.dataloader,
-            "sequence": lidar.sequence,
-            "topic": lidar.topic,
-            "frames": frames,
-            "gt_poses": lidar.gt_poses,
-            "nominal_rate_hz": lidar.nominal_rate_hz,
-            "max_range_m": lidar.max_range_m,
-            "max_time_difference_s": src.tum.max_time_difference_s,
-        }
-    kwargs = {"root": src.root, "sequence": src.sequence, "frames": frames}
-    if src.dataset == "kitti":
-        kwargs.update(
-            correct_vertical_angle=src.kitti.correct_vertical_angle,
-            max_range_m=src.kitti.max_range_m,
-        )
-    elif src.dataset in ("tum", "icl"):
-        kwargs.update(max_difference=src.tum.max_time_difference_s, depth_options=depth)
-        if src.dataset == "tum":
-            intrinsics = src.tum.intrinsics
-            kwargs.update(
-                intrinsics=None if intrinsics is None else intrinsics.model_dump(),
-                depth_scale=src.tum.depth_scale,
-                allow_outside_paths=src.tum.allow_outside_paths,
-            )
-    else:
-        kwargs["depth_options"] = depth
-    return kwargs
+from slam.assembly.datasets import source_kwargs
 
 
 def build_source(cfg: RunConfig) -> Source:

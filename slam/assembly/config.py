@@ -17,6 +17,7 @@ from pydantic import BaseModel, Field, ValidationError, field_validator
 from common.config import Strict
 from frontends.odometry.kiss import KissIcpConfig
 from frontends.odometry.rgbd import RgbdOdometryConfig
+from frontends.sources import SOURCES
 from frontends.sources._io import DepthOptions
 from mapping.config import MapConfig
 from slam.algorithm.config import PipelineConfig
@@ -26,6 +27,9 @@ from slam.algorithm.remap import RemapConfig
 from slam.algorithm.submaps import SubmapConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+
+
+SOURCE_NAMES = ", ".join(SOURCES)
 
 
 class ConfigError(ValueError):
@@ -114,8 +118,7 @@ class SourceConfig(_Strict):
     """Which recorded sequence to read and how."""
 
     dataset: str = Field(
-        "generated",
-        description="source registry name: kitti, tum, icl, replica, 7scenes, lidar or generated",
+        "generated", description="source name, one of frontends.sources.SOURCES: " + SOURCE_NAMES
     )
     sequence: str | None = Field(
         None, description="sequence name inside the dataset root (e.g. '00', 'lr-kt3', 'seq-01')"
@@ -140,6 +143,13 @@ class SourceConfig(_Strict):
     lidar: LidarOptions = Field(
         default_factory=LidarOptions, description="options of the 'lidar' source"
     )
+
+    @field_validator("dataset")
+    @classmethod
+    def _known_source(cls, name: str) -> str:
+        if name not in SOURCES:
+            raise ValueError(f"unknown source '{name}'; choose one of: {SOURCE_NAMES}")
+        return name
 
 
 class GeneratedConfig(_Strict):

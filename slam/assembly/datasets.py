@@ -1,8 +1,19 @@
-"""The dataset names of the command line: which source and default config each one uses."""
+"""The dataset registry: every name of the command line, the source it reads, its default config,
+and the keyword arguments that source takes from a run's config.
+
+Adding a dataset family means a source module in ``frontends/sources`` (listed in
+:data:`frontends.sources.SOURCES`), its options function in :data:`SOURCE_OPTIONS`, a
+:class:`DatasetEntry` and a YAML file in ``configs/``; ``tests/test_config.py`` checks that the
+four agree.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
+
+from slam.assembly.config import RunConfig
 
 
 @dataclass(frozen=True)
@@ -30,3 +41,104 @@ DATASETS: dict[str, DatasetEntry] = {
     "lidar": DatasetEntry("lidar", "lidar", False, True, path_argument=True),
     "rgbd": DatasetEntry("tum", "tum", False, True, path_argument=True),
 }
+
+
+def frame_slice(text: str | None) -> slice | None:
+    """``"A:B[:STEP]"`` as a slice (validated by the runner), None for all frames."""
+    if text is None:
+        return None
+    parts = [int(p) if p.strip() else None for p in text.split(":")]
+    return slice(*parts)
+
+
+def _sequence_options(cfg: RunConfig) -> dict[str, Any]:
+    src = cfg.source
+    return {"root": src.root, "sequence": src.sequence, "frames": frame_slice(src.frames)}
+
+
+def _depth_options(cfg: RunConfig) -> dict[str, Any]:
+    return {**_sequence_options(cfg), "depth_options": cfg.source.depth.model_dump()}
+
+
+def _kitti_options(cfg: RunConfig) -> dict[str, Any]:
+    kitti = cfg.source.kitti
+    return {
+        **_sequence_options(cfg),
+        "correct_vertical_angle": kitti.correct_vertical_angle,
+        "max_range_m": kitti.max_range_m,
+    }
+
+
+def _icl_options(cfg: RunConfig) -> dict[str, Any]:
+    return {**_depth_options(cfg), "max_difference": cfg.source.tum.max_time_difference_s}
+
+
+def _tum_options(cfg: RunConfig) -> dict[str, Any]:
+    tum = cfg.source.tum
+    return {
+        **_icl_options(cfg),
+        "intrinsics": None if tum.intrinsics is None else tum.intrinsics.model_dump(),
+        "depth_scale": tum.depth_scale,
+        "allow_outside_paths": tum.allow_outside_paths,
+    }
+
+
+def _lidar_options(cfg: RunConfig) -> dict[str, Any]:
+    src, lidar = cfg.source, cfg.source.lidar
+    return {
+        "root": src.root,
+        "dataloader": lidar.dataloader,
+        "sequence": lidar.sequence,
+        "topic": lidar.topic,
+        "frames": frame_slice(src.frames),
+        "gt_poses": lidar.gt_poses,
+        "nominal_rate_hz": lidar.nominal_rate_hz,
+        "max_range_m": lidar.max_range_m,
+        "max_time_difference_s": src.tum.max_time_difference_s,
+    }
+
+
+def _generated_options(cfg: RunConfig) -> dict[str, Any]:
+    src, g = cfg.source, cfg.generated
+    options: dict[str, Any] = {
+        "kind": g.kind,
+        "root": src.root,
+        "num_frames": g.num_frames,
+        "seed": g.seed,
+        "frames": frame_slice(src.frames),
+    }
+    if g.kind == "rgbd":
+        loader_options = {"depth_options": src.depth.model_dump()}
+        return {**options, "width": g.width, "height": g.height, "loader_options": loader_options}
+    return {
+        **options,
+        "trajectory": g.trajectory,
+        "kitti_poses": g.kitti_poses,
+        "kitti_calib": g.kitti_calib,
+        "start": g.start,
+        "step": g.step,
+        "azimuth_steps": g.azimuth_steps,
+        "terrain_relief_m": g.terrain_relief_m,
+        "street_style": g.street_style,
+        "range_noise_m": g.range_noise_m,
+        "dropout": g.dropout,
+        "loader_options": {"max_range_m": src.kitti.max_range_m},
+    }
+
+
+SOURCE_OPTIONS: dict[str, Callable[[RunConfig], dict[str, Any]]] = {
+    "generated": _generated_options,
+    "kitti": _kitti_options,
+    "lidar": _lidar_options,
+    "tum": _tum_options,
+    "icl": _icl_options,
+    "replica": _depth_options,
+    "7scenes": _depth_options,
+}
+"""The keyword arguments of each source in :data:`frontends.sources.SOURCES`, from a run's
+config."""
+
+
+def source_kwargs(cfg: RunConfig) -> dict[str, Any]:
+    """Keyword arguments of ``make_source`` for the configured dataset."""
+    return SOURCE_OPTIONS[cfg.source.dataset](cfg)

@@ -141,7 +141,7 @@ def _to_loader_frame(cfg, poses: np.ndarray) -> np.ndarray:
     ground truth). The conversion is a reflection ``M T M``, its own inverse."""
     if cfg is None:
         return poses
-    from frontends.sources.base import source_class
+    from frontends.sources import source_class
 
     try:
         cls = source_class(cfg.source.dataset)
