@@ -1,4 +1,4 @@
-"""Compact long-term storage of a submap's encoding (DESIGN 5.1, 5.7).
+"""Compact long-term storage of a submap's encoding (docs/design.md §3.1, §3.7).
 
 A submap keeps its original encoding for life, so that encoding is where the map's bytes go. A
 :class:`CompactBlock` holds it as

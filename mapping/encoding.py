@@ -1,4 +1,4 @@
-"""Encoding points with normals onto the world voxel grid (DESIGN 5.2).
+"""Encoding points with normals onto the world voxel grid (docs/design.md §3.2).
 
 Every point belongs to its 8 nearest voxels (the voxels whose ``2V`` cube around the centre
 contains it). For voxel ``g`` the encoder sees ``r = (p - c_g) / V`` in ``[-1, 1]^3`` and the unit

@@ -1,4 +1,4 @@
-"""The point encoder as a table over its two invariants (DESIGN 5.2).
+"""The point encoder as a table over its two invariants (docs/design.md §3.2).
 
 Every channel of the encoder stays in the span of ``r`` and ``n`` (:mod:`mapping.span_encoder`)
 and the encoder is rotation equivariant, so for a unit normal ``n`` a point's latent is

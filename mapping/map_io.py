@@ -1,4 +1,4 @@
-"""Saving and loading a neural map with its submaps (DESIGN 5.7).
+"""Saving and loading a neural map with its submaps (docs/design.md §3.7).
 
 Format ``neural-remap-slam/map`` version 2: one compressed ``.npz`` (numpy zip, deflate) written
 and read with ``allow_pickle=False``, so loading never executes code. It holds what cannot be
@@ -19,7 +19,7 @@ rebuilt on load (equal to the saved one up to float32 rounding of the fusion ord
   ``latent_basis[i] @ latent_coeffs[rows]`` (channels x 3 per voxel), its Jacobians
   ``(jacobian_basis[i] * jacobian_scales[i]) @ jacobian_coeffs[rows]``.
 
-Version 3 adds an optional *session* section (DESIGN section 10): ``header["session"]`` (JSON)
+Version 3 adds an optional *session* section (docs/design.md §4): ``header["session"]`` (JSON)
 and arrays named ``session_*``, written and read opaquely here (the SLAM layer defines them; see
 ``slam.algorithm.merge.session``). Version 4 changes only that section (frames'
 anchor-relative poses as float32 quaternion and translation instead of float64 matrices).
@@ -28,8 +28,8 @@ section and refuses theirs.
 
 Files are written to a temporary file in the target folder and moved into place. The per-voxel
 arrays are written submap by submap (:class:`_Stacked`): the file is the one ``np.savez_compressed``
-writes of their concatenation, without the concatenation in memory (issue 25: that copy of every
-submap's encoding set the run's peak RSS).
+writes of their concatenation, without the concatenation in memory (that copy of every submap's
+encoding used to set a run's peak RSS).
 """
 
 from __future__ import annotations

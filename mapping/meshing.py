@@ -1,4 +1,4 @@
-"""Incremental meshing of the neural map (DESIGN 5.6).
+"""Incremental meshing of the neural map (docs/design.md §3.6).
 
 The SDF is sampled on a global lattice of spacing ``h = V / s`` (``s`` = subdivisions) with the
 blend of :mod:`mapping.field`: every decodable voxel is decoded at the lattice nodes strictly
@@ -15,7 +15,7 @@ faces (the only ones two chunks can share) are welded. A chunk whose marching cu
 out with a warning that counts them (:attr:`ChunkMesher.failed_chunks`); a chunk with no surface in
 its observed cells is simply empty.
 
-Memory (issue 25): a chunk is cached as marching cubes' float32 lattice coordinates and faces in the
+Memory: a chunk is cached as marching cubes' float32 lattice coordinates and faces in the
 smallest integer type that indexes its vertices (a third of float64 world vertices and int64
 faces; the world vertices are computed from them exactly when the mesh is assembled); the
 assembled mesh is not cached (the caller's is the only copy); and the free heap pages the batches'

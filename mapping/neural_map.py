@@ -66,7 +66,7 @@ def _model_from_config(cfg: MapConfig) -> PriorModel:
 
 
 class NeuralMap:
-    """Sparse global map of voxel latents (see :mod:`mapping` and DESIGN section 5)."""
+    """Sparse global map of voxel latents (see :mod:`mapping` and docs/design.md §3)."""
 
     def __init__(self, cfg: MapConfig, model: PriorModel | None = None) -> None:
         self.cfg = cfg

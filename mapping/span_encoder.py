@@ -1,4 +1,4 @@
-"""The point encoder evaluated exactly in the span of its input vectors (DESIGN 5.2).
+"""The point encoder evaluated exactly in the span of its input vectors (docs/design.md §3.2).
 
 A vector-neuron layer only mixes channels (VNLinear) or subtracts from a channel a multiple of a
 channel mix (VN-LeakyReLU), so every hidden channel is a combination of the input vectors (``r``

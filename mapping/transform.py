@@ -1,4 +1,5 @@
-"""SE(3) transform of a voxel block with first-order re-gridding (DESIGN 5.5, corrected paper).
+"""SE(3) transform of a voxel block with first-order re-gridding: the paper's transform, corrected
+(docs/design.md §3.5).
 
 A block encoded on the world grid is moved by ``D`` (rotation ``R``, translation ``t``):
 

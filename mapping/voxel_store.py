@@ -1,4 +1,5 @@
-"""The global sparse voxel storage with exact weighted-average fusion and removal (DESIGN 5.2).
+"""The global sparse voxel storage with exact weighted-average fusion and removal
+(docs/design.md §3.2).
 
 Rows of data (latent, weight) live in growable arrays and never move; a sorted array of packed
 int64 keys with their row numbers is the index (look-up by ``searchsorted``). Inserting ``k`` keys
@@ -15,7 +16,7 @@ that another submap still holds.
 
 The keys changed since the last :meth:`VoxelStore.take_dirty` are kept as a list of arrays, merged
 into one array of unique keys whenever the list has grown by as many keys as the larger of the
-merged array and the map (issue 25: a run that never meshes before its end would otherwise hold
+merged array and the map (a run that never meshes before its end would otherwise hold
 every fused and removed block's keys, remaps included, and concatenate them all at the end).
 """
 

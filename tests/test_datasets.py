@@ -32,7 +32,7 @@ def test_each_dataset_name_gives_arguments_its_source_accepts(name: str):
 
 
 def test_an_unknown_source_is_one_line_naming_the_choices():
-    with pytest.raises(ConfigError, match="unknown source 'kitty'.*kitti"):
+    with pytest.raises(ConfigError, match=r"unknown source 'kitty'.*kitti"):
         load_run_config(default_config_path("kitti"), {"source": {"dataset": "kitty"}})
-    with pytest.raises(Exception, match="unknown source 'kitty'"):
+    with pytest.raises(Exception, match=r"unknown source 'kitty'"):
         make_source("kitty", root=".")

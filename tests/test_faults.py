@@ -1,4 +1,4 @@
-"""Fault injection (issue 24): SIGINT, SIGTERM and SIGKILL at several points of a short demo run,
+"""Fault injection: SIGINT, SIGTERM and SIGKILL at several points of a short demo run,
 and SIGTERM during an atomic map-sized write. Afterwards every file present must be complete and
 loadable, no temporary file may remain (SIGKILL aside: nothing can clean up after it, but every
 visible file is still complete), and ``slam.eval`` must refuse the partial run.

@@ -82,10 +82,10 @@ def test_one_period_off_passes_the_score_gates_but_is_rejected_as_ambiguous(peri
 
 
 def test_a_few_metres_along_the_street_passes_the_score_gates_but_is_rejected(periodic_pair):
-    """The issue 23 start/end closure: ICP converged 3.2 m along the street and every score gate
-    passed it. Fine passes only (a proximity guess is already close), guesses 2-5 m along the
-    street: some converge a few metres off with inlier ratio, overlap and Hessian above their
-    gates; each of those is rejected as ambiguous, and nothing accepted is more than 1 m off."""
+    """A generated street's start/end closure: ICP converged 3.2 m along the street and every score
+    gate passed it. Fine passes only (a proximity guess is already close), guesses 2-5 m along the
+    street: some converge a few metres off with inlier ratio, overlap and Hessian above their gates;
+    each of those is rejected as ambiguous, and nothing accepted is more than 1 m off."""
     reference, query, T_true = periodic_pair
     fine = {**LOOP_CONFIG, "icp_scales": [1.0, 0.5]}
     unchecked = IcpVerifier(LidarLoopConfig(**fine, ambiguity_check=False))

@@ -1,4 +1,4 @@
-"""SE(3) transform + re-gridding of voxel blocks (DESIGN 5.5)."""
+"""SE(3) transform + re-gridding of voxel blocks (docs/design.md §3.5)."""
 
 from __future__ import annotations
 

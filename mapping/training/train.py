@@ -3,13 +3,13 @@
 ``python -m mapping.training.train [--config configs/train_prior.yaml] [--out DIR] [--steps N]
 [--device auto|cpu|cuda] [--resume] [--export PATH]``
 
-Conditional-neural-process style (DESIGN 5.4): per patch, the encoder sees the noisy observed
-surface points with normals and its latent is their mean; the decoder predicts (mean, sigma) of the
-SDF at the patch's samples; the loss is the Gaussian negative log-likelihood of the SDF clamped to
-``+-sdf_clamp_vu`` plus a small penalty on the latent norm. Adam with a cosine learning rate,
-atomic checkpoints every ``checkpoint_every`` steps (resumable with ``--resume``), and at the end
-``prior.pt`` (loadable with :meth:`mapping.networks.PriorModel.load`) with the held-out metric
-in its metadata.
+Conditional-neural-process style (docs/design.md §3.4): per patch, the encoder sees the noisy
+observed surface points with normals and its latent is their mean; the decoder predicts (mean,
+sigma) of the SDF at the patch's samples; the loss is the Gaussian negative log-likelihood of the
+SDF clamped to ``+-sdf_clamp_vu`` plus a small penalty on the latent norm. Adam with a cosine
+learning rate, atomic checkpoints every ``checkpoint_every`` steps (resumable with ``--resume``),
+and at the end ``prior.pt`` (loadable with :meth:`mapping.networks.PriorModel.load`) with the
+held-out metric in its metadata.
 """
 
 from __future__ import annotations

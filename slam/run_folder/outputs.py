@@ -1,7 +1,7 @@
 """The run folder: every file a run leaves behind, written atomically (temporary file, then
 ``os.replace``) so that an interrupted run never leaves a half-written file.
 
-Layout (DESIGN.md section 7)::
+Layout::
 
     config.yaml                       the resolved configuration
     poses_odometry.{kitti,tum}.txt    odometry trajectory

@@ -2,9 +2,9 @@
 
 ICP converges to the nearest minimum of its cost. Along a street whose facades repeat (a regular
 avenue, identical buildings, evenly spaced trees), or along a featureless stretch, the minimum one
-period along the street scores almost as well as the true one: the issue 23 start/end closure
-converged 3.2 m along the street with inlier ratio 0.78 and overlap 0.72, and every score gate
-passed it. Two checks guard against that:
+period along the street scores almost as well as the true one: a generated street's start/end
+closure converged 3.2 m along the street with inlier ratio 0.78 and overlap 0.72, and every score
+gate passed it. Two checks guard against that:
 
 * :func:`find_ambiguity`: the inlier score of the aligned clouds is profiled along the street
   (the reference structure's main horizontal axis) and along the weakest direction of the ICP

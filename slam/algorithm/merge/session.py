@@ -1,5 +1,5 @@
 """A session: what a run keeps, besides its submaps' latents, so that a later merge can join it to
-other runs without the raw data (DESIGN section 10).
+other runs without the raw data (docs/design.md §4).
 
 * the pose graph: every anchor's final estimate ``T_W_A``, the odometry factors between
   consecutive anchors and the loop factors the graph kept, each with the 6x6 covariance
