@@ -91,3 +91,14 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
 def write_text_atomic(path: str | Path, text: str, encoding: str = "utf-8") -> None:
     """Write ``text`` to ``path`` atomically and durably."""
     write_bytes_atomic(path, text.encode(encoding))
+
+
+def write_problem(folder: Path) -> str | None:
+    """Why no file can be created in ``folder`` (the OS's reason), or None when one can. Tried
+    with a temporary file, not ``os.access``: root passes access checks on a read-only mount."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return None

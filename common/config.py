@@ -6,6 +6,7 @@ from pydantic import BaseModel, ConfigDict
 
 
 class Strict(BaseModel):
-    """Base of every config model: unknown keys are errors, assignments are validated."""
+    """Base of every config model: unknown keys are errors, assignments are validated, and a
+    number must be finite (``inf`` or ``nan`` is refused, naming the key)."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)

@@ -11,18 +11,23 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 class MapConfig(BaseModel):
     """Everything the neural implicit map needs besides the prior network's weights."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     voxel_size_m: float = Field(
-        0.1, gt=0.0, description="edge length V of a voxel in metres (0.1 indoors, metres outdoors)"
+        0.1,
+        ge=0.01,
+        le=100.0,
+        description="edge length V of a voxel in metres (0.1 indoors, metres outdoors; 0.01 to "
+        "100: finer voxels leave the 21-bit voxel keys within a few metres and multiply memory)",
     )
     min_points_per_voxel: int = Field(
         8,
         ge=1,
+        le=100000,
         description=(
             "encoding-time pruning: a point is encoded only if its own voxel (the one containing "
             "it) holds at least this many of the submap's points; 1 keeps every point (the paper "
-            "keeps a point when its voxel has more than 16, i.e. 17 here)"
+            "keeps a point when its voxel has more than 16, i.e. 17 here); at most 100000"
         ),
     )
     min_weight_to_decode: float = Field(
@@ -34,7 +39,10 @@ class MapConfig(BaseModel):
         ),
     )
     transform_neighbors: int = Field(
-        8, ge=1, description="K: number of nearest moved source voxels blended per target voxel"
+        8,
+        ge=1,
+        le=64,
+        description="K: number of nearest moved source voxels blended per target voxel; at most 64",
     )
     transform_use_jacobian: bool = Field(
         True,
@@ -77,36 +85,43 @@ class MapConfig(BaseModel):
     latent_rank: int = Field(
         4,
         ge=1,
+        le=64,
         description=(
             "channel-basis rank of a stored submap's latents (mapping/compact_block.py); the "
             "number of latent channels (16) or more keeps every channel. Rank 4 changed neither "
-            "mesh accuracy nor transform fidelity on the benchmark room (benchmarks/bench_mapping)"
+            "mesh accuracy nor transform fidelity on the benchmark room "
+            "(benchmarks/bench_mapping); at most 64"
         ),
     )
     jacobian_rank: int = Field(
         4,
         ge=1,
+        le=64,
         description=(
             "channel-basis rank of a stored submap's Jacobians (they only feed the transform's "
-            "first-order term); 4 matches full rank on the two-path benchmark, 2 does not"
+            "first-order term); 4 matches full rank on the two-path benchmark, 2 does not; at "
+            "most 64"
         ),
     )
     jacobian_pairs_per_voxel: int = Field(
         16,
         ge=0,
+        le=4096,
         description=(
             "a voxel's Jacobian (the transform's first-order term) is the mean of dF/dr over at "
             "most this many of its point-voxel pairs, spread over the voxel; its latent always "
             "uses every pair. The tangents cost about 4x the latent: 16 cut the encoding CPU time "
             "of a generated KITTI submap by ~40 % and of a demo RGB-D submap by ~65 %, for a "
             "transform fidelity 1.6-4 % worse on the benchmark room and an unchanged demo mesh "
-            "(BENCHMARKS.md, Mapping); 0 uses every pair"
+            "(BENCHMARKS.md, Mapping); 0 uses every pair; at most 4096"
         ),
     )
     mesh_subdivisions: int = Field(
         4,
         ge=1,
-        description="lattice cells per voxel edge for meshing (4 gives 2.5 cm at V = 0.1 m)",
+        le=16,
+        description="lattice cells per voxel edge for meshing (4 gives 2.5 cm at V = 0.1 m) (1 to "
+        "16: the lattice grows with the cube)",
     )
     mesh_max_sigma_vu: float = Field(
         0.15,
@@ -116,18 +131,21 @@ class MapConfig(BaseModel):
     mesh_chunk_voxels: int = Field(
         8,
         ge=2,
-        description="meshing chunk edge in voxels; chunk meshes are cached, re-meshed when dirty",
+        le=64,
+        description="meshing chunk edge in voxels; chunk meshes are cached, re-meshed when dirty "
+        "(2 to 64)",
     )
     encoder_table_nodes: int = Field(
         256,
         ge=0,
+        le=2048,
         description=(
             "per-point latents are looked up in a table of the prior's encoder over its two "
             "invariants (r . n, |r_perp|) with this many nodes per axis, built once per process "
             "(about 0.1 s at 256), instead of evaluating the network for every point-voxel pair: "
             "a 30k-point depth frame encodes 2x faster; its voxel latents differ from the "
             "network's by 2e-5 (median; largest 2e-4), its Jacobians by 0.3 % (median; "
-            "mapping/latent_table.py). 0 evaluates the network"
+            "mapping/latent_table.py). 0 evaluates the network; at most 2048 (4M nodes)"
         ),
     )
     device: Literal["auto", "cpu", "cuda"] = Field(

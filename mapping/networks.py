@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -215,6 +216,12 @@ class PriorModel(nn.Module):
             raise FileNotFoundError(
                 f"{path}: prior weights not found; run `python -m mapping.training.train`"
             )
+        if not zipfile.is_zipfile(path):  # torch.save writes a zip archive
+            raise WeightsFileError(
+                f"{path}: not a prior weights file (not the zip archive torch.save writes: "
+                "truncated, or another kind of file); re-create it with `python -m "
+                "mapping.training.train` or set mapping.weights_path"
+            ) from None
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
             if payload.get("format") != "neural-remap-slam/prior":
@@ -232,10 +239,8 @@ class PriorModel(nn.Module):
 
 def _weights_problem(exc: Exception) -> str:
     """What is wrong with a weights file, without torch's advice to load it unsafely."""
-    import pickle
-
     text = str(exc)
-    if isinstance(exc, pickle.UnpicklingError) or "weights_only" in text:
+    if "weights_only" in text or "Weights only load failed" in text:
         return "it holds objects other than tensors, refused because loading them could run code"
     first = text.splitlines()[0] if text else ""
     return f"{exc.__class__.__name__}: {first[:120]}" if first else exc.__class__.__name__

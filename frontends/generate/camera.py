@@ -18,7 +18,7 @@ BASE_FX, BASE_FY = 481.2, 480.0
 class RgbdCameraConfig(BaseModel):
     """Image size, depth range and noise of the simulated RGB-D camera."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     width: int = Field(640, ge=8, description="Image width in pixels.")
     height: int = Field(480, ge=8, description="Image height in pixels.")

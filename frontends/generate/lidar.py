@@ -12,7 +12,7 @@ from frontends.generate.scene import Scene
 class LidarConfig(BaseModel):
     """Scanner geometry and noise. Defaults approximate a Velodyne HDL-64E as used in KITTI."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     beams: int = Field(64, ge=1, description="Number of laser beams (rows).")
     elevation_max_deg: float = Field(2.0, description="Elevation of the highest beam, degrees.")

@@ -24,7 +24,7 @@ from frontends.odometry.base import Odometry, OdometryResult, register_odometry
 logger = logging.getLogger(__name__)
 
 
-_STRICT = ConfigDict(extra="forbid")
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class KissDataConfig(DataConfig):
@@ -34,15 +34,29 @@ class KissDataConfig(DataConfig):
 
 
 class KissMappingConfig(MappingConfig):
-    """``kiss_icp``'s ``mapping`` section; unknown keys are rejected."""
+    """``kiss_icp``'s ``mapping`` section; unknown keys are rejected, sizes bounded."""
 
     model_config = _STRICT
+
+    voxel_size: float | None = Field(
+        None, ge=0.001, description="local map voxel (m; None: max_range / 100); at least 1 mm"
+    )
+    max_points_per_voxel: int = Field(
+        20, ge=1, le=10_000, description="points kept per local map voxel (1 to 10,000)"
+    )
 
 
 class KissRegistrationConfig(RegistrationConfig):
-    """``kiss_icp``'s ``registration`` section; unknown keys are rejected."""
+    """``kiss_icp``'s ``registration`` section; unknown keys are rejected, sizes bounded."""
 
     model_config = _STRICT
+
+    max_num_iterations: int | None = Field(
+        500, ge=1, le=10_000, description="ICP iterations per scan (1 to 10,000)"
+    )
+    max_num_threads: int | None = Field(
+        0, ge=0, le=1024, description="ICP threads (0: all cores; at most 1024)"
+    )
 
 
 class KissAdaptiveThresholdConfig(AdaptiveThresholdConfig):

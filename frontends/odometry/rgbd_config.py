@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class RgbdOdometryConfig(BaseModel):
     """Options of the OpenCV RGB-D odometry front-end."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     odometry_type: Literal["rgbd", "depth", "rgb"] = Field(
         "rgbd",
@@ -65,8 +65,9 @@ class RgbdOdometryConfig(BaseModel):
     covariance_points: int = Field(
         2000,
         ge=0,
+        le=10_000_000,
         description="Points of each frame used to evaluate the registration's point-to-plane "
-        "Hessian (its covariance); 0 turns the covariance off.",
+        "Hessian (its covariance); 0 turns the covariance off.; at most 10,000,000",
     )
     covariance_max_distance_m: float = Field(
         0.05, gt=0, description="Correspondence gate of that evaluation."

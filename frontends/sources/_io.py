@@ -210,16 +210,25 @@ def frame_number(path: Path, pattern: str) -> int:
 class DepthOptions(BaseModel):
     """How depth images are lifted to points (see :func:`frontends.depth.depth_to_points`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     min_depth_m: float = Field(0.1, gt=0, description="Nearest valid depth (metres).")
     max_depth_m: float = Field(10.0, gt=0, description="Farthest valid depth (metres).")
-    stride: int = Field(1, ge=1, description="Keep every stride-th pixel in rows and columns.")
+    stride: int = Field(
+        1, ge=1, le=64, description="Keep every stride-th pixel in rows and columns.; at most 64"
+    )
     normal_step_px: int = Field(
-        2, ge=1, description="Pixel offset of the neighbours used to estimate normals."
+        2,
+        ge=1,
+        le=64,
+        description="Pixel offset of the neighbours used to estimate normals.; at most 64",
     )
     max_points: int | None = Field(
-        None, ge=1, description="Seeded random subset of at most this many points per frame."
+        None,
+        ge=1,
+        le=100_000_000,
+        description="Seeded random subset of at most this many points per frame.; at most "
+        "100,000,000",
     )
 
     @classmethod

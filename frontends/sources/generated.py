@@ -147,6 +147,9 @@ class GeneratedSource(Source):
             }
         params["version"] = GENERATOR_VERSION
         self.cache_dir = cache_root / f"{kind}-{_cache_key(params)}"
+        self._cache_setting = (
+            "--root / source.root" if root is not None else "the NEURAL_REMAP_SLAM_CACHE variable"
+        )
         self._params = params
         self._ensure_generated(workers)
         self.inner = self._open_loader(loader_options or {})
@@ -190,12 +193,19 @@ class GeneratedSource(Source):
             return
         log.info("%s: generating %s", self.name, self.sequence_dir)
         try:
-            self._generate(workers)
-        except DatasetError:
-            if not self.sequence_dir.is_dir():  # not a concurrent generation that finished first
-                raise
-        params_file = self.cache_dir / "params.json"
-        write_text_atomic(params_file, json.dumps(self._params, indent=2, sort_keys=True) + "\n")
+            try:
+                self._generate(workers)
+            except DatasetError:
+                if not self.sequence_dir.is_dir():  # not a concurrent generation finished first
+                    raise
+            params_file = self.cache_dir / "params.json"
+            text = json.dumps(self._params, indent=2, sort_keys=True) + "\n"
+            write_text_atomic(params_file, text)
+        except OSError as exc:  # a read-only cache, or a file where the cache folder should be
+            raise DatasetError(
+                f"generated data cache {self.cache_dir}: cannot write it "
+                f"({exc.strerror or exc}); set {self._cache_setting} to a writable folder"
+            ) from None
 
     def _open_loader(self, options: dict[str, Any]) -> Source:
         from frontends.sources.kitti import KittiSource

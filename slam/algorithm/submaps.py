@@ -47,7 +47,9 @@ class SubmapConfig(Strict):
     max_rotation_deg: float = Field(
         30.0, gt=0, description="close the submap when the sensor turned this much from the anchor"
     )
-    max_frames: int = Field(30, ge=1, description="close the submap after this many frames")
+    max_frames: int = Field(
+        30, ge=1, le=100_000, description="close the submap after this many frames; at most 100,000"
+    )
     max_surface_views: float | None = Field(
         None,
         gt=1.0,
@@ -63,19 +65,27 @@ class SubmapConfig(Strict):
     max_range_m: float = Field(8.0, gt=0, description="points farther from the sensor are dropped")
     map_voxel_m: float = Field(
         0.02,
-        gt=0,
-        description="points of a submap are averaged on a grid of this size before encoding",
+        ge=0.001,
+        description="points of a submap are averaged on a grid of this size before encoding (at "
+        "least 1 mm)",
     )
     loop_voxel_m: float = Field(
-        0.05, gt=0, description="grid size of the coarse submap cloud used for loop closure"
+        0.05,
+        ge=0.001,
+        description="grid size of the coarse submap cloud used for loop closure (at least 1 mm)",
     )
     compact_every_points: int = Field(
         400_000,
         ge=1000,
-        description="re-average the accumulated points once this many are buffered",
+        le=100_000_000,
+        description="re-average the accumulated points once this many are buffered; at most "
+        "100,000,000",
     )
     normal_neighbours: int = Field(
-        12, ge=4, description="neighbours of the PCA normal fit (sources without normals)"
+        12,
+        ge=4,
+        le=256,
+        description="neighbours of the PCA normal fit (sources without normals); at most 256",
     )
     normal_radius_m: float | None = Field(
         None, description="ignore normal-fit neighbours farther than this (None: no limit)"
@@ -83,7 +93,9 @@ class SubmapConfig(Strict):
     max_map_points: int | None = Field(
         None,
         ge=100,
-        description="cap on the points a submap encodes (seeded random subset; None: no cap)",
+        le=100_000_000,
+        description="cap on the points a submap encodes (seeded random subset; None: no cap); at "
+        "most 100,000,000",
     )
     keep_points: bool = Field(
         False,

@@ -24,15 +24,16 @@ import argparse
 import contextlib
 import errno
 import logging
+import os
 import signal
 import sys
-import tempfile
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
+from common.atomic_io import write_problem
 from frontends.errors import DatasetError
 from mapping.errors import MapFileError, WeightsFileError
 from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
@@ -249,16 +250,42 @@ def run_folder(cfg: RunConfig, args: argparse.Namespace) -> tuple[Path, bool]:
         ) from None
 
 
-def _require_writable(folder: Path) -> None:
-    """A probe file, not ``os.access``: root passes access checks on a read-only mount."""
-    try:
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as exc:
+def rerun_switched_off() -> bool:
+    """Rerun's documented switch ``RERUN=off`` (also 0, false, no) is set: its recording streams
+    then drop everything, and setting sinks on one fails."""
+    return os.environ.get("RERUN", "").strip().lower() in ("off", "0", "false", "no")
+
+
+def check_recording_target(cfg: RunConfig, args: argparse.Namespace) -> None:
+    """Refuse a recording file (``--rrd`` or ``viz.rrd_path``) that exists, even as a symlink
+    (a run never overwrites a file, as ``--out`` never writes into a used folder), or that
+    cannot be written, before anything is created."""
+    path = cfg.viz.rrd_path
+    if cfg.viz.mode not in ("rrd", "serve") or path is None:
+        return
+    option = "--rrd" if args.rrd is not None else "viz.rrd_path"
+    path = Path(path).expanduser()
+    if os.path.lexists(path):
+        kind = "is a symlink" if path.is_symlink() else "exists"
         raise UsageError(
-            f"--out {folder}: cannot write in this folder ({exc.strerror or exc}); pass a "
-            "writable folder"
-        ) from None
+            f"{option} {path}: {kind}; pass a new file name (a run never overwrites a file)"
+        )
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UsageError(f"{option} {path}: {parent} is not a folder; pass a writable path")
+    problem = write_problem(parent)
+    if problem is not None:
+        raise UsageError(f"{option} {path}: cannot write in {parent} ({problem}); pass another")
+
+
+def _require_writable(folder: Path) -> None:
+    problem = write_problem(folder)
+    if problem is not None:
+        raise UsageError(
+            f"--out {folder}: cannot write in this folder ({problem}); pass a writable folder"
+        )
 
 
 def _new_run_folder(cfg: RunConfig, args: argparse.Namespace) -> tuple[Path, bool]:
@@ -352,7 +379,11 @@ def _discard_empty_run(folder: Path | None, created: bool) -> None:
         return
     started = ("run.log", "config.yaml", RUN_STATUS_FILE)
     if {p.name for p in folder.iterdir()} <= set(started):
-        logging.shutdown()
+        root = logging.getLogger()  # the log file goes: a later record must not reopen it
+        for handler in list(root.handlers):
+            if isinstance(handler, logging.FileHandler):
+                root.removeHandler(handler)
+                handler.close()
         for name in started:
             (folder / name).unlink(missing_ok=True)
         with contextlib.suppress(OSError):
@@ -382,8 +413,15 @@ def _main(argv: list[str], debug: bool) -> int:
 
             previous = load_map_folder(args.map, cfg)
             continued = continued_map(previous, args.map)
+        check_recording_target(cfg, args)
         folder, created = run_folder(cfg, args)
         _setup_logging(folder / "run.log", args.verbose)
+        if cfg.viz.mode != "none" and rerun_switched_off():
+            logging.getLogger("slam.run").warning(
+                "RERUN=%s switches Rerun off: recording nothing, as with --no-viz",
+                os.environ.get("RERUN"),
+            )
+            cfg.viz.mode = "none"
         from slam.app.runner import execute
 
         metrics = execute(

@@ -29,6 +29,7 @@ it), so that a long run does not log a quadratic amount of polyline data.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from collections.abc import Sequence
@@ -42,7 +43,7 @@ from slam.algorithm.viz import Logger
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
 from slam.app.mesh_decimation import decimate_mesh
 from slam.app.recording_summary import summarize_recording
-from slam.app.web_viewer import WebViewerServer, viewer_executable
+from slam.app.web_viewer import WebViewerServer, check_serve_ports, viewer_executable
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +140,8 @@ class RerunLogger(Logger):
             )
         if up_axis not in UP_AXES:
             raise ValueError(f"up_axis must be one of {sorted(UP_AXES)}, got {up_axis!r}")
+        if serve_port is not None:  # before any sink: Rerun would serve on beside a taken port
+            check_serve_ports(serve_bind_ip, int(serve_port), int(web_port))
         self.scan_max_points = scan_max_points
         self.map_max_voxels = map_max_voxels
         self.mesh_max_faces = mesh_max_faces
@@ -361,8 +364,7 @@ class RerunLogger(Logger):
             self.log_mesh(mesh)
 
     def log_mesh(self, mesh: trimesh.Trimesh) -> None:
-        """Log ``mesh`` at ``world/map/mesh`` (also called by :meth:`log_map`), decimated by
-        vertex clustering to at most ``mesh_max_faces`` faces."""
+        """``mesh`` at ``world/map/mesh``, vertex-clustered to at most ``mesh_max_faces`` faces."""
         self._log_mesh("world/map/mesh", mesh, (200, 200, 210, 255))
 
     def log_stored_map(self, mesh_path: Path) -> None:
@@ -422,12 +424,11 @@ class RerunLogger(Logger):
         self._closed = True
         for name, positions in list(self._trajectory_pending.items()):
             self._log_trajectory_now(name, positions)
-        try:
-            self.rec.flush()
-            self.rec.disconnect()
-        finally:
+        with contextlib.ExitStack() as stack:  # each step even when an earlier one failed
             if self._web_viewer is not None:
-                self._web_viewer.close()
+                stack.callback(self._web_viewer.close)
+            stack.callback(self.rec.disconnect)  # else Rerun retries a dead sink at exit
+            self.rec.flush()
 
     def __enter__(self) -> RerunLogger:
         return self

@@ -15,11 +15,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from frontends.errors import DatasetError
 from slam.app.signals import Terminated
 from slam.app.summary import summary_lines
 from slam.assembly.config import RunConfig
 from slam.assembly.datasets import DatasetEntry
+from slam.run_folder.outputs import KittiRows
 
 logger = logging.getLogger("slam.run")
 
@@ -155,11 +158,14 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     recorder = make_recorder(pipeline, viz, cfg.viz)
     logger.info("%s: %d frames, sensor %s", source.name, len(source), sensor)
 
+    kitti_rows: list[int] = []  # position in the sequence of each processed frame
+
     def write_poses() -> None:
         outputs.write_poses(
             source.to_dataset_frame(pipeline.odometry_poses()),
             source.to_dataset_frame(pipeline.slam_poses()),
             pipeline.timestamps(),
+            KittiRows(np.asarray(kitti_rows), state.frames_done),
         )
 
     bar = None
@@ -182,6 +188,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
                     cfg.source.min_points,
                 )
                 continue
+            kitti_rows.append(state.frames_done - 1)
             result = pipeline.process(frame)
             recorder.frame(frame, result)
             if result.relocalised is not None:
@@ -204,7 +211,8 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
                 )
         if len(skipped) == state.frames_total:
             raise DatasetError(
-                f"{cfg.source.root}: no usable frame, all {len(skipped)} have fewer than "
+                f"{cfg.source.root or source.name}: no usable frame, all {len(skipped)} have "
+                "fewer than "
                 f"{cfg.source.min_points} points (empty or truncated files?); check the recording"
             )
         if bar is not None:
@@ -222,7 +230,11 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         outputs.write_mesh(mesh)
     gt = pipeline.gt_poses()
     if gt is not None and len(gt):
-        outputs.write_ground_truth(source.to_dataset_frame(gt), pipeline.timestamps())
+        outputs.write_ground_truth(
+            source.to_dataset_frame(gt),
+            pipeline.timestamps(),
+            KittiRows(np.asarray(kitti_rows), state.frames_done),
+        )
     if cfg.output.write_map:
         from slam.algorithm.merge.session import session_from_pipeline
 

@@ -4,12 +4,19 @@ rerun-sdk 0.41's ``rr.serve_web_viewer`` takes no bind address and listens on ev
 (``0.0.0.0``), although the gRPC data server beside it is bound to ``viz.serve_bind_ip``. The
 ``rerun`` command shipped with the SDK does take one (``--bind``), and with a gRPC URL argument it
 serves only the page, which connects to that URL. :class:`WebViewerServer` runs it as a child
-process for the life of the run, so the page listens only on the configured address.
+process for the life of the run, so the page listens only on the configured address. On Linux the
+child gets SIGTERM when the run's process dies, even by SIGKILL or the OOM killer
+(``PR_SET_PDEATHSIG``), so no orphaned server keeps the port.
+
+:func:`check_bindable` probes both ports before either server starts: a taken port or an address
+that is not this machine's is one line naming the setting to change.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import os
 import shutil
 import signal
@@ -46,6 +53,61 @@ def _listening(host: str, port: int) -> bool:
         return sock.connect_ex((probe, port)) == 0
 
 
+def check_bindable(bind_ip: str, port: int, setting: str) -> None:
+    """Raise a one-line ``OSError`` naming ``setting`` when ``bind_ip:port`` cannot be listened
+    on: the port is taken, or the address is not one of this machine's."""
+    family = socket.AF_INET6 if ":" in bind_ip else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers do: TIME_WAIT
+        try:
+            sock.bind((bind_ip, port))
+        except socket.gaierror:
+            raise OSError(
+                f"viz.serve_bind_ip {bind_ip}: not an IP address; pass one of this machine's, "
+                "e.g. 127.0.0.1"
+            ) from None
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise OSError(
+                    f"{setting} {port}: already in use on {bind_ip} (another viewer or run?); "
+                    f"pass --set {setting}=PORT"
+                ) from None
+            if exc.errno == errno.EADDRNOTAVAIL:
+                raise OSError(
+                    f"viz.serve_bind_ip {bind_ip}: not an address of this machine; pass one of "
+                    "its own, e.g. 127.0.0.1 (reach it through an SSH port forward)"
+                ) from None
+            raise OSError(
+                f"{setting} {port}: cannot listen on {bind_ip} ({exc.strerror or exc}); pass "
+                f"--set {setting}=PORT"
+            ) from None
+
+
+def check_serve_ports(bind_ip: str, grpc_port: int, web_port: int) -> None:
+    """:func:`check_bindable` for both servers of ``viz.mode: serve``."""
+    check_bindable(bind_ip, grpc_port, "viz.serve_grpc_port")
+    check_bindable(bind_ip, web_port, "viz.serve_web_port")
+
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(parent_pid: int):
+    """``preexec_fn`` of the server: SIGTERM it when the process that started it dies (Linux;
+    elsewhere nothing). Also ends it at once when that parent is already gone."""
+
+    def preexec() -> None:
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        except (OSError, AttributeError):
+            return
+        if os.getppid() != parent_pid:  # died between fork and prctl
+            os._exit(1)
+
+    return preexec if sys.platform.startswith("linux") else None
+
+
 class WebViewerServer:
     """The web viewer page on ``http://bind_ip:web_port``, connecting to ``grpc_uri``."""
 
@@ -53,11 +115,7 @@ class WebViewerServer:
         executable = _rerun_binary()
         if executable is None:
             raise RuntimeError("the 'rerun' command of rerun-sdk is not installed; reinstall it")
-        if _listening(bind_ip, web_port):
-            raise OSError(
-                f"viz.serve_web_port {web_port}: already in use on {bind_ip}; pass "
-                "--set viz.serve_web_port=PORT"
-            )
+        check_bindable(bind_ip, web_port, "viz.serve_web_port")
         self.url = f"http://{bind_ip}:{web_port}/?url={quote(grpc_uri, safe='')}"
         self._process = subprocess.Popen(
             [
@@ -73,6 +131,7 @@ class WebViewerServer:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             start_new_session=True,  # its own process group: close() stops all of it
+            preexec_fn=_die_with_parent(os.getpid()),
         )
         deadline = time.monotonic() + timeout_s
         while not _listening(bind_ip, web_port):

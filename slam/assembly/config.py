@@ -57,8 +57,8 @@ class CameraIntrinsics(_Strict):
     fy: float = Field(gt=0, description="focal length along y (pixels)")
     cx: float = Field(description="principal point x (pixels)")
     cy: float = Field(description="principal point y (pixels)")
-    width: int = Field(640, ge=1, description="image width (pixels)")
-    height: int = Field(480, ge=1, description="image height (pixels)")
+    width: int = Field(640, ge=1, le=16384, description="image width (pixels) (1 to 16384)")
+    height: int = Field(480, ge=1, le=16384, description="image height (pixels) (1 to 16384)")
 
 
 class TumOptions(_Strict):
@@ -156,7 +156,7 @@ class GeneratedConfig(_Strict):
     """A generated sequence (used when ``source.dataset`` is ``generated``)."""
 
     kind: Literal["lidar", "rgbd"] = Field("rgbd", description="sensor of the generated sequence")
-    num_frames: int = Field(240, ge=2, description="number of frames to generate")
+    num_frames: int = Field(240, ge=2, le=5000, description="frames to generate (2 to 5000)")
     seed: int = Field(0, description="random seed of the scene and the sensor noise")
     trajectory: Literal["loop", "kitti"] = Field(
         "loop",
@@ -169,18 +169,19 @@ class GeneratedConfig(_Strict):
         None, description="LiDAR 'kitti' trajectory: its sequences/NN/calib.txt"
     )
     start: int = Field(0, ge=0, description="LiDAR 'kitti' trajectory: first frame")
-    step: int = Field(1, ge=1, description="LiDAR 'kitti' trajectory: frame step")
+    step: int = Field(1, ge=1, le=1000, description="LiDAR 'kitti' trajectory: step, <= 1000")
     azimuth_steps: int = Field(
-        2048, ge=64, description="LiDAR firings per revolution (2048 ~ HDL-64E)"
+        2048, ge=64, le=16384, description="LiDAR firings per revolution (2048 ~ HDL-64E; <= 16384)"
     )
     terrain_relief_m: float = Field(
         0.0,
         ge=0,
+        le=1000,
         description=(
             "LiDAR street: height (m) of the hills that rise beside the road, from 7 m off the "
             "path to full height 25 m off it. The road always follows the trajectory's own "
             "elevation (the real KITTI profile for 'kitti'); 0 keeps the ground beside it level "
-            "with the road"
+            "with the road; at most 1000 m"
         ),
     )
     street_style: Literal["standard", "sparse", "periodic"] = Field(
@@ -195,8 +196,8 @@ class GeneratedConfig(_Strict):
     dropout: float = Field(
         0.02, ge=0, lt=1, description="LiDAR: probability that a valid return is lost"
     )
-    width: int = Field(640, ge=32, description="RGB-D image width")
-    height: int = Field(480, ge=32, description="RGB-D image height")
+    width: int = Field(640, ge=32, le=4096, description="RGB-D image width (32 to 4096)")
+    height: int = Field(480, ge=32, le=4096, description="RGB-D image height (32 to 4096)")
 
 
 class OdometryConfig(_Strict):
@@ -214,10 +215,12 @@ class OdometryConfig(_Strict):
     kiss_icp_start_scans: int = Field(
         8,
         ge=0,
+        le=1000,
         description="kiss-icp: register this many scans after the first to their predecessor by "
         "point-to-plane ICP before KISS-ICP takes over: KISS-ICP starts from rest and cannot "
         "see motion along blank walls (frontends/odometry/kiss.py; 30 scans of the generated "
-        "sparse street: along-track error 13.8 m alone, 1.4 m with 4, 0.8 m with 8); 0: off",
+        "sparse street: along-track error 13.8 m alone, 1.4 m with 4, 0.8 m with 8); 0: off; at "
+        "most 1000",
     )
     child_process: bool = Field(
         True,
@@ -276,8 +279,9 @@ class OutputConfig(_Strict):
     mesh_samples: int = Field(
         100_000,
         ge=0,
+        le=10_000_000,
         description="surface samples per mesh for mesh accuracy/completion; 0: the run does not "
-        "score its mesh (python -m slam.eval scores it later, with 100,000)",
+        "score its mesh (python -m slam.eval scores it later, with 100,000); at most 10,000,000",
     )
 
     @field_validator("mesh_samples")
@@ -308,9 +312,10 @@ class RunConfig(_Strict):
     threads: int = Field(
         0,
         ge=0,
+        le=1024,
         description="CPU thread budget of the run (0 = the machine's cores): KISS-ICP and OpenCV "
         "get all of it, torch all but one when map_worker is on, numpy/scipy BLAS one "
-        "(slam/threads.py; idle pool threads spin, so oversubscribed pools thrash)",
+        "(slam/threads.py; idle pool threads spin, so oversubscribed pools thrash); at most 1024",
     )
     map_worker: bool = Field(
         True,

@@ -46,6 +46,7 @@ mesh coloured by its error and a shaded snapshot of the mesh, rendered offscreen
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
 import math
@@ -56,8 +57,9 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from common.atomic_io import write_problem
 from frontends.errors import DatasetError
-from slam.evaluation.run_metrics import observed_face_mask
+from slam.evaluation.run_metrics import CullDistanceTooSmall, observed_face_mask
 from slam.evaluation.run_plots import draw_plots
 from slam.evaluation.summary import length, mesh_lines
 from slam.run_folder.reader import (
@@ -121,18 +123,21 @@ def mesh_section(
             distance_m = cull_distance_m if cull_distance_m is not None else voxel_size_m
 
     scored = np.isfinite(gt.poses).all(axis=(1, 2))
-    sections = mesh_sections(
-        mesh,
-        gt.mesh_path,
-        T_gt_W,
-        num_samples,
-        gt.poses[scored],
-        observed_points_W=observed,
-        cull_distance_m=distance_m,
-        cameras=cameras,
-        lidar_range_m=None if cameras is not None else lidar_range_m,
-        observe=culling == "observed",
-    )
+    try:
+        sections = mesh_sections(
+            mesh,
+            gt.mesh_path,
+            T_gt_W,
+            num_samples,
+            gt.poses[scored],
+            observed_points_W=observed,
+            cull_distance_m=distance_m,
+            cameras=cameras,
+            lidar_range_m=None if cameras is not None else lidar_range_m,
+            observe=culling == "observed",
+        )
+    except CullDistanceTooSmall as exc:
+        raise EvalError(f"--cull-distance-m: {exc}") from None
     if culling == "observed" and "mesh_unculled" not in sections:
         raise EvalError(
             f"{run_dir}: no ground-truth face lies within {distance_m} m of the map; the run's "
@@ -166,6 +171,10 @@ def evaluate_run(
     if not run_dir.is_dir():
         raise EvalError(f"{run_dir}: run folder not found; pass the folder a run wrote")
     check_run_finished(run_dir)
+    if write or make_plots:
+        _require_writable(run_dir, f"{run_dir}: cannot write in the run folder")
+    if figures_dir is not None:
+        _require_writable(Path(figures_dir), f"--figures {figures_dir}: cannot write there")
     metrics_path = run_dir / "metrics.json"
     run_metrics: dict[str, Any] = {}
     if metrics_path.is_file():
@@ -200,7 +209,9 @@ def evaluate_run(
     mesh = None
     mesh_file = run_dir / "mesh.ply"
     if mesh_file.is_file():
-        mesh = trimesh.load(mesh_file, force="mesh", process=False)
+        mesh = read_mesh(mesh_file, "re-run to write the mesh again")
+    if gt.mesh_path is not None and mesh is not None and gt.poses is not None:
+        read_mesh(Path(gt.mesh_path), "pass a PLY/OBJ mesh with --gt-mesh")
     gt_mesh, mask = None, None
     if mesh is not None and gt.mesh_path is not None and gt.poses is not None:
         if num_samples is None:
@@ -222,6 +233,8 @@ def evaluate_run(
                     cfg.submaps.max_range_m if cfg is not None and gt.sensor == "lidar" else None
                 ),
             )
+        except EvalError:
+            raise
         except ValueError as exc:
             logger.warning("mesh metrics skipped: %s", exc)
         else:
@@ -255,6 +268,42 @@ def evaluate_run(
     return metrics
 
 
+def read_mesh(path: Path, fix: str) -> trimesh.Trimesh:
+    """A mesh file with faces, else one :class:`EvalError` line naming it and ``fix`` (trimesh's
+    readers raise anything from ``ValueError`` to ``struct.error`` on a corrupt file)."""
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise EvalError(f"{path}: not a readable mesh ({reason}); {fix}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise EvalError(f"{path}: holds no triangles; {fix}")
+    return mesh
+
+
+def _require_writable(folder: Path, what: str) -> None:
+    """Refuse a folder the evaluation could not write into before computing anything."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        problem: str | None = exc.strerror or str(exc)
+    else:
+        problem = write_problem(folder)
+    if problem is not None:
+        raise EvalError(f"{what} ({problem}); copy the run folder to a writable disk")
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in text:
+        text = f"{exc.filename}: {text}"
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        text += "; free some space"
+    elif isinstance(exc, OSError) and exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        text += "; copy the run folder to a writable disk"
+    return text
+
+
 def _relative(path: Path, run_dir: Path) -> str:
     try:
         return str(Path(path).relative_to(run_dir))
@@ -284,8 +333,40 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     return lines
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse whose errors are one ``error:`` line (exit status 2), as ``slam.run``'s."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        print(f"error: {message} (see python -m slam.eval --help)", file=sys.stderr)
+        sys.exit(2)
+
+
+MAX_SAMPLES = 10_000_000
+"""``--samples`` bound, as ``output.mesh_samples``'s (about 1 GB of distances per mesh)."""
+
+
+def _samples(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number, e.g. 200000") from None
+    if not 1000 <= value <= MAX_SAMPLES:
+        raise argparse.ArgumentTypeError(f"{text}: pass 1000 to {MAX_SAMPLES:,} samples")
+    return value
+
+
+def _distance_m(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text}: pass a positive distance in metres")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="python -m slam.eval",
         description="Recompute the metrics of a finished run and draw its plots "
         "(or: python -m slam.eval transform --help).",
@@ -308,9 +389,16 @@ def build_parser() -> argparse.ArgumentParser:
         "error, mesh snapshot) into DIR",
     )
     parser.add_argument(
-        "--cull-distance-m", type=float, help="culling distance (default: one map voxel)"
+        "--cull-distance-m",
+        type=_distance_m,
+        help="culling distance in metres, positive (default: one map voxel); one that would "
+        "subdivide the ground truth into more than 8 M faces is refused",
     )
-    parser.add_argument("--samples", type=int, help="surface samples per mesh (default: config)")
+    parser.add_argument(
+        "--samples",
+        type=_samples,
+        help=f"surface samples per mesh, 1000 to {MAX_SAMPLES:,} (default: config)",
+    )
     parser.add_argument("--no-plots", action="store_true", help="metrics only")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     return parser
@@ -336,10 +424,10 @@ def main(argv: list[str] | None = None) -> int:
             make_plots=not args.no_plots,
             figures_dir=args.figures,
         )
-    except (EvalError, DatasetError, FileNotFoundError, ValueError) as exc:
+    except (EvalError, DatasetError, OSError, ValueError) as exc:
         if args.debug:
             raise
-        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 1
     for line in summary_lines(metrics):
         print(line)

@@ -17,6 +17,7 @@ trajectory.
 from __future__ import annotations
 
 import logging
+import math
 import resource
 import sys
 from collections import Counter
@@ -160,6 +161,41 @@ def mesh_errors(
     return out
 
 
+CULL_MAX_FACES = 8_000_000
+"""Observed-surface culling subdivides the ground truth to edges of the cull distance; a distance
+that would make more faces than this is refused (8 M faces take about 3.5 GB)."""
+
+
+class CullDistanceTooSmall(ValueError):
+    """The cull distance would subdivide the ground truth into more than :data:`CULL_MAX_FACES`."""
+
+
+def subdivided_face_count(triangles: np.ndarray, distance_m: float) -> int:
+    """Faces that ``trimesh.remesh.subdivide_to_size(max_edge=distance_m, max_iter=12)`` makes of
+    ``triangles`` (F, 3, 3): each pass splits a face into 4 until its longest edge fits."""
+    edges = np.linalg.norm(triangles - np.roll(triangles, 1, axis=1), axis=2).max(axis=1)
+    with np.errstate(divide="ignore"):
+        passes = np.ceil(np.log2(np.maximum(edges / distance_m, 1.0)))
+    return int(np.sum(4.0 ** np.clip(passes, 0, 12)))
+
+
+def check_cull_distance(triangles: np.ndarray, distance_m: float) -> None:
+    """Raise :class:`CullDistanceTooSmall` (naming the smallest distance that fits) when culling
+    at ``distance_m`` would make more than :data:`CULL_MAX_FACES` faces."""
+    if not (math.isfinite(distance_m) and distance_m > 0):
+        raise CullDistanceTooSmall(f"cull distance {distance_m} m: must be a positive number")
+    count = subdivided_face_count(triangles, distance_m)
+    if count <= CULL_MAX_FACES:
+        return
+    smallest = distance_m
+    while subdivided_face_count(triangles, smallest) > CULL_MAX_FACES:
+        smallest *= 2
+    raise CullDistanceTooSmall(
+        f"cull distance {distance_m:g} m would subdivide the ground truth into {count:,} faces "
+        f"(at most {CULL_MAX_FACES:,}); use at least {smallest:.3g} m"
+    )
+
+
 def observed_face_mask(
     gt_mesh: trimesh.Trimesh, observed_points: np.ndarray, distance_m: float
 ) -> tuple[trimesh.Trimesh, np.ndarray]:
@@ -179,6 +215,7 @@ def observed_face_mask(
     radius = np.linalg.norm(np.asarray(gt_mesh.triangles) - centers[:, None], axis=2).max(axis=1)
     nearest, _ = tree.query(centers, workers=-1)
     near = nearest <= distance_m + radius
+    check_cull_distance(np.asarray(gt_mesh.triangles)[near], distance_m)
     vertices, faces = trimesh.remesh.subdivide_to_size(
         gt_mesh.vertices, gt_mesh.faces[near], max_edge=distance_m, max_iter=12
     )

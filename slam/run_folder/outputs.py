@@ -21,9 +21,10 @@ import io
 import json
 import logging
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import trimesh
@@ -111,6 +112,50 @@ def read_run_status(folder: Path) -> dict[str, Any] | None:
     return status if isinstance(status, dict) else {"state": "unknown"}
 
 
+class KittiRows(NamedTuple):
+    """Where each processed frame's pose goes in the KITTI files: ``rows[i]`` is the position
+    of the i-th processed frame in the sequence, ``count`` the frames read so far."""
+
+    rows: np.ndarray
+    count: int
+
+
+def kitti_rows_filled(poses: np.ndarray, layout: KittiRows | None) -> np.ndarray:
+    """One pose per frame read for the KITTI files, which tools compare row by row: ``poses[i]``
+    goes to row ``layout.rows[i]``, and a skipped frame's row repeats the pose of the frame
+    before it (the first processed frame's for leading skipped frames). ``layout`` None:
+    ``poses`` as they are."""
+    if layout is None:
+        return poses
+    rows = np.asarray(layout.rows, dtype=np.int64)
+    source = (
+        np.searchsorted(rows, np.arange(max(layout.count, int(rows[-1]) + 1)), side="right") - 1
+    )
+    return np.asarray(poses)[np.maximum(source, 0)]
+
+
+def _rewrite_in_place(path: Path, text: str) -> bool:
+    """Overwrite an existing small file in place, for when the disk is too full for a new one (a
+    status stays within the file system block it already holds); whether it worked. Not atomic,
+    which is why it is only the fallback."""
+    data = text.encode()
+    if len(data) > 4096:
+        return False
+    try:
+        fd = os.open(path, os.O_WRONLY)
+    except OSError:
+        return False
+    try:
+        os.pwrite(fd, data, 0)
+        os.ftruncate(fd, len(data))
+        os.fsync(fd)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
 class RunOutputs:
     """Writes the files of one run folder."""
 
@@ -128,13 +173,21 @@ class RunOutputs:
     def write_config(self, cfg: RunConfig) -> None:
         write_text_atomic(self.path("config.yaml"), dump_run_config(cfg))
 
-    def write_poses(self, odometry: np.ndarray, slam: np.ndarray, timestamps: np.ndarray) -> None:
-        """Both trajectories in KITTI and TUM format."""
+    def write_poses(
+        self,
+        odometry: np.ndarray,
+        slam: np.ndarray,
+        timestamps: np.ndarray,
+        kitti_rows: KittiRows | None = None,
+    ) -> None:
+        """Both trajectories in KITTI and TUM format. ``kitti_rows``: the KITTI row of each pose
+        (its frame's position in the sequence) when frames were skipped (see
+        :func:`kitti_rows_filled`); TUM files hold the processed frames only."""
         if len(odometry) == 0:
             return
-        write_kitti(self.path("poses_odometry.kitti.txt"), odometry)
+        write_kitti(self.path("poses_odometry.kitti.txt"), kitti_rows_filled(odometry, kitti_rows))
         write_tum(self.path("poses_odometry.tum.txt"), odometry, timestamps)
-        write_kitti(self.path("poses_slam.kitti.txt"), slam)
+        write_kitti(self.path("poses_slam.kitti.txt"), kitti_rows_filled(slam, kitti_rows))
         write_tum(self.path("poses_slam.tum.txt"), slam, timestamps)
 
     def write_loops(self, candidates: Sequence[LoopCandidate]) -> None:
@@ -161,11 +214,19 @@ class RunOutputs:
         status = {"state": state, "frames_done": frames_done, "frames_total": frames_total}
         if reason:
             status["reason"] = reason
-        write_text_atomic(self.path(RUN_STATUS_FILE), json.dumps(status) + "\n")
+        text = json.dumps(status) + "\n"
+        try:
+            write_text_atomic(self.path(RUN_STATUS_FILE), text)
+        except OSError:
+            if not _rewrite_in_place(self.path(RUN_STATUS_FILE), text):
+                raise
 
-    def write_ground_truth(self, poses: np.ndarray, timestamps: np.ndarray) -> None:
-        """The ground-truth trajectory (dataset frames), kept for evaluating a later merge."""
-        write_kitti(self.path("poses_gt.kitti.txt"), poses)
+    def write_ground_truth(
+        self, poses: np.ndarray, timestamps: np.ndarray, kitti_rows: KittiRows | None = None
+    ) -> None:
+        """The ground-truth trajectory (dataset frames), kept for evaluating a later merge;
+        ``kitti_rows`` as in :meth:`write_poses`."""
+        write_kitti(self.path("poses_gt.kitti.txt"), kitti_rows_filled(poses, kitti_rows))
         write_tum(self.path("poses_gt.tum.txt"), poses, timestamps)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:

@@ -43,10 +43,14 @@ class GravityConfig(Strict):
         "scan's error into the trajectory (0.003-0.04 tried; 0.04 has the best worst-variant "
         "vertical error, benchmarks/bench_variants.py)",
     )
-    voxel_m: float = Field(0.25, gt=0, description="voxel size of the anchor scan's points")
+    voxel_m: float = Field(
+        0.25, ge=0.01, description="voxel size of the anchor scan's points (at least 1 cm)"
+    )
     min_range_m: float = Field(2.0, ge=0, description="nearer points of the anchor scan: unused")
     max_range_m: float = Field(50.0, gt=0, description="farther points of the anchor scan: unused")
-    normal_neighbours: int = Field(12, ge=5, description="neighbours of a normal's plane fit")
+    normal_neighbours: int = Field(
+        12, ge=5, le=256, description="neighbours of a normal's plane fit; at most 256"
+    )
     normal_radius_m: float = Field(1.0, gt=0, description="neighbours farther than this: unused")
 
 
@@ -108,7 +112,11 @@ class PoseGraphConfig(Strict):
         "the inlier loops (otherwise: iSAM2 with the Cauchy kernel only)",
     )
     isam2_extra_iterations: int = Field(
-        5, ge=0, description="extra iSAM2 updates after a loop edge (converges the robust kernel)"
+        5,
+        ge=0,
+        le=1000,
+        description="extra iSAM2 updates after a loop edge (converges the robust kernel); at most "
+        "1000",
     )
     final_optimizer: Literal["lm", "gnc", "none"] = Field(
         "gnc",
@@ -118,7 +126,9 @@ class PoseGraphConfig(Strict):
     gnc_inlier_probability: float = Field(
         0.99, gt=0, lt=1, description="GNC inlier threshold as a chi-square probability"
     )
-    batch_max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iterations")
+    batch_max_iterations: int = Field(
+        100, ge=1, le=10_000, description="Levenberg-Marquardt iterations; at most 10,000"
+    )
     gravity: GravityConfig = Field(
         default_factory=GravityConfig, description="up-direction factors from vertical structure"
     )

@@ -15,7 +15,10 @@ class LidarLoopConfig(Strict):
     """LiDAR loop closure: map_closures candidates verified by ICP and voxel overlap."""
 
     density_map_resolution_m: float = Field(
-        0.5, gt=0, description="map_closures BEV density image resolution"
+        0.5,
+        ge=0.01,
+        description="map_closures BEV density image resolution (at least 1 cm: the image grows "
+        "with its square)",
     )
     density_threshold: float = Field(
         0.05, ge=0, description="map_closures density threshold of an occupied BEV cell"
@@ -26,14 +29,22 @@ class LidarLoopConfig(Strict):
     inliers_threshold: int = Field(
         5, ge=3, description="minimum 2D RANSAC inliers of a map_closures candidate"
     )
-    top_k: int = Field(3, ge=1, description="map_closures candidates verified per query submap")
+    top_k: int = Field(
+        3,
+        ge=1,
+        le=100,
+        description="map_closures candidates verified per query submap; at most 100",
+    )
     proximity_radius_m: float = Field(
         0.0,
         ge=0,
         description="also verify older anchors whose estimate is this close (0: map_closures only)",
     )
     max_proximity_candidates: int = Field(
-        2, ge=1, description="nearest proximity candidates verified per query submap"
+        2,
+        ge=1,
+        le=100,
+        description="nearest proximity candidates verified per query submap; at most 100",
     )
     icp_max_correspondence_m: float = Field(2.0, gt=0, description="ICP correspondence distance")
     icp_kernel_m: float = Field(0.5, gt=0, description="ICP robust kernel scale")
@@ -72,9 +83,13 @@ class LidarLoopConfig(Strict):
         "PCA normals (gates 2, 1 and 0.5 x inlier_distance_m): KISS-ICP's point-to-point cost "
         "can settle up to 1 deg off on sparse streets (slam/algorithm/loops/lidar.py)",
     )
-    icp_max_iterations: int = Field(200, ge=1, description="ICP iterations")
+    icp_max_iterations: int = Field(
+        200, ge=1, le=10_000, description="ICP iterations; at most 10,000"
+    )
     overlap_voxel_m: float = Field(
-        1.0, gt=0, description="grid of the overlap test between the aligned submap clouds"
+        1.0,
+        ge=0.01,
+        description="grid of the overlap test between the aligned submap clouds (at least 1 cm)",
     )
     min_overlap: float = Field(
         0.4,
@@ -91,7 +106,9 @@ class LidarLoopConfig(Strict):
         description="inlier ratio and overlap count only points this far above the lowest "
         "point of their xy cell (the ground matches anywhere along a street); 0: all points",
     )
-    ground_cell_m: float = Field(4.0, gt=0, description="xy cell size of that ground estimate")
+    ground_cell_m: float = Field(
+        4.0, ge=0.01, description="xy cell size of that ground estimate (at least 1 cm)"
+    )
     min_structure_points: int = Field(
         100, ge=1, description="reject when either cloud has fewer points above the ground"
     )
@@ -134,13 +151,16 @@ class LidarLoopConfig(Strict):
         "about as well (slam/algorithm/loops/ambiguity.py)",
     )
     ambiguity_step_m: float = Field(
-        0.5, gt=0, description="grid step of the inlier-score profile along each direction"
+        0.5,
+        ge=0.01,
+        description="grid step of the inlier-score profile along each direction (at least 1 cm)",
     )
     ambiguity_max_offset_m: float = Field(
         25.0,
         gt=0,
+        le=1000,
         description="the profile reaches this far, or the RMS radius of the reference structure "
-        "when that is smaller (beyond it the clouds barely overlap)",
+        "when that is smaller (beyond it the clouds barely overlap); at most 1000 m",
     )
     ambiguity_min_separation_m: float = Field(
         1.0, gt=0, description="an alternative solution lies at least this far from the chosen one"
@@ -149,7 +169,10 @@ class LidarLoopConfig(Strict):
         2.0, gt=0, description="... or is rotated at least this much from it"
     )
     ambiguity_max_realignments: int = Field(
-        2, ge=1, description="profile peaks re-registered per accepted candidate (ICP runs)"
+        2,
+        ge=1,
+        le=100,
+        description="profile peaks re-registered per accepted candidate (ICP runs); at most 100",
     )
     ambiguity_score_ratio: float = Field(
         0.9,
@@ -173,8 +196,12 @@ class RgbdLoopConfig(Strict):
     candidate_radius_m: float = Field(
         2.0, gt=0, description="reference anchors within this distance of the query are candidates"
     )
-    max_candidates: int = Field(3, ge=1, description="best-matching candidates verified")
-    orb_features: int = Field(1000, ge=100, description="ORB features per keyframe")
+    max_candidates: int = Field(
+        3, ge=1, le=100, description="best-matching candidates verified; at most 100"
+    )
+    orb_features: int = Field(
+        1000, ge=100, le=100_000, description="ORB features per keyframe; at most 100,000"
+    )
     ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio test of ORB matches")
     min_matches: int = Field(30, ge=6, description="minimum ORB matches of a candidate")
     pnp_reprojection_px: float = Field(
@@ -217,10 +244,16 @@ class RgbdLoopConfig(Strict):
         "clouds (the edge then depends on depth only) and check that registration too",
     )
     refine_voxel_m: float = Field(
-        0.03, gt=0, description="voxel size the submap clouds are thinned to for the refinement"
+        0.03,
+        ge=0.001,
+        description="voxel size the submap clouds are thinned to for the refinement (at least 1 "
+        "mm)",
     )
     refine_max_points: int = Field(
-        8000, ge=100, description="at most this many points per cloud in the refinement"
+        8000,
+        ge=100,
+        le=10_000_000,
+        description="at most this many points per cloud in the refinement; at most 10,000,000",
     )
     refine_max_distances_m: list[float] = Field(
         default_factory=lambda: [0.1, 0.05, 0.025],
@@ -276,16 +309,25 @@ class RgbdLoopConfig(Strict):
         "instead of 1.4 s)",
     )
     keyframe_refine_voxel_m: float = Field(
-        0.01, gt=0, description="keyframe refinement: voxel size the keyframe clouds are thinned to"
+        0.01,
+        ge=0.001,
+        description="keyframe refinement: voxel size the keyframe clouds are thinned to (at least "
+        "1 mm)",
     )
     keyframe_refine_max_points: int = Field(
-        20000, ge=100, description="keyframe refinement: at most this many points per keyframe"
+        20000,
+        ge=100,
+        le=10_000_000,
+        description="keyframe refinement: at most this many points per keyframe; at most "
+        "10,000,000",
     )
     proximity_candidates: int = Field(
         2,
         ge=0,
+        le=100,
         description="also try this many nearest older anchors (within candidate_radius_m) by "
-        "dense refinement alone from their current relative estimate (0: ORB candidates only)",
+        "dense refinement alone from their current relative estimate (0: ORB candidates only); at "
+        "most 100",
     )
     proximity_max_angle_deg: float = Field(
         45.0,

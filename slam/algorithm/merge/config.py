@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class MergeConfig(BaseModel):
     """Inter-session loop search, verification on decoded surfaces, and the joint graph."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio of descriptor matches")
     min_descriptor_inliers: int = Field(
@@ -20,19 +20,28 @@ class MergeConfig(BaseModel):
     max_fits_per_submap: int = Field(
         8,
         ge=1,
+        le=1000,
         description="earlier submaps with the most ratio-test matches given a RANSAC fit, per "
-        "query submap",
+        "query submap; at most 1000",
     )
     max_candidates_per_submap: int = Field(
         3,
         ge=1,
-        description="descriptor matches per query submap tried, best first, until one verifies",
+        le=1000,
+        description="descriptor matches per query submap tried, best first, until one verifies; "
+        "at most 1000",
     )
     surface_max_points: int = Field(
-        20000, ge=100, description="decoded surface points kept per submap for verification"
+        20000,
+        ge=100,
+        le=10_000_000,
+        description="decoded surface points kept per submap for verification; at most 10,000,000",
     )
     surface_subdivisions: int = Field(
-        2, ge=1, description="lattice cells per voxel edge when decoding a submap's surface"
+        2,
+        ge=1,
+        le=16,
+        description="lattice cells per voxel edge when decoding a submap's surface (1 to 16)",
     )
     icp_gates_vu: tuple[float, ...] = Field(
         (3.0, 1.5, 0.75, 0.4, 0.25),
