@@ -14,11 +14,17 @@ class MapConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     voxel_size_m: float = Field(
-        0.1, gt=0.0, description="edge length V of a voxel in metres (0.1 indoors, metres outdoors)"
+        0.1,
+        ge=1e-3,
+        le=100.0,
+        allow_inf_nan=False,
+        description="edge length V of a voxel in metres (0.1 indoors, metres outdoors; "
+        "1 mm to 100 m)",
     )
     min_points_per_voxel: int = Field(
         8,
         ge=1,
+        le=1_000_000,
         description=(
             "encoding-time pruning: a point is encoded only if its own voxel (the one containing "
             "it) holds at least this many of the submap's points; 1 keeps every point (the paper "
@@ -28,13 +34,17 @@ class MapConfig(BaseModel):
     min_weight_to_decode: float = Field(
         8.0,
         ge=0.0,
+        allow_inf_nan=False,
         description=(
             "voxels whose weight (number of fused point-voxel associations) is below this are kept "
             "in the map but neither decoded by query_sdf nor meshed"
         ),
     )
     transform_neighbors: int = Field(
-        8, ge=1, description="K: number of nearest moved source voxels blended per target voxel"
+        8,
+        ge=1,
+        le=64,
+        description="K: number of nearest moved source voxels blended per target voxel (1-64)",
     )
     transform_use_jacobian: bool = Field(
         True,
@@ -54,6 +64,8 @@ class MapConfig(BaseModel):
     transform_sigma_vu: float = Field(
         0.5,
         gt=0.0,
+        le=10.0,
+        allow_inf_nan=False,
         description=(
             "width s (voxel units) of the 'gaussian' transform weighting; on the two-path room "
             "benchmark 0.2 is worse and 0.5-0.7 are equal within 0.005 cm"
@@ -77,6 +89,7 @@ class MapConfig(BaseModel):
     latent_rank: int = Field(
         4,
         ge=1,
+        le=4096,
         description=(
             "channel-basis rank of a stored submap's latents (mapping/compact_block.py); the "
             "number of latent channels (16) or more keeps every channel. Rank 4 changed neither "
@@ -86,6 +99,7 @@ class MapConfig(BaseModel):
     jacobian_rank: int = Field(
         4,
         ge=1,
+        le=4096,
         description=(
             "channel-basis rank of a stored submap's Jacobians (they only feed the transform's "
             "first-order term); 4 matches full rank on the two-path benchmark, 2 does not"
@@ -94,6 +108,7 @@ class MapConfig(BaseModel):
     jacobian_pairs_per_voxel: int = Field(
         16,
         ge=0,
+        le=1_000_000,
         description=(
             "a voxel's Jacobian (the transform's first-order term) is the mean of dF/dr over at "
             "most this many of its point-voxel pairs, spread over the voxel; its latent always "
@@ -106,28 +121,35 @@ class MapConfig(BaseModel):
     mesh_subdivisions: int = Field(
         4,
         ge=1,
-        description="lattice cells per voxel edge for meshing (4 gives 2.5 cm at V = 0.1 m)",
+        le=16,
+        description="lattice cells per voxel edge for meshing (4 gives 2.5 cm at V = 0.1 m; the "
+        "cost grows with its cube, so at most 16)",
     )
     mesh_max_sigma_vu: float = Field(
         0.15,
         gt=0.0,
+        allow_inf_nan=False,
         description="triangles with a vertex whose predicted SDF std. dev. (vu) is above are cut",
     )
     mesh_chunk_voxels: int = Field(
         8,
         ge=2,
-        description="meshing chunk edge in voxels; chunk meshes are cached, re-meshed when dirty",
+        le=64,
+        description="meshing chunk edge in voxels (2-64); chunk meshes are cached, re-meshed when "
+        "dirty",
     )
     encoder_table_nodes: int = Field(
         256,
         ge=0,
+        le=1024,
         description=(
             "per-point latents are looked up in a table of the prior's encoder over its two "
             "invariants (r . n, |r_perp|) with this many nodes per axis, built once per process "
             "(about 0.1 s at 256), instead of evaluating the network for every point-voxel pair: "
             "a 30k-point depth frame encodes 2x faster; its voxel latents differ from the "
             "network's by 2e-5 (median; largest 2e-4), its Jacobians by 0.3 % (median; "
-            "mapping/latent_table.py). 0 evaluates the network"
+            "mapping/latent_table.py). 0 evaluates the network; at most 1024 (the table grows "
+            "with the square)"
         ),
     )
     device: Literal["auto", "cpu", "cuda"] = Field(
