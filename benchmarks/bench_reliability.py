@@ -1,6 +1,7 @@
 """Reliability cases, run as a user would, before and after the fixes.
 
-    python benchmarks/bench_reliability.py [--quick] [--before REV] [--out FILE]
+    python benchmarks/bench_reliability.py [--quick] [--only general|maps] [--before REV]
+        [--out FILE]
 
 Each case is a command on generated data in a temporary folder (bad input, environment errors,
 signals, ``--serve``); the table records its exit code and the line that tells the user what
@@ -8,6 +9,9 @@ happened (the ``error:`` line, else the first warning, else the last line of a t
 plus what a probe saw (bound addresses, file modes, temporaries left). ``--before REV`` runs
 every case also against a ``git worktree`` checkout of REV (e.g. df1b174) with ``PYTHONPATH``
 pointing at it. ``--quick`` leaves out the cases that run the pipeline more than once.
+Cases come in groups (``--only`` runs one): ``general`` here, ``maps`` (map files from elsewhere)
+in ``benchmarks/reliability_maps.py``; each cell also gives the command's peak RSS, and a table
+per group counts one-line errors, tracebacks and cases that left files behind.
 Writes ``benchmarks/results/reliability.md``. Self-contained: standard library, numpy and cv2.
 """
 
@@ -16,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import shutil
 import signal
 import stat
@@ -26,8 +29,6 @@ import sys
 import tempfile
 import time
 import zipfile
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,57 +36,10 @@ import numpy as np
 from benchmarks.harness.checkout import checkout
 from benchmarks.harness.net import free_port, listening_addresses
 from benchmarks.harness.paths import REPO
+from benchmarks.harness.reliability import PY, Case, Outcome, message_of, outcome, run
+from benchmarks.reliability_maps import MAP_CASES
 
-PY = sys.executable
 DEMO = ["demo", "--no-progress", "--set", "output.mesh_samples=1000"]
-
-
-@dataclass
-class Outcome:
-    status: int | None
-    message: str
-    probe: str = ""
-
-
-@dataclass
-class Case:
-    number: str
-    title: str
-    command: str
-    run: Callable[[Path, Path, Path], Outcome]  # (code root, work folder, base run) -> outcome
-    quick: bool = True
-    notes: list[str] = field(default_factory=list)
-
-
-_RUST_LOG = re.compile(r"^\d{4}-\d\d-\d\dT\S+ +(ERROR|WARN|INFO)")
-_ANSI = re.compile(r"\x1b\[[0-9;]*m")
-
-
-def message_of(stderr: str, stdout: str = "") -> str:
-    """The line that tells the user what happened (Rerun's own log lines left out)."""
-    lines = [_ANSI.sub("", line).strip() for line in stderr.splitlines()]
-    lines = [line for line in lines if line and not _RUST_LOG.match(line)]
-    for prefix in ("error:", "WARNING", "warning"):
-        for line in lines:
-            if line.startswith(prefix):
-                return line
-    if any(line.startswith("Traceback") for line in lines):
-        return f"traceback ({len(lines)} lines): {lines[-1]}"
-    if lines:
-        return lines[0]
-    out = [line for line in stdout.splitlines() if line.strip()]
-    return f"(stdout) {out[0]}" if out else "(no output)"
-
-
-def run(code: Path, args: list[str], timeout: float = 600, **kw) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(code)}
-    return subprocess.run(
-        args, cwd=code, env=env, capture_output=True, text=True, timeout=timeout, **kw
-    )
-
-
-def outcome(result: subprocess.CompletedProcess, probe: str = "") -> Outcome:
-    return Outcome(result.returncode, message_of(result.stderr, result.stdout), probe)
 
 
 def slam_run(code: Path, *args: str) -> subprocess.CompletedProcess:
@@ -396,6 +350,7 @@ CASES = [
     Case("14", "--frames -5:10", "slam.run demo --frames -5:10", case_negative_frames),
     Case("14", "atomic writes fsync", "write_text_atomic(x.txt)", case_fsync),
 ]  # fmt: skip
+CASES += MAP_CASES
 
 
 def base_run(code: Path, work: Path) -> Path:
@@ -424,7 +379,25 @@ def cell(o: Outcome | None) -> str:
     if o is None:
         return "-"
     text = f"**{o.status}** {o.message}" + (f" [{o.probe}]" if o.probe else "")
+    if o.peak_rss_mb is not None:
+        text += f" ({o.peak_rss_mb:.0f} MB)"
     return text.replace("|", "\\|").replace("\n", " ")[:400]
+
+
+def class_summary(outcomes: list[Outcome | None]) -> str:
+    """Cases tried, one-line errors, tracebacks, cases that left files, largest peak RSS."""
+    tried = [o for o in outcomes if o is not None and o.status is not None]
+    if not tried:
+        return "-"
+    errors = sum(o.status != 0 and o.message.startswith("error:") for o in tried)
+    tracebacks = sum(o.message.startswith("traceback") for o in tried)
+    left = sum("leftovers:" in o.probe and "leftovers: none" not in o.probe for o in tried)
+    peaks = [o.peak_rss_mb for o in tried if o.peak_rss_mb is not None]
+    peak = f"{max(peaks):.0f} MB" if peaks else "-"
+    return (
+        f"{len(tried)} tried, {errors} one-line errors, {tracebacks} tracebacks, "
+        f"{left} left files; peak RSS up to {peak}"
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -432,14 +405,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--quick", action="store_true", help="skip the multi-run cases")
     parser.add_argument("--before", metavar="REV", help="also run every case at this revision")
     parser.add_argument(
-        "--out", type=Path, default=REPO / "benchmarks" / "results" / "reliability.md"
+        "--only", metavar="GROUP", help="run only this group of cases (general or maps)"
+    )
+    parser.add_argument(
+        "--out", type=Path, help="default: benchmarks/results/reliability[-GROUP].md"
     )
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    cases = [c for c in CASES if c.quick or not args.quick]
+    cases = [c for c in CASES if (c.quick or not args.quick) and args.only in (None, c.group)]
     with tempfile.TemporaryDirectory(prefix="bench-reliability-") as tmp:
         tmp_path = Path(tmp)
         before: list[Outcome | None] = [None] * len(cases)
@@ -457,6 +433,7 @@ def main(argv: list[str] | None = None) -> int:
         "# Reliability cases, before and after",
         "",
         f"`python benchmarks/bench_reliability.py{' --quick' if args.quick else ''}"
+        f"{f' --only {args.only}' if args.only else ''}"
         f"{f' --before {args.before}' if args.before else ''}` at {head} (plus uncommitted "
         "changes, if any). Each cell: **exit code**, then the line that tells the user what "
         "happened (`error:` line, else the first warning, else the traceback's last line) and "
@@ -467,6 +444,14 @@ def main(argv: list[str] | None = None) -> int:
     ]
     for case, b, a in zip(cases, before, after, strict=True):
         lines.append(f"| {case.number} | {case.title} | `{case.command}` | {cell(b)} | {cell(a)} |")
+    lines += ["", "| class | before | after |", "|---|---|---|"]
+    for group in dict.fromkeys(c.group for c in cases):
+        pick = [i for i, c in enumerate(cases) if c.group == group]
+        summary_before = class_summary([before[i] for i in pick])
+        lines.append(f"| {group} | {summary_before} | {class_summary([after[i] for i in pick])} |")
+    if args.out is None:
+        name = f"reliability-{args.only}.md" if args.only else "reliability.md"
+        args.out = REPO / "benchmarks" / "results" / name
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print(args.out)

@@ -33,6 +33,7 @@ class MapConfig(BaseModel):
     min_weight_to_decode: float = Field(
         8.0,
         ge=0.0,
+        allow_inf_nan=False,
         description=(
             "voxels whose weight (number of fused point-voxel associations) is below this are kept "
             "in the map but neither decoded by query_sdf nor meshed"
@@ -62,6 +63,8 @@ class MapConfig(BaseModel):
     transform_sigma_vu: float = Field(
         0.5,
         gt=0.0,
+        le=10.0,
+        allow_inf_nan=False,
         description=(
             "width s (voxel units) of the 'gaussian' transform weighting; on the two-path room "
             "benchmark 0.2 is worse and 0.5-0.7 are equal within 0.005 cm"
@@ -126,6 +129,7 @@ class MapConfig(BaseModel):
     mesh_max_sigma_vu: float = Field(
         0.15,
         gt=0.0,
+        allow_inf_nan=False,
         description="triangles with a vertex whose predicted SDF std. dev. (vu) is above are cut",
     )
     mesh_chunk_voxels: int = Field(

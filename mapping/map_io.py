@@ -30,6 +30,12 @@ Files are written to a temporary file in the target folder and moved into place.
 arrays are written submap by submap (:class:`_Stacked`): the file is the one ``np.savez_compressed``
 writes of their concatenation, without the concatenation in memory (that copy of every submap's
 encoding used to set a run's peak RSS).
+
+A map file may come from elsewhere: :func:`read_map_file` checks every member's declared size
+against what the header implies before reading any (:mod:`mapping.map_schema`), validates the
+header's config with its bounds, and never lets the file choose the prior file or the device
+(:data:`COMMAND_FIELDS`): the reading command's own are used and the file's model identity is
+only compared.
 """
 
 from __future__ import annotations
@@ -42,13 +48,24 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from pydantic import ValidationError
 
 from common.atomic_io import atomic_path
 from mapping.compact_block import CompactBlock, storage_dtype
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
+from mapping.map_schema import (
+    MAP_ARRAYS,
+    MAX_CHANNELS,
+    MAX_HEADER_CHARS,
+    MAX_SUBMAPS,
+    Spec,
+    check_inflation,
+    check_members,
+)
 from mapping.networks import PriorModel
 from mapping.neural_map import NeuralMap, Submap
+from mapping.npz_members import Member, MemberError, list_members, read_member
 from mapping.transform import check_rigid
 
 FORMAT = "neural-remap-slam/map"
@@ -188,26 +205,33 @@ def save_map(
         _write_npz(f, arrays)
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise MapFileError(f"{path}: map file not found; check the path")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
-        raise MapFileError(
-            f"{path}: not a readable neural map file (truncated or foreign: "
-            f"{exc.__class__.__name__}); write it again with slam.run"
-        ) from exc
+class MapFileData(NamedTuple):
+    """A map file's header, its map config (:func:`map_config`) and the arrays read from it."""
+
+    header: dict
+    cfg: MapConfig
+    arrays: dict[str, np.ndarray]
 
 
-def _header(path: Path, data: dict[str, np.ndarray]) -> dict:
-    if "header" not in data:
+COMMAND_FIELDS = ("device", "weights_path")
+"""Map settings that belong to the command reading a map, never to the file: which prior file is
+opened and which device is used are not a stored map's to choose."""
+
+_FILE_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError)
+
+
+def _parse_header(path: Path, archive: zipfile.ZipFile, members: dict[str, Member]) -> dict:
+    if "header" not in members:
         raise MapFileError(f"{path}: no map header; this is not a {FORMAT} file")
+    text = members["header"]
+    if text.shape != () or text.dtype.kind != "U" or text.nbytes > 4 * MAX_HEADER_CHARS:
+        raise MapFileError(f"{path}: map header is not a JSON string of at most {MAX_HEADER_CHARS}")
     try:
-        header = json.loads(str(data["header"]))
-    except (json.JSONDecodeError, TypeError) as exc:
-        raise MapFileError(f"{path}: corrupt map header; re-save the map") from exc
+        header = json.loads(str(read_member(archive, text)))
+    except (json.JSONDecodeError, TypeError, RecursionError) as exc:
+        raise MapFileError(
+            f"{path}: corrupt map header ({type(exc).__name__}); re-save the map"
+        ) from None
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise MapFileError(f"{path}: not a {FORMAT} file")
     if header.get("version") not in READABLE_VERSIONS:
@@ -219,69 +243,140 @@ def _header(path: Path, data: dict[str, np.ndarray]) -> dict:
     return header
 
 
+def map_config(path: Path, header: dict, settings: MapConfig | None = None) -> MapConfig:
+    """The map config of a file's header, validated (bounds included), with the
+    :data:`COMMAND_FIELDS` of ``settings`` (the reading command's; default: the defaults)."""
+    stored = header.get("config")
+    if not isinstance(stored, dict):
+        raise MapFileError(f"{path}: the map header holds no config; re-save the map")
+    settings = settings or MapConfig()
+    values = {k: v for k, v in stored.items() if k not in COMMAND_FIELDS}
+    try:
+        return MapConfig(**values, **{k: getattr(settings, k) for k in COMMAND_FIELDS})
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        where = ".".join(str(p) for p in error["loc"]) or "config"
+        raise MapFileError(
+            f"{path}: invalid map config in its header: mapping.{where}: {error['msg']}; "
+            "this file was not written by slam.run"
+        ) from None
+
+
+def _dims(path: Path, header: dict, cfg: MapConfig) -> dict[str, int]:
+    """Array dimensions the header fixes."""
+    submaps, channels = header.get("num_submaps"), header.get("latent_channels")
+    bounds = (("num_submaps", submaps, MAX_SUBMAPS), ("latent_channels", channels, MAX_CHANNELS))
+    for name, value, top in bounds:
+        if type(value) is not int or not 0 <= value <= top:
+            raise MapFileError(f"{path}: header {name} {value!r} is not a count up to {top}")
+    return {
+        "S": submaps,
+        "S+1": submaps + 1,
+        "C": channels,
+        "kF": min(cfg.latent_rank, channels),
+        "kJ": min(cfg.jacobian_rank, channels),
+    }
+
+
+def read_map_file(
+    path: str | Path,
+    settings: MapConfig | None = None,
+    session: dict[str, Spec] | None = None,
+) -> MapFileData:
+    """Header, config and arrays of a map file, every size checked before anything is read
+    (:mod:`mapping.map_schema`); any problem is a one-line :class:`MapFileError`.
+
+    ``settings``: the reading command's map settings (:func:`map_config`). ``session``: read
+    the session section's arrays against these specs, and refuse a file without a current
+    session section (``None``: every ``session_*`` array, sized by the file's bound alone).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MapFileError(f"{path}: map file not found; check the path")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            members = list_members(archive)
+            header = _parse_header(path, archive, members)
+            cfg = map_config(path, header, settings)
+            dims = _dims(path, header, cfg)
+            offsets = check_members(members, {"submap_offsets": MAP_ARRAYS["submap_offsets"]}, dims)
+            first = read_member(archive, offsets["submap_offsets"])
+            dims["N"] = int(first[-1]) if len(first) and first[-1] >= 0 else -1
+            chosen = check_members(members, MAP_ARRAYS, dims)
+            chosen.update(_session_members(path, header, members, dims, session))
+            check_inflation(chosen, path.stat().st_size)
+            arrays = {name: read_member(archive, member) for name, member in chosen.items()}
+    except MapFileError:
+        raise
+    except MemberError as exc:
+        raise MapFileError(
+            f"{path}: map file content is inconsistent ({exc}); write it again with slam.run"
+        ) from None
+    except _FILE_ERRORS as exc:
+        raise MapFileError(
+            f"{path}: not a readable neural map file (truncated or foreign: "
+            f"{exc.__class__.__name__}); write it again with slam.run"
+        ) from exc
+    return MapFileData(header, cfg, arrays)
+
+
+def _session_members(
+    path: Path,
+    header: dict,
+    members: dict[str, Member],
+    dims: dict[str, int],
+    specs: dict[str, Spec] | None,
+) -> dict[str, Member]:
+    if specs is None:
+        return {name: m for name, m in members.items() if name.startswith(SESSION_PREFIX)}
+    _require_session(path, header)
+    prefixed = {SESSION_PREFIX + name: spec for name, spec in specs.items()}
+    return check_members(members, prefixed, dims)
+
+
+def _require_session(path: Path, header: dict) -> None:
+    if header.get("version") != VERSION or not isinstance(header.get("session"), dict):
+        raise MapFileError(
+            f"{path}: map format version {header.get('version')} holds no session data of version "
+            f"{VERSION} and cannot be merged; re-run `python -m slam.run` on the sequence to write "
+            f"a version {VERSION} map"
+        )
+
+
 def load_map(
-    path: str | Path, model: PriorModel | None = None
+    path: str | Path,
+    model: PriorModel | None = None,
+    settings: MapConfig | None = None,
+    *,
+    check_model: bool = True,
+    data: MapFileData | None = None,
 ) -> tuple[NeuralMap, list[Submap]]:
     """Read a map written by :func:`save_map`; any problem is a one-line :class:`MapFileError`.
 
-    The global map is rebuilt by fusing the fused submaps in the order they are stored.
+    ``model``: the prior to decode with (default: the one ``settings`` names; the file's own
+    ``weights_path`` and ``device`` are never used, :data:`COMMAND_FIELDS`). The model must be
+    the one the map was encoded with, unless ``check_model`` is off (for reading voxel
+    positions only). ``data``: the file already read by :func:`read_map_file`. The global map is
+    rebuilt by fusing the fused submaps in the order they are stored.
     """
     path = Path(path)
-    data = _read_npz(path)
-    header = _header(path, data)
+    header, cfg, arrays = data or read_map_file(path, settings)
     try:
-        cfg = MapConfig(**header["config"])
-    except Exception as exc:
-        raise MapFileError(
-            f"{path}: invalid map config in header ({exc.__class__.__name__})"
-        ) from exc
-    neural_map = NeuralMap(cfg, model)
+        neural_map = NeuralMap(cfg, model)
+    except (OSError, ValueError) as exc:  # the command's own prior or device
+        raise MapFileError(f"{path}: cannot load it: {' '.join(str(exc).split())}") from None
     identity = neural_map.model.identity()
-    if header.get("model_identity") != identity:
+    if check_model and header.get("model_identity") != identity:
         raise MapFileError(
-            f"{path}: map was encoded with model {header.get('model_identity')} but the loaded "
-            f"model is {identity}; load it with the same prior weights (mapping.weights_path)"
+            f"{path}: map was encoded with model {str(header.get('model_identity'))[:32]} but "
+            f"the loaded model is {identity}; load it with the same prior weights "
+            "(mapping.weights_path)"
         )
     if header.get("latent_channels") != neural_map.model.latent_channels:
         raise MapFileError(f"{path}: latent size does not match the model")
-    device = neural_map.device
     try:
-        dtype = storage_dtype(header["storage_dtype"])
-        jac_dtype = storage_dtype(header["jacobian_storage"])
-        offsets = data["submap_offsets"]
-        n_sub = int(header["num_submaps"])
-        ids = data["submap_ids"]
-        if offsets.shape != (n_sub + 1,) or offsets[0] != 0 or np.any(np.diff(offsets) < 0):
-            raise ValueError("submap offsets are not a monotone (S+1,) array starting at 0")
-        if offsets[-1] != data["keys"].shape[0] or len(set(ids.tolist())) != n_sub:
-            raise ValueError("submap offsets, ids and voxel arrays disagree")
-        voxel = {
-            "keys": torch.from_numpy(data["keys"].astype(np.int64, copy=False)),
-            "weights": torch.from_numpy(data["weights"]).to(torch.float32),
-            "latent_coeffs": _from_numpy(data["latent_coeffs"], dtype),
-            "jacobian_coeffs": _from_numpy(data["jacobian_coeffs"], jac_dtype),
-        }
-        submaps = []
-        for i in range(n_sub):
-            rows = slice(int(offsets[i]), int(offsets[i + 1]))
-            original = CompactBlock(
-                keys=voxel["keys"][rows],
-                weights=voxel["weights"][rows],
-                latent_basis=torch.from_numpy(data["latent_basis"][i]).to(torch.float32),
-                latent_coeffs=voxel["latent_coeffs"][rows],
-                jacobian_basis=torch.from_numpy(data["jacobian_basis"][i]).to(torch.float32),
-                jacobian_coeffs=voxel["jacobian_coeffs"][rows],
-                jacobian_scales=torch.from_numpy(data["jacobian_scales"][i]).to(torch.float32),
-            ).to(device)
-            submaps.append(
-                Submap(
-                    submap_id=int(ids[i]),
-                    T_W_A_encoded=check_rigid(data["submap_T_W_A_encoded"][i], "T_W_A_encoded"),
-                    original=original,
-                    T_W_A=check_rigid(data["submap_T_W_A"][i], "T_W_A"),
-                )
-            )
-        for submap, fused in zip(submaps, data["submap_fused"].tolist(), strict=True):
+        submaps = _submaps(header, arrays, neural_map.device)
+        for submap, fused in zip(submaps, arrays["submap_fused"].tolist(), strict=True):
             if fused:
                 neural_map.fuse(submap)
     except (KeyError, IndexError, ValueError, TypeError, RuntimeError) as exc:
@@ -292,24 +387,61 @@ def load_map(
     return neural_map, submaps
 
 
-def load_session(path: str | Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
-    """``(map header, session header, session arrays)`` of a map file with a session section.
+def _submaps(header: dict, data: dict[str, np.ndarray], device: torch.device) -> list[Submap]:
+    dtype = storage_dtype(header["storage_dtype"])
+    jac_dtype = storage_dtype(header["jacobian_storage"])
+    offsets = data["submap_offsets"]
+    n_sub = int(header["num_submaps"])
+    ids = data["submap_ids"]
+    if offsets.shape != (n_sub + 1,) or offsets[0] != 0 or np.any(np.diff(offsets) < 0):
+        raise ValueError("submap offsets are not a monotone (S+1,) array starting at 0")
+    if offsets[-1] != data["keys"].shape[0] or len(set(ids.tolist())) != n_sub:
+        raise ValueError("submap offsets, ids and voxel arrays disagree")
+    voxel = {
+        "keys": torch.from_numpy(data["keys"].astype(np.int64, copy=False)),
+        "weights": torch.from_numpy(data["weights"]).to(torch.float32),
+        "latent_coeffs": _from_numpy(data["latent_coeffs"], dtype),
+        "jacobian_coeffs": _from_numpy(data["jacobian_coeffs"], jac_dtype),
+    }
+    submaps = []
+    for i in range(n_sub):
+        rows = slice(int(offsets[i]), int(offsets[i + 1]))
+        original = CompactBlock(
+            keys=voxel["keys"][rows],
+            weights=voxel["weights"][rows],
+            latent_basis=torch.from_numpy(data["latent_basis"][i]).to(torch.float32),
+            latent_coeffs=voxel["latent_coeffs"][rows],
+            jacobian_basis=torch.from_numpy(data["jacobian_basis"][i]).to(torch.float32),
+            jacobian_coeffs=voxel["jacobian_coeffs"][rows],
+            jacobian_scales=torch.from_numpy(data["jacobian_scales"][i]).to(torch.float32),
+        ).to(device)
+        submaps.append(
+            Submap(
+                submap_id=int(ids[i]),
+                T_W_A_encoded=check_rigid(data["submap_T_W_A_encoded"][i], "T_W_A_encoded"),
+                original=original,
+                T_W_A=check_rigid(data["submap_T_W_A"][i], "T_W_A"),
+            )
+        )
+    return submaps
+
+
+def load_session(
+    path: str | Path, specs: dict[str, Spec] | None = None, data: MapFileData | None = None
+) -> tuple[dict, dict, dict[str, np.ndarray]]:
+    """``(map header, session header, session arrays)`` of a map file with a session section
+    (``specs``: what its arrays may be, :func:`read_map_file`; ``data``: the file already read
+    with them).
 
     A file without one (saved without a session) or with an older version's (2 has none, 3 an
     older layout) is a one-line :class:`MapFileError` saying to re-run ``slam.run``.
     """
     path = Path(path)
-    data = _read_npz(path)
-    header = _header(path, data)
-    if header.get("version") != VERSION or not isinstance(header.get("session"), dict):
-        raise MapFileError(
-            f"{path}: map format version {header.get('version')} holds no session data of version "
-            f"{VERSION} and cannot be merged; re-run `python -m slam.run` on the sequence to write "
-            f"a version {VERSION} map"
-        )
-    arrays = {
+    header, _, arrays = data or read_map_file(path, session=specs)
+    _require_session(path, header)
+    session = {
         name[len(SESSION_PREFIX) :]: value
-        for name, value in data.items()
+        for name, value in arrays.items()
         if name.startswith(SESSION_PREFIX)
     }
-    return header, header["session"], arrays
+    return header, header["session"], session

@@ -1,6 +1,6 @@
 """``python -m slam.merge`` and ``slam.run --map``: sessions of a generated room merge without
-their scans, and a run continues another's map; a run merged with itself is unchanged;
-incompatible maps and runs without a shared place are refused.
+their scans, and a run continues another's map; a run merged with itself (or with a merged run
+holding it) is refused; incompatible maps and runs without a shared place are refused.
 
 One module fixture makes every run (four short runs of one generated room); each test reuses
 them."""
@@ -162,31 +162,28 @@ def test_two_sessions_merge_without_scans(runs, tmp_path: Path):
     assert metrics["inter_session_loops_kept"] >= 1
     ate = metrics["combined_ate_rmse_m"]
     assert ate < COMBINED_ATE_BOUND_M, f"combined ATE {ate:.4f} m"
-    # the merged run is itself a session: it merges again with one of its parts, and lists the
-    # runs it joined
+    # the merged run is itself a session: it merges again with another run, and lists the
+    # runs it joined; one of its own parts is refused (its frames would be there twice)
     again = _python(
-        "slam.merge", str(out), str(runs["b"]), "--out", str(tmp_path / "again"), "--no-viz"
+        "slam.merge", str(out), str(runs["other"]), "--out", str(tmp_path / "again"), "--no-viz"
     )
     assert again.returncode == 0, again.stderr
     rows = (tmp_path / "again" / "sessions.csv").read_text().splitlines()[1:]
     assert [row.split(",")[1:] for row in rows] == [
-        [str(runs["a"]), "0", "60"], [str(runs["b"]), "60", "60"], [str(runs["b"]), "120", "60"],
-    ]  # fmt: skip
+        [str(runs["a"]), "0", "60"],
+        [str(runs["b"]), "60", "60"],
+        [str(runs["other"]), "120", "10"],
+    ]
+    part = _python("slam.merge", str(out), str(runs["b"]), "--out", str(tmp_path / "part"))
+    _one_line_error(part, "same session", str(runs["b"]))
+    assert not (tmp_path / "part").exists()
 
 
-def test_run_merged_with_itself_is_unchanged(runs, tmp_path: Path):
+def test_run_merged_with_itself_is_refused(runs, tmp_path: Path):
     out = tmp_path / "self"
     result = _python("slam.merge", str(runs["a"]), str(runs["a"]), "--out", str(out), "--no-viz")
-    assert result.returncode == 0, result.stderr
-    original = read_kitti(runs["a"] / "poses_slam.kitti.txt")
-    merged = read_kitti(out / "poses_slam.kitti.txt")
-    n = len(original)
-    np.testing.assert_allclose(merged[:n], original, atol=1e-6)
-    np.testing.assert_allclose(merged[n:], original, atol=1e-6)
-    before = load_map(runs["a"] / "map.npz")[0].voxel_block()
-    after = load_map(out / "map.npz")[0].voxel_block()
-    np.testing.assert_array_equal(before.keys.numpy(), after.keys.numpy())
-    np.testing.assert_allclose(after.latents.numpy(), before.latents.numpy(), atol=1e-5)
+    _one_line_error(result, "same session", str(runs["a"]))
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_different_voxel_size_or_no_descriptors_is_refused(runs, tmp_path: Path):

@@ -437,7 +437,7 @@ def _main(argv: list[str], debug: bool) -> int:
             from slam.app.continue_map import merge_into
 
             merged = merge_into(
-                previous, args.map, folder / "session", folder, cfg.viz.mode != "none"
+                previous, args.map, folder / "session", folder, cfg.viz.mode != "none", cfg
             )
             metrics["continued_map"] = merged
     except KeyboardInterrupt as exc:

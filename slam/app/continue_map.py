@@ -1,8 +1,9 @@
 """``python -m slam.run ... --map RUN_DIR``: a new session in an existing map's frame.
 
-The map folder's ``map.npz`` (its latents and session section; never its scans) is loaded and
-checked against the run's config before any frame is read (voxel size and latent storage; a
-LiDAR run whose voxel size comes from its first scan is checked after that scan). The run goes
+The map folder's ``map.npz`` (its latents and session section; never its scans) is loaded with
+the run's own prior and device (never what its header names) and checked before any frame is
+read: its sensor, its place descriptors, voxel size and latent storage (a LiDAR run whose voxel
+size comes from its first scan is checked after that scan). The run goes
 into ``OUT/session`` (a complete run folder of its own) and is relocalised live
 (:mod:`slam.algorithm.merge.relocalise`): its first submap, and each later one until one
 verifies, is matched against the stored submaps and registered to the surface decoded from their
@@ -28,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from frontends.errors import DatasetError
-from slam.algorithm.merge.merge import LATENT_STORAGE_FIELDS
+from slam.algorithm.merge.inputs import LATENT_STORAGE_FIELDS
 
 if TYPE_CHECKING:
     from slam.algorithm.merge.relocalise import Relocaliser
@@ -37,12 +38,38 @@ SESSION_FOLDER = "session"
 
 
 def load_map_folder(folder: Path, cfg) -> tuple:
-    """``(SessionInput, NeuralMap)`` of ``--map``; refuses a map the run's config cannot join."""
+    """``(SessionInput, NeuralMap)`` of ``--map``, decoded with the run's own prior and device;
+    refuses a map the run cannot join (another sensor, no place descriptors, other map
+    settings) before any frame is read."""
     from slam.app.merge_cli import load_run
 
-    previous = load_run(folder)
+    previous = load_run(folder, cfg.mapping)
+    stored = previous[0].session
+    if not stored.descriptors:
+        raise DatasetError(
+            f"--map {folder}: the map holds no place descriptors (its run had loop closure "
+            "off), so no run can be relocalised in it; re-run it with loop_closure.enabled=true"
+        )
+    sensor = run_sensor(cfg)
+    if sensor is not None and stored.sensor != sensor:
+        raise DatasetError(
+            f"--map {folder}: the map was made with the {stored.sensor or 'unknown'} sensor and "
+            f"this run reads {sensor}; continue it with a run of the same sensor"
+        )
     check_config(previous[1], cfg, folder, before_first_scan=True)
     return previous
+
+
+def run_sensor(cfg) -> str | None:
+    """The sensor (``lidar``/``rgbd``) the run's source will read, from its config alone."""
+    from frontends.sources.base import source_class
+
+    if cfg.source.dataset == "generated":
+        return cfg.generated.kind
+    try:
+        return str(source_class(cfg.source.dataset).sensor)
+    except (DatasetError, AttributeError):
+        return None
 
 
 @dataclass
@@ -92,14 +119,14 @@ def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None
         )
 
 
-def merge_into(previous: tuple, map_folder: Path, session_folder: Path, out: Path, viz: bool):
-    """Relocalise and merge the finished run in ``session_folder`` into the stored map; write
-    the merged run into ``out``; returns its metrics."""
+def merge_into(previous: tuple, map_folder: Path, session_folder: Path, out: Path, viz: bool, cfg):
+    """Relocalise and merge the finished run in ``session_folder`` (made with the run config
+    ``cfg``) into the stored map; write the merged run into ``out``; returns its metrics."""
     from slam.algorithm.merge.merge import MergeError
     from slam.app.merge_cli import load_run, merge_runs
 
     start = time.perf_counter()
-    current = load_run(session_folder)
+    current = load_run(session_folder, cfg.mapping)
     try:
         metrics: dict[str, Any] = merge_runs(
             [previous, current], [map_folder, session_folder], out, viz, start

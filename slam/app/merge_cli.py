@@ -1,9 +1,15 @@
 """``python -m slam.merge RUN_DIR RUN_DIR [RUN_DIR ...] --out DIR``: merge runs into one map.
 
 Reads only each run folder's ``map.npz`` (latents and session section), and, for evaluation and
-the recording, ``poses_gt.kitti.txt`` and ``mesh.ply`` where present; never a scan. Everything is
-computed before ``DIR`` is created, so a merge that fails (incompatible maps, a run that shares
-no place with the others) writes nothing and exits non-zero with one line on stderr.
+the recording, ``poses_gt.kitti.txt`` and ``mesh.ply`` where present; never a scan. A map file
+may come from elsewhere: its sizes, header and session are checked before use
+(:func:`mapping.map_io.read_map_file`, :mod:`slam.algorithm.merge.session_checks`), and it is
+decoded with this command's prior (``--weights``, default the shipped one) and device, never
+with a file or device its header names. ``DIR`` is claimed and written through a hidden sibling
+folder renamed at the end (:func:`common.atomic_folder.atomic_folder`): a merge that fails
+(incompatible maps, a run that shares no place with the others, a full disk, Ctrl-C or SIGTERM)
+leaves nothing and exits non-zero with one line on stderr (130 and 143 for the signals), and a
+second merge into the same ``DIR`` is refused while the first runs.
 
 ``DIR`` receives what a run writes: ``poses_slam.{kitti,tum}.txt`` (every session's frames in the
 order the runs were given, in the first run's frame), ``sessions.csv``, ``loops.csv``,
@@ -16,6 +22,7 @@ from __future__ import annotations
 import argparse
 import logging
 import resource
+import signal
 import sys
 import time
 from pathlib import Path
@@ -23,9 +30,12 @@ from typing import Any
 
 import numpy as np
 
+from common.atomic_folder import FolderBusyError, atomic_folder
 from frontends.errors import DatasetError
-from mapping.errors import MapFileError
-from mapping.map_io import load_map
+from mapping.config import MapConfig
+from mapping.errors import MapFileError, WeightsFileError
+from mapping.map_io import load_map, load_session, read_map_file
+from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
 from slam.assembly.config import UsageError
 
 logger = logging.getLogger("slam.merge")
@@ -43,29 +53,35 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("runs", nargs="+", type=Path, help="run folders (the first sets the frame)")
     parser.add_argument("--out", type=Path, required=True, help="new or empty output folder")
+    parser.add_argument(
+        "--weights",
+        type=Path,
+        help="prior weights the maps were made with (default: the shipped prior)",
+    )
     parser.add_argument("--no-viz", action="store_true", help="write no Rerun recording")
     parser.add_argument("-v", "--verbose", action="store_true", help="log INFO to stderr")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     return parser
 
 
-def load_run(folder: Path):
-    """``(SessionInput, NeuralMap)`` of a run folder; a bad folder is a one-line error."""
-    from mapping.map_io import load_session
+def load_run(folder: Path, settings: MapConfig | None = None):
+    """``(SessionInput, NeuralMap)`` of a run folder, decoded with ``settings``' prior and device
+    (the command's own; default: the shipped prior); a bad folder is a one-line error."""
     from slam.algorithm.merge.merge import SessionInput
-    from slam.algorithm.merge.session import SessionRecord
+    from slam.algorithm.merge.session import SESSION_ARRAYS, SessionRecord
 
     path = folder / "map.npz"
     if not folder.is_dir():
         raise DatasetError(f"{folder}: run folder not found; give folders written by slam.run")
-    _, session_header, arrays = load_session(path)
+    data = read_map_file(path, settings, session=SESSION_ARRAYS)
+    _, session_header, arrays = load_session(path, data=data)
     try:
         session = SessionRecord.from_arrays(session_header, arrays)
-    except (KeyError, ValueError) as exc:
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise MapFileError(
             f"{path}: session section is inconsistent ({exc}); re-run slam.run"
         ) from exc
-    neural_map, submaps = load_map(path)
+    neural_map, submaps = load_map(path, settings=settings, data=data)
     return SessionInput(str(folder), session, submaps), neural_map
 
 
@@ -112,11 +128,6 @@ def _metrics(result, inputs, folders: list[Path], seconds: float) -> dict[str, A
     return metrics
 
 
-def _empty_or_new(folder: Path) -> None:
-    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
-        raise UsageError(f"{folder}: --out must be a new or empty folder")
-
-
 def _session_rows(inputs, folders: list[Path]) -> tuple[list[str], list[int]]:
     """Run folder and rows of every session; a merged run lists the runs it joined."""
     names, rows = [], []
@@ -130,9 +141,10 @@ def _session_rows(inputs, folders: list[Path]) -> tuple[list[str], list[int]]:
 def merge(args: argparse.Namespace) -> dict[str, Any]:
     """Load, merge and write; returns the metrics."""
     start = time.perf_counter()
-    _empty_or_new(args.out)
-    loaded = [load_run(folder) for folder in args.runs]
-    return merge_runs(loaded, args.runs, args.out, not args.no_viz, start)
+    settings = MapConfig(weights_path=None if args.weights is None else str(args.weights))
+    with atomic_folder(args.out) as partial:  # claimed and proven writable before any work
+        loaded = [load_run(folder, settings) for folder in args.runs]
+        return merge_runs(loaded, args.runs, partial, not args.no_viz, start)
 
 
 def merge_runs(
@@ -178,6 +190,8 @@ def merge_runs(
     outputs.write_map(result.neural_map, result.submaps, result.session)
     outputs.write_mesh(mesh)
     outputs.write_metrics(metrics)
+    frames = len(timestamps)
+    outputs.write_status("finished", frames, frames)
     if viz:
         before = []
         for folder in folders:
@@ -188,8 +202,21 @@ def merge_runs(
     return metrics
 
 
+def _os_error_line(exc: OSError) -> str:
+    where = f"{exc.filename}: " if exc.filename else ""
+    return f"{where}{exc.strerror or exc}; pass --out on a writable disk with free space"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
+    previous_sigterm = handle_sigterm()
+    try:
+        return _main(argv)
+    finally:
+        restore_sigterm(previous_sigterm)
+
+
+def _main(argv: list[str] | None) -> int:
     from slam.algorithm.merge.merge import MergeError
 
     debug = "--debug" in (argv if argv is not None else sys.argv[1:])
@@ -200,14 +227,20 @@ def main(argv: list[str] | None = None) -> int:
             format="%(levelname)s %(name)s: %(message)s",
         )
         metrics = merge(args)
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
-    except (UsageError, MergeError, MapFileError, DatasetError) as exc:
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        cause = "terminated (SIGTERM)" if terminated else "interrupted"
+        print(f"error: {cause}; nothing written", file=sys.stderr)
+        return 128 + signal.SIGTERM if terminated else 130
+    except (
+        UsageError, MergeError, MapFileError, WeightsFileError, DatasetError, FolderBusyError,
+        OSError,
+    ) as exc:  # fmt: skip
         if debug:
             raise
-        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 2 if isinstance(exc, UsageError) else 1
+        line = _os_error_line(exc) if isinstance(exc, OSError) else str(exc)
+        print(f"error: {' '.join(line.split())}", file=sys.stderr)
+        return 2 if isinstance(exc, UsageError | FolderBusyError) else 1
     loops = metrics["inter_session_loops_kept"]
     line = f"merged {len(metrics['sessions'])} runs: {loops} inter-session loops kept"
     if "combined_ate_rmse_m" in metrics:

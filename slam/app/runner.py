@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -243,6 +244,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
             "dataset": cfg.source.dataset,
             "sequence": cfg.source.sequence,
             "frames": cfg.source.frames,
+            "session_id": uuid.uuid4().hex,  # a merge refuses a session given twice
         }
         mirror = getattr(source, "dataset_mirror", None)
         session = session_from_pipeline(pipeline, setup, mirror)

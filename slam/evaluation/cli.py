@@ -35,6 +35,10 @@ surface), as the run does (``slam.evaluation.run_metrics``):
 - ``view``: RGB-D runs keep the faces in the view frustum of a ground-truth camera, LiDAR runs
   the faces within the submap range of the trajectory.
 
+A merged run (``slam.merge``, ``slam.run --map``: it has ``sessions.csv``) is read as a run
+without odometry of its own: what exists is scored, and what was skipped is listed (in the
+summary and ``metrics.json``'s ``evaluation.skipped``), as for any run without ground truth.
+
 Outputs, next to the run: ``metrics.json`` (updated atomically; timing, loop and memory entries of
 the run are kept) and ``plots/``: ``trajectories.png`` (top-down, with accepted loop edges from
 ``loops.csv``), ``translation_error.png``, ``mesh_error_histogram.png`` and ``mesh_error.ply``
@@ -184,7 +188,11 @@ def evaluate_run(
             raise EvalError(f"{metrics_path}: not valid JSON; delete it and re-evaluate") from None
     cfg = _load_run_config(run_dir)
     trajectories = read_run_trajectories(run_dir)
-    trajectories.odometry = _to_loader_frame(cfg, trajectories.odometry)
+    skipped = []
+    if trajectories.odometry is None:
+        skipped.append("odometry: a merged run has no odometry of its own")
+    else:
+        trajectories.odometry = _to_loader_frame(cfg, trajectories.odometry)
     trajectories.slam = _to_loader_frame(cfg, trajectories.slam)
     gt = find_ground_truth(
         run_dir,
@@ -204,7 +212,7 @@ def evaluate_run(
         T_gt_W = align_se3(trajectories.slam[scored], gt.poses[scored])
     else:
         gt.poses = None
-        logger.warning("%s: no ground-truth poses; trajectory metrics skipped", run_dir)
+        skipped.append("trajectory metrics: no ground-truth poses")
 
     mesh = None
     mesh_file = run_dir / "mesh.ply"
@@ -236,12 +244,15 @@ def evaluate_run(
         except EvalError:
             raise
         except ValueError as exc:
-            logger.warning("mesh metrics skipped: %s", exc)
+            skipped.append(f"mesh metrics: {' '.join(str(exc).split())}")
         else:
             gt_mesh, mask = sections["mesh"]["_gt"], sections["mesh"]["_mask"]
             metrics.update({name: public(value) for name, value in sections.items()})
     elif mesh is not None:
-        logger.warning("%s: no ground-truth mesh or poses; mesh metrics skipped", run_dir)
+        missing = "ground-truth mesh" if gt.mesh_path is None else "ground-truth poses"
+        skipped.append(f"mesh metrics: no {missing}")
+    else:
+        skipped.append("mesh metrics: no mesh.ply")
 
     plot_files: list[Path] = []
     if make_plots or figures_dir is not None:
@@ -262,6 +273,7 @@ def evaluate_run(
         "gt_mesh": str(gt.mesh_path) if gt.mesh_path else None,
         "culling": (metrics.get("mesh") or {}).get("culling"),
         "plots": [_relative(p, run_dir) for p in plot_files],
+        "skipped": skipped,
     }
     if write:
         RunOutputs(run_dir).write_metrics(metrics)
@@ -317,6 +329,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     trajectory = metrics.get("trajectory")
     if trajectory:
         for name in ("odometry", "slam"):
+            if name not in trajectory:
+                continue
             t = trajectory[name]
             kitti = t["kitti_t_err_percent"]
             axes = ""
@@ -330,6 +344,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     lines += mesh_lines(metrics)
     for plot in (metrics.get("evaluation") or {}).get("plots", []):
         lines.append(f"plot     {plot}")
+    for reason in (metrics.get("evaluation") or {}).get("skipped", []):
+        lines.append(f"skipped  {reason}")
     return lines
 
 

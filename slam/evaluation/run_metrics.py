@@ -350,9 +350,10 @@ def gt_subset(estimates: np.ndarray, gt: np.ndarray | None) -> tuple[np.ndarray,
 
 
 def trajectory_section(
-    odometry: np.ndarray, slam: np.ndarray, gt: np.ndarray
+    odometry: np.ndarray | None, slam: np.ndarray, gt: np.ndarray
 ) -> dict[str, Any] | None:
-    """``metrics.json["trajectory"]`` over the frames that have ground truth (NaN rows skipped)."""
+    """``metrics.json["trajectory"]`` over the frames that have ground truth (NaN rows skipped;
+    no ``odometry`` entry without odometry poses, as in a merged run)."""
     from slam.evaluation.metrics.trajectory import kitti_lengths_within, trajectory_metrics
 
     mask = np.isfinite(np.asarray(gt)).all(axis=(1, 2))
@@ -364,13 +365,10 @@ def trajectory_section(
     level = quiet.level
     quiet.setLevel(logging.ERROR)  # "too short for the KITTI error" is expected here
     try:
+        named = {"slam": slam} if odometry is None else {"odometry": odometry, "slam": slam}
         section = {
-            "odometry": trajectory_metrics(
-                np.asarray(odometry)[mask], gt, kitti_lengths_m=lengths
-            ).as_dict(),
-            "slam": trajectory_metrics(
-                np.asarray(slam)[mask], gt, kitti_lengths_m=lengths
-            ).as_dict(),
+            name: trajectory_metrics(np.asarray(poses)[mask], gt, kitti_lengths_m=lengths).as_dict()
+            for name, poses in named.items()
         }
     finally:
         quiet.setLevel(level)

@@ -66,15 +66,16 @@ def draw_plots(
         anchors = {}
     edges_W = loop_edges(run_dir, anchors)
     scored = None if gt.poses is None else np.isfinite(gt.poses).all(axis=(1, 2))
+    odometry = trajectories.odometry
     if gt.poses is not None:
-        named = {
-            "gt": gt.poses[scored],
-            "odometry": _aligned(trajectories.odometry[scored], gt.poses[scored]),
-            "slam": T_gt_W @ trajectories.slam[scored],
-        }
+        named = {"gt": gt.poses[scored], "slam": T_gt_W @ trajectories.slam[scored]}
+        if odometry is not None:
+            named["odometry"] = _aligned(odometry[scored], gt.poses[scored])
         edges = edges_W @ T_gt_W[:3, :3].T + T_gt_W[:3, 3] if len(edges_W) else edges_W
     else:
-        named = {"odometry": trajectories.odometry, "slam": trajectories.slam}
+        named = {"slam": trajectories.slam}
+        if odometry is not None:
+            named["odometry"] = odometry
         edges = edges_W
     title = f"{Path(run_dir).name}: trajectories (top-down)"
     written.append(
@@ -87,6 +88,7 @@ def draw_plots(
         errors = {
             name: np.linalg.norm(named[name][:, :3, 3] - named["gt"][:, :3, 3], axis=1)
             for name in ("odometry", "slam")
+            if name in named
         }
         written.append(plots.plot_translation_error(out / "translation_error.png", times, errors))
     if mesh is not None and gt_mesh is not None and len(mesh.faces):

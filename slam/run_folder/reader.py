@@ -25,11 +25,21 @@ class EvalError(ValueError):
 
 @dataclass
 class RunTrajectories:
-    """The poses a run wrote: ``timestamps`` (N,), ``odometry`` and ``slam`` (N, 4, 4)."""
+    """The poses a run wrote: ``timestamps`` (N,), ``odometry`` and ``slam`` (N, 4, 4);
+    ``odometry`` is None for a merged run (``slam.merge``, ``--map``), which has none of its own."""
 
     timestamps: np.ndarray
-    odometry: np.ndarray
+    odometry: np.ndarray | None
     slam: np.ndarray
+
+
+MERGED_RUN_FILE = "sessions.csv"
+"""Written by ``slam.merge`` and ``slam.run --map`` only: marks a merged run folder."""
+
+
+def is_merged_run(run_dir: Path) -> bool:
+    """Whether ``run_dir`` holds a merged run (its sessions' poses, no odometry of its own)."""
+    return (Path(run_dir) / MERGED_RUN_FILE).is_file()
 
 
 @dataclass
@@ -48,14 +58,15 @@ def read_run_trajectories(run_dir: Path) -> RunTrajectories:
     from slam.run_folder.trajectory_io import read_kitti, read_tum
 
     run_dir = Path(run_dir)
+    merged = is_merged_run(run_dir)
     if (run_dir / "poses_slam.tum.txt").is_file():  # a malformed one is reported, not skipped
         timestamps, slam = read_tum(run_dir / "poses_slam.tum.txt")
-        _, odometry = read_tum(run_dir / "poses_odometry.tum.txt")
+        odometry = None if merged else read_tum(run_dir / "poses_odometry.tum.txt")[1]
     else:
         slam = read_kitti(run_dir / "poses_slam.kitti.txt")
-        odometry = read_kitti(run_dir / "poses_odometry.kitti.txt")
+        odometry = None if merged else read_kitti(run_dir / "poses_odometry.kitti.txt")
         timestamps = np.arange(len(slam), dtype=np.float64)
-    if len(odometry) != len(slam):
+    if odometry is not None and len(odometry) != len(slam):
         raise EvalError(
             f"{run_dir}: poses_odometry has {len(odometry)} poses but poses_slam {len(slam)}; "
             "the run was interrupted, re-run it"
@@ -223,7 +234,9 @@ def load_map_voxels(run_dir: Path) -> tuple[np.ndarray, float, dict[int, np.ndar
     candidates = sorted(Path(run_dir).glob("map.*"))
     if not candidates:
         raise EvalError(f"{run_dir}: no map file (map.npz); the run was made with write_map off")
-    neural_map, submaps = load_map(candidates[0])
+    # voxel positions do not depend on the prior: read with the shipped one, whatever the file
+    # was made with (its header never chooses a file to open)
+    neural_map, submaps = load_map(candidates[0], check_model=False)
     centers, weights = neural_map.voxel_centers()
     anchors = {s.submap_id: np.asarray(s.T_W_A) for s in submaps}
     return np.asarray(centers)[np.asarray(weights) > 0], neural_map.voxel_size_m, anchors

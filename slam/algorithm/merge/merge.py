@@ -5,8 +5,8 @@
    of every earlier session by the stored place descriptors: ratio-test matches with every
    earlier submap (a brute-force Hamming match, cheap), a RANSAC fit only for the few with the
    most matches (:func:`slam.algorithm.loops.place.fit_matches`); the fitted ones are verified best
-   first, and the first that passes is the submap's edge (so a run merged with itself gets
-   exactly the edges to its own twin submaps).
+   first, and the first that passes is the submap's edge. A session given twice is refused
+   before this (:func:`slam.algorithm.merge.inputs.check_distinct`).
 3. Verification and the relative pose come from surface points *decoded from each submap's own
    neural map* (its original encoding, meshed alone: vertices and normals of the SDF's zero
    crossing), never from scans: point-to-plane ICP from the descriptor's guess, accepted only with
@@ -39,22 +39,17 @@ from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.graph.pose_graph import GRAVITY_KEY, gravity_factor, gravity_frame_prior
 from slam.algorithm.loops.place import PlaceDescriptor, fit_matches, ratio_matches
 from slam.algorithm.merge.config import MergeConfig
+from slam.algorithm.merge.inputs import (
+    MergeError,
+    SessionInput,
+    check_compatible,
+    merged_session_id,
+)
 from slam.algorithm.merge.session import Edge, SessionRecord
 
+__all__ = ["MergeError", "SessionInput", "merge_sessions"]
+
 logger = logging.getLogger(__name__)
-
-
-class MergeError(ValueError):
-    """Sessions that cannot be merged; the message is one line saying which and why."""
-
-
-@dataclass
-class SessionInput:
-    """One run to merge: its name (run folder), session record and submaps (original encodings)."""
-
-    name: str
-    session: SessionRecord
-    submaps: list[Submap]
 
 
 @dataclass
@@ -127,44 +122,6 @@ class SurfaceDecoder:
             T_A_W = np.linalg.inv(submap.T_W_A_encoded)
             self._cache[key] = (transform_points(T_A_W, points), normals @ T_A_W[:3, :3].T)
         return self._cache[key]
-
-
-LATENT_STORAGE_FIELDS = ("storage_dtype", "jacobian_storage", "latent_rank", "jacobian_rank")
-"""Mapping settings that fix how latents are stored: maps differing in one cannot share a grid."""
-
-
-def check_compatible(inputs: list[SessionInput], maps: list[NeuralMap]) -> None:
-    """Refuse maps that cannot share one grid: voxel size, prior, storage or sensor differ."""
-    first, reference = inputs[0], maps[0]
-    for item, other in zip(inputs[1:], maps[1:], strict=True):
-        if other.voxel_size_m != reference.voxel_size_m:
-            raise MergeError(
-                f"{item.name}: voxel size {other.voxel_size_m} m differs from {first.name}'s "
-                f"{reference.voxel_size_m} m; re-run it with mapping.voxel_size_m="
-                f"{reference.voxel_size_m}"
-            )
-        if other.model.identity() != reference.model.identity():
-            raise MergeError(
-                f"{item.name}: encoded with another prior than {first.name}; re-run it with the "
-                "same mapping.weights_path"
-            )
-        cfg_a, cfg_b = reference.cfg, other.cfg
-        if any(getattr(cfg_a, k) != getattr(cfg_b, k) for k in LATENT_STORAGE_FIELDS):
-            raise MergeError(
-                f"{item.name}: latent storage differs from {first.name}'s; re-run it with the "
-                "same mapping settings"
-            )
-        if item.session.sensor != first.session.sensor:
-            raise MergeError(
-                f"{item.name}: sensor {item.session.sensor} differs from {first.name}'s "
-                f"{first.session.sensor}; only runs of one sensor can be merged"
-            )
-    for item in inputs:
-        if not item.session.descriptors:
-            raise MergeError(
-                f"{item.name}: no place descriptors stored (loop closure was off); re-run it "
-                "with loop_closure.enabled=true"
-            )
 
 
 def icp_covariance(result, cfg: MergeConfig) -> np.ndarray:
@@ -476,7 +433,8 @@ def _merged_session(
         frame_submap.append(np.array([mapping[int(n)] for n in s.frame_submap], dtype=np.int64))
         frame_T_A_S.append(s.frame_T_A_S)
         timestamps.append(s.timestamps)
-        for part in s.parts or [{"name": item.name, "first_row": 0, "rows": len(s.frame_submap)}]:
+        own = {"name": item.name, "first_row": 0, "rows": len(s.frame_submap)}
+        for part in s.parts or [{**own, "session_id": s.session_id}]:
             parts.append({**part, "first_row": row + int(part["first_row"])})
         row += len(s.frame_submap)
     inter = [
@@ -484,7 +442,11 @@ def _merged_session(
     ]
     first = inputs[0].session
     return SessionRecord(
-        setup={**first.setup, "merged": [item.name for item in inputs]},
+        setup={
+            **first.setup,
+            "merged": [item.name for item in inputs],
+            "session_id": merged_session_id(inputs),
+        },
         node_ids=node_ids,
         T_W_A=np.array([T_W_A[int(n)] for n in node_ids]),
         odometry=odometry,

@@ -9,28 +9,60 @@ other runs without the raw data (docs/design.md §4).
 * each submap's place descriptor (:mod:`slam.algorithm.loops.place`);
 * the up directions measured on anchor scans (:mod:`slam.algorithm.graph.gravity`), so that a merge
   keeps the gravity factors (optional: absent in runs without them and in older files);
-* the sensor setup (JSON) and the fixed map from the loader's frames to the dataset's own
-  (``dataset_mirror``), so merged trajectories are written in the dataset's frames.
+* the sensor setup (JSON: ``sensor``, ``dataset``, ..., and ``session_id``, unique to the run;
+  a merge refuses a session given twice) and the fixed map from the loader's frames to the
+  dataset's own (``dataset_mirror``), so merged trajectories are written in the dataset's frames.
 
 :meth:`SessionRecord.to_arrays` / :meth:`SessionRecord.from_arrays` turn it into named numpy arrays
 and a JSON-able header; :mod:`mapping.map_io` stores them opaquely in the map file. Anchor poses
 and factors stay float64 (the graph a merge optimises is the run's own); a frame's pose relative to
 its anchor is a float32 unit quaternion and translation (``frame_pose_A_S``: ``[qx, qy, qz, qw,
 tx, ty, tz]``; rounding moves a frame by about 1e-7 of its distance from the anchor and turns it
-by about 1e-7 rad, far below what a run measures, so a merge of a run with itself reproduces its
-poses to that); covariances are float32 and descriptor positions float16 (they only seed a
-verification).
+by about 1e-7 rad, far below what a run measures); covariances are float32 and descriptor
+positions float16 (they only seed a verification).
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from mapping.map_schema import Spec
 from slam.algorithm.graph.gravity import UpMeasurement
 from slam.algorithm.loops.place import PlaceDescriptor
+from slam.algorithm.merge.session_checks import check_session
+
+SESSION_ARRAYS: dict[str, Spec] = {
+    "node_ids": Spec("K", (), "iu"),
+    "T_W_A": Spec("K", (4, 4)),
+    "frame_submap": Spec("F", (), "iu"),
+    "frame_pose_A_S": Spec("F", (7,)),
+    "timestamps": Spec("F", ()),
+    "dataset_mirror": Spec(None, (4, 4)),
+    "descriptor_ids": Spec("D", (), "iu"),
+    "descriptor_planar": Spec("D", (), "b"),
+    "descriptor_offsets": Spec("D+1", (), "iu"),
+    "descriptor_positions": Spec("M", (3,)),
+    "descriptor_bits": Spec("M", (32,), "u"),
+    "up_ids": Spec("U", (), "iu", required=False),
+    "up_A": Spec("U", (3,), required=False),
+    "up_information": Spec("U", (3, 3), required=False),
+    **{
+        f"{kind}_{name}": spec
+        for kind, group in (("odometry", "E"), ("loop", "L"))
+        for name, spec in (
+            ("ij", Spec(group, (2,), "iu")),
+            ("T", Spec(group, (4, 4))),
+            ("cov", Spec(group, (6, 6))),
+        )
+    },
+}
+"""The session section's arrays as :func:`mapping.map_io.read_map_file` checks them before
+reading any (``K`` anchors, ``F`` frames, ``D`` descriptors of ``M`` keypoints, ``U`` up
+directions, ``E`` odometry and ``L`` loop factors)."""
 
 
 def pack_relative_poses(T: np.ndarray) -> np.ndarray:
@@ -104,6 +136,26 @@ class SessionRecord:
     def sensor(self) -> str:
         return str(self.setup.get("sensor", ""))
 
+    @property
+    def session_id(self) -> str:
+        """The run's own id (``setup["session_id"]``, written since runs have one), else a
+        fingerprint of its contents (older files)."""
+        return str(self.setup.get("session_id") or self.fingerprint())
+
+    def fingerprint(self) -> str:
+        """Hash of the anchors, frames and timestamps: equal for copies of one session."""
+        digest = hashlib.sha256()
+        for array in (self.node_ids, self.T_W_A, self.frame_submap, self.frame_T_A_S):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        digest.update(np.ascontiguousarray(self.timestamps, np.float64).tobytes())
+        return digest.hexdigest()[:32]
+
+    def identities(self) -> set[str]:
+        """Ids of this session, of the runs it joined (a merged run's parts) and its
+        fingerprint: two sessions sharing one hold the same frames."""
+        parts = {str(p["session_id"]) for p in self.parts if p.get("session_id")}
+        return {self.session_id, self.fingerprint(), *parts}
+
     def anchor_poses(self) -> dict[int, np.ndarray]:
         return {int(n): T for n, T in zip(self.node_ids, self.T_W_A, strict=True)}
 
@@ -163,7 +215,10 @@ class SessionRecord:
 
     @classmethod
     def from_arrays(cls, header: dict, arrays: dict[str, np.ndarray]) -> SessionRecord:
-        """Inverse of :meth:`to_arrays`; inconsistent arrays raise a one-line ``ValueError``."""
+        """Inverse of :meth:`to_arrays`; inconsistent arrays or header (any invariant of
+        :func:`~slam.algorithm.merge.session_checks.check_session`) raise a one-line
+        ``ValueError``."""
+        check_session(header, arrays)
         node_ids = arrays["node_ids"].astype(np.int64)
         T_W_A = arrays["T_W_A"].astype(np.float64)
         if T_W_A.shape != (len(node_ids), 4, 4):
