@@ -62,7 +62,7 @@ def load_map_folder(folder: Path, cfg) -> tuple:
 
 def run_sensor(cfg) -> str | None:
     """The sensor (``lidar``/``rgbd``) the run's source will read, from its config alone."""
-    from frontends.sources.base import source_class
+    from frontends.sources import source_class
 
     if cfg.source.dataset == "generated":
         return cfg.generated.kind
