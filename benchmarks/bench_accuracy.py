@@ -25,7 +25,6 @@ import logging
 import os
 import shlex
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +34,7 @@ from benchmarks.harness.checkout import checkout
 from benchmarks.harness.child import UnsupportedRevision, in_child
 from benchmarks.harness.machine import git_revision, machine_line
 from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
+from benchmarks.harness.pipeline import anchor_frames, load_config, run_pipeline, trajectory_summary
 from benchmarks.harness.repeat import repeat_runs, repeats_line
 from common.atomic_io import write_text_atomic
 from slam.assembly.config import merge_overrides
@@ -42,14 +42,6 @@ from slam.assembly.config import merge_overrides
 RESULTS = RESULTS_DIR
 
 log = logging.getLogger("benchmarks.bench_accuracy")
-
-
-def _per_axis_ate(est: np.ndarray, gt: np.ndarray) -> list[float]:
-    from slam.evaluation.metrics.trajectory import align_se3
-
-    aligned = align_se3(est, gt) @ est
-    diff = aligned[:, :3, 3] - gt[:, :3, 3]
-    return [float(v) for v in np.sqrt(np.mean(diff**2, axis=0))]
 
 
 def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth: np.ndarray):
@@ -90,148 +82,29 @@ def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[s
     return {name: float(np.median(v)) if v else float("nan") for name, v in values.items()}
 
 
-def _loop_diagnosis(pipeline, source, gt: np.ndarray, a: int, b: int, T_a_b: np.ndarray):
-    """Where a loop edge's error against the ground truth comes from (``--diagnose-loops``).
-
-    Point-to-plane ICP started *at the ground truth* between (1) the two submaps fused with the
-    ground-truth poses of their frames and (2) the two anchor keyframes' own depth clouds: the
-    distance from the ground truth at which each converges is what that registration would
-    give even from a perfect start, with submaps free of odometry drift. (3) Depth agreement
-    within 1 cm of keyframe a moved into keyframe b by the edge and by the ground truth.
-    """
-    from common.geometry import relative_motion, transform_points
-    from common.point_to_plane import point_to_plane_icp
-    from slam.algorithm.loops.keyframes import depth_agreement
-    from slam.algorithm.loops.refine import RefineCloud
-    from slam.algorithm.loops.rgbd import RgbdVerifier
-
-    cfg = pipeline.cfg.loop_closure.rgbd
-    verifier = RgbdVerifier(cfg)
-    truth = np.linalg.inv(gt[a]) @ gt[b]
-
-    def fused(anchor: int) -> RefineCloud | None:
-        submap = next(s for s in pipeline.records if pipeline.submap_frames(s)[0] == anchor)
-        points, normals = [], []
-        for k in pipeline.submap_frames(submap):
-            frame = source[k]
-            T_A_S = np.linalg.inv(gt[anchor]) @ gt[k]
-            points.append(transform_points(T_A_S, frame.points))
-            normals.append(frame.normals @ T_A_S[:3, :3].T)
-        return RefineCloud.build(
-            np.vstack(points), np.vstack(normals), cfg.refine_voxel_m, cfg.refine_max_points
-        )
-
-    def icp_from_truth(reference, query) -> list[float] | None:
-        if reference is None or query is None:
-            return None
-        gates = tuple(max(g, 1.5 * reference.spacing_m) for g in cfg.refine_max_distances_m)
-        result = point_to_plane_icp(
-            reference.points, reference.normals, query.points, truth, gates, tree=reference.tree
-        )
-        return list(relative_motion(truth, result.T_ref_query))
-
-    fa, fb = verifier.features(source[a]), verifier.features(source[b])
-    return {
-        "icp_from_gt_gt_submaps": icp_from_truth(fused(a), fused(b)),
-        "icp_from_gt_keyframes": icp_from_truth(
-            verifier.keyframe_cloud(fa), verifier.keyframe_cloud(fb)
-        ),
-        "agreement_1cm_edge": depth_agreement(fa, fb, np.linalg.inv(T_a_b), 0.01)[0],
-        "agreement_1cm_gt": depth_agreement(fa, fb, np.linalg.inv(truth), 0.01)[0],
-    }
-
-
-def _summary(
-    pipeline, wall_s: float, gt: np.ndarray, source=None, diagnose: bool = False
-) -> dict[str, Any]:
-    from common.geometry import relative_motion
-    from slam.evaluation.metrics.trajectory import ate_rmse
-
-    loops = []
-    for c in pipeline.accepted_loops():
-        a = pipeline.submap_frames(c.reference_id)[0]
-        b = pipeline.submap_frames(c.query_id)[0]
-        truth = np.linalg.inv(gt[a]) @ gt[b]
-        error_m, error_deg = relative_motion(truth, c.T_Ai_Aj)
-        agreement_edge, agreement_gt = (None, None)
-        if source is not None:
-            agreement_edge, agreement_gt = _depth_agreements(
-                pipeline, source, a, b, c.T_Ai_Aj, truth
-            )
-        diagnosis = (
-            _loop_diagnosis(pipeline, source, gt, a, b, c.T_Ai_Aj)
-            if diagnose and source is not None
-            else None
-        )
-        loops.append(
-            {
-                "diagnosis": diagnosis,
-                "i": c.reference_id,
-                "j": c.query_id,
-                "frames": [int(a), int(b)],
-                "error_m": error_m,
-                "error_deg": error_deg,
-                "kept": bool(c.graph_inlier),
-                "detector": c.detector,
-                "depth_agreement_edge": agreement_edge,
-                "depth_agreement_gt": agreement_gt,
-                "scores": {k: float(v) for k, v in c.scores.items()},
-            }
-        )
-    rejected: dict[str, int] = {}
-    for c in pipeline.loop_candidates:
-        if not c.accepted:
-            stage = c.reason.split(" ")[0].rstrip(":") if c.reason else "?"
-            rejected[stage] = rejected.get(stage, 0) + 1
-    odometry = pipeline.odometry_poses()
-    slam = pipeline.slam_poses()
-    return {
-        "frames": pipeline.num_frames,
-        "submaps": len(pipeline.records),
-        "candidates": len(pipeline.loop_candidates),
-        "verified": len(loops),
-        "kept": sum(1 for e in loops if e["kept"]),
-        "rejected_by_stage": rejected,
-        "loops": loops,
-        "ate_odometry_m": ate_rmse(odometry, gt),
-        "ate_slam_m": ate_rmse(slam, gt),
-        "ate_axes_odometry_m": _per_axis_ate(odometry, gt),
-        "ate_axes_slam_m": _per_axis_ate(slam, gt),
-        "wall_s": wall_s,
-        "fps": pipeline.num_frames / wall_s,
-        "stage_s": {k: float(sum(v)) for k, v in pipeline.timings_s.items()},
-        "load_avg": list(os.getloadavg()),
-    }
-
-
-def _run(
-    config_name: str, overrides: dict[str, Any], dataset: str, diagnose: bool = False
-) -> dict[str, Any]:
-    import torch
-
+def _run(config_name: str, overrides: dict[str, Any], dataset: str) -> dict[str, Any]:
     from frontends.sources import make_source
-    from slam.algorithm.pipeline import SlamPipeline
-    from slam.assembly.builders import build_map, build_odometry
-    from slam.assembly.config import default_config_path, load_run_config
     from slam.assembly.datasets import source_kwargs
 
-    torch.set_num_threads(1)
-    base = {
-        "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
-        "mapping": {"device": "cpu"},
-    }
-    cfg = load_run_config(default_config_path(config_name), merge_overrides(base, overrides))
+    cfg = load_config(config_name, overrides)
     source = make_source(dataset, **source_kwargs(cfg))
-    odometry = build_odometry(cfg, "rgbd")
-    pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, build_map(cfg))
-    start = time.perf_counter()
-    for frame in source:
-        pipeline.process(frame)
-    pipeline.finish()
-    wall = time.perf_counter() - start
-    out = _summary(pipeline, wall, source.gt_poses, source, diagnose)
-    if source.sensor == "rgbd":
-        out["pose_consistency"] = _pose_consistency(pipeline, source, source.gt_poses)
+    pipeline, wall = run_pipeline(cfg, source)
+    gt = source.gt_poses
+    out = trajectory_summary(pipeline, gt, wall)
+    loops = []
+    for c, (error_m, error_deg, kept) in zip(
+        pipeline.accepted_loops(), out.pop("loop_errors"), strict=True
+    ):
+        a, b = anchor_frames(pipeline, c)
+        truth = np.linalg.inv(gt[a]) @ gt[b]
+        agreement_edge, agreement_gt = _depth_agreements(pipeline, source, a, b, c.T_Ai_Aj, truth)
+        loops.append({"i": c.reference_id, "j": c.query_id, "frames": [int(a), int(b)],
+                      "error_m": error_m, "error_deg": error_deg, "kept": kept,
+                      "detector": c.detector, "depth_agreement_edge": agreement_edge,
+                      "depth_agreement_gt": agreement_gt})  # fmt: skip
+    out["loops"] = loops
+    out["load_avg"] = list(os.getloadavg())
+    out["pose_consistency"] = _pose_consistency(pipeline, source, gt)
     return out
 
 
@@ -248,35 +121,6 @@ SCENARIOS = {
 
 def _cm(value: float) -> str:
     return f"{100 * value:.1f}"
-
-
-def _pair_error(value: list[float] | None) -> str:
-    return "-" if value is None else f"{_cm(value[0])} / {value[1]:.2f}"
-
-
-def _diagnosis_lines(loops: list[dict[str, Any]]) -> list[str]:
-    """The ``--diagnose-loops`` table of a run (nothing when it was not diagnosed)."""
-    if not loops or not all(e.get("diagnosis") for e in loops):
-        return []
-    lines = [
-        "Diagnosis (`--diagnose-loops`): point-to-plane ICP started at the ground truth, "
-        "between the submaps fused with the ground-truth poses of their frames, and between the "
-        "two anchor keyframes alone; how far from the ground truth each converges (a "
-        "registration that is right would stay). Depth agreement as above, within 1 cm.",
-        "",
-        "| edge i-j | edge error [cm / deg] | ICP from GT, GT-fused submaps [cm / deg] | ICP from "
-        "GT, keyframes [cm / deg] | depth agreement 1 cm: edge / GT |",
-        "|---|---|---|---|---|",
-    ]
-    for e in loops:
-        d = e["diagnosis"]
-        lines.append(
-            f"| {e['i']}-{e['j']} | {_pair_error([e['error_m'], e['error_deg']])} | "
-            f"{_pair_error(d['icp_from_gt_gt_submaps'])} | "
-            f"{_pair_error(d['icp_from_gt_keyframes'])} | "
-            f"{d['agreement_1cm_edge']:.2f} / {d['agreement_1cm_gt']:.2f} |"
-        )
-    return [*lines, ""]
 
 
 def write_report(path: Path, saved: dict[str, Any]) -> None:
@@ -313,7 +157,7 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
                 f"{_cm(np.median(err[:, 0]))} / {np.median(err[:, 1]):.2f}" if len(err) else "-"
             )
             worst = f"{_cm(err[:, 0].max())} / {err[:, 1].max():.2f}" if len(err) else "-"
-            axes = " / ".join(_cm(v) for v in r["ate_axes_slam_m"])
+            axes = " / ".join(_cm(v) for v in r["ate_xyz_slam_m"])
             pc = r.get("pose_consistency")
             consistency = f"{pc['gt']:.3f} / {pc['odometry']:.3f} / {pc['slam']:.3f}" if pc else "-"
             lines.append(
@@ -337,7 +181,7 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
             r = runs.get(key)
             if r is None or "unsupported" in r:
                 continue
-            rejected = ", ".join(f"{k}: {v}" for k, v in sorted(r["rejected_by_stage"].items()))
+            rejected = ", ".join(f"{k}: {v}" for k, v in sorted(r["rejections"].items()))
             lines += [
                 f"{title}, {label}: {r['candidates']} candidates, {r['verified']} verified, "
                 f"{r['verified'] - r['kept']} rejected by the pose graph; candidates rejected by "
@@ -364,7 +208,6 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
                     f"{'yes' if e['kept'] else 'no'} | {agreement} |"
                 )
             lines.append("")
-            lines += _diagnosis_lines(r["loops"])
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
@@ -382,12 +225,6 @@ def build_parser() -> argparse.ArgumentParser:
         type=json.loads,
         default={},
         help="config overrides for every run, as JSON (e.g. '{\"pose_graph\": {...}}')",
-    )
-    parser.add_argument(
-        "--diagnose-loops",
-        action="store_true",
-        help="also register every loop pair from the ground truth (submaps fused with the "
-        "ground-truth poses, and the keyframes alone) and report where each converges",
     )
     return parser
 
@@ -423,9 +260,7 @@ def main(argv: list[str] | None = None) -> int:
                 run_args = (config_name, merge_overrides(overrides, args.override), dataset)
                 try:
                     runs[key] = r = repeat_runs(
-                        lambda code=code, run_args=run_args: in_child(
-                            _run, *run_args, args.diagnose_loops, code=code
-                        ),
+                        lambda code=code, run_args=run_args: in_child(_run, *run_args, code=code),
                         ("wall_s", "fps"),
                     )
                 except UnsupportedRevision as error:

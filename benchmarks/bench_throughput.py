@@ -44,13 +44,12 @@ from benchmarks.harness.paths import RESULTS_DIR
 from benchmarks.harness.reference import kiss_icp_alone, kiss_slam
 from benchmarks.harness.repeat import REPEATS, repeat_runs, restore_all
 from benchmarks.memory_breakdown import memory_breakdown, trim_mb
-from benchmarks.micro_encode import scenario_micro
 from benchmarks.throughput_report import RSS_EVERY, write_report
 from common.atomic_io import write_text_atomic
 from mapping.map_io import save_map
 from slam.assembly.threads import machine_cores
 
-METHODS = ("ours", "kiss_icp", "kiss_slam", "micro", "rgbd")
+METHODS = ("ours", "kiss_icp", "kiss_slam")
 QUICK_FRAMES = 100
 RESULTS = RESULTS_DIR / "throughput.json"
 TIMING_KEYS = ("wall_s", "cpu_s", "fps", "stage_s", "stage_cpu_s", "cpu_threads_s")
@@ -265,31 +264,6 @@ def scenario_kiss_slam(quick: bool, num_frames: int, relief_m: float = 0.0) -> d
     return kiss_slam(kitti_source(quick, num_frames, relief_m), num_frames)
 
 
-def scenario_rgbd(_: int) -> dict:
-    """bench_slam's RGB-D scenarios (generated room with the demo config, 7-Scenes 0-399), with
-    this code's thread budget where it has one."""
-    from benchmarks import bench_slam
-
-    _apply_thread_budget(_config())
-    keep = (
-        "frames",
-        "fps",
-        "wall_s",
-        "ate_odometry_m",
-        "ate_slam_m",
-        "mesh_accuracy_m",
-        "mesh_completion_m",
-        "stage_s",
-        "peak_rss_mb",
-    )
-    out = {}
-    for name, fn in (("room", bench_slam.scenario_room), ("7scenes", bench_slam.scenario_7scenes)):
-        r = fn()
-        out[name] = None if r is None else {k: r.get(k) for k in keep}
-    out["load"] = os.getloadavg()[0]
-    return out
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, help="first N scans (default: the whole window)")
@@ -335,11 +309,9 @@ def _measure(name: str, args, code: Path | None) -> dict:
             (args.quick, args.frames, args.override, args.relief, args.profile),
         ),
         "kiss_icp": (scenario_kiss_icp, (args.quick, args.frames, args.relief)),
-        "micro": (scenario_micro, ()),
-        "rgbd": (scenario_rgbd, ()),
     }
     fn, fn_args = calls[name]
-    repeats = 1 if args.profile or name == "micro" else REPEATS  # micro repeats each call
+    repeats = 1 if args.profile else REPEATS
     try:
         return repeat_runs(lambda: in_child(fn, *fn_args, code=code), TIMING_KEYS, repeats)
     except UnsupportedRevision as error:

@@ -142,79 +142,7 @@ def write_report(saved: dict) -> None:
                     f"{100 * cpu[stage] / r['wall_s']:.0f} % | "
                     f"{100 * cpu[stage] / r['cpu_s']:.0f} % |"
                 )
-    lines += [
-        "",
-        "Micro-benchmarks (`--only micro`): one 640x480 depth frame of the benchmark room "
-        "subsampled to 30,000 points, encoded with Jacobians (V = 0.1 m; median of 5 runs before "
-        "stop 19, of 15 since); a room map meshed from cold (first `extract_mesh`, torch on 1 "
-        "thread; and on two Python threads of one torch thread each) and again unchanged.",
-        "",
-        "| run | encode, 1 thread [s] (CPU s) | frames/s | encode, 2 threads [s] | "
-        "mesh voxels | mesh cold [s] (CPU s) | mesh cold, 2 threads [s] | mesh again [s] | "
-        "load |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for key in sorted(results):
-        m = results[key].get("micro")
-        if not m:
-            continue
-        lines.append(
-            f"| {key} | {m['encode_wall_s_1t']:.3f} ({m['encode_cpu_s_1t']:.3f}) | "
-            f"{1 / m['encode_wall_s_1t']:.2f} | {m['encode_wall_s_2t']:.3f} | "
-            f"{m['mesh_voxels']:,} | {m['mesh_cold_wall_s']:.2f} ({m['mesh_cold_cpu_s']:.2f}) | "
-            f"{_f(m.get('mesh_cold_wall_s_2t'), 2)} | {m['mesh_again_wall_s']:.3f} | "
-            f"{m['load']:.1f} |"
-        )
-    capped = [
-        k for k in sorted(results) if "encode_capped_wall_s_1t" in results[k].get("micro", {})
-    ]
-    if capped:
-        lines += [
-            "",
-            "The same frame with each voxel's Jacobian taken from at most "
-            "`mapping.jacobian_pairs_per_voxel` of its point-voxel pairs (the default since stop "
-            "17; the latents still use every pair): rel. diff = median per-voxel relative "
-            "difference of the Jacobians to those of every pair.",
-            "",
-            "| run | pairs | eager, 1 thread [s] (CPU s) | frames/s | eager, 2 threads [s] | "
-            "frames/s | Jacobian rel. diff (median) | load |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
-        for key in capped:
-            m = results[key]["micro"]
-            two = m.get("encode_capped_wall_s_2t")
-            lines.append(
-                f"| {key} | {m['encode_capped_pairs']} | {m['encode_capped_wall_s_1t']:.3f} "
-                f"({m['encode_capped_cpu_s_1t']:.3f}) | {1 / m['encode_capped_wall_s_1t']:.2f} | "
-                f"{_f(two, 3)} | {_f(None if two is None else 1 / two, 2)} | "
-                f"{m['encode_capped_jacobian_rel_diff_median']:.3f} | {m['load']:.1f} |"
-            )
-    tables = [k for k in sorted(results) if "encode_table_wall_s_1t" in results[k].get("micro", {})]
-    if tables:
-        lines += [
-            "",
-            "The same frame, with the same Jacobian sample, by lookup in the encoder's latent "
-            "table (`mapping.encoder_table_nodes`, the default since stop 20) instead of the "
-            "network: build = building the table, once per process; rel. diff = per-voxel "
-            "relative difference to the network's latents and Jacobians (median / max).",
-            "",
-            "| run | nodes | build [s] | 1 thread [s] (CPU s) | frames/s | 2 threads [s] | "
-            "frames/s | latents rel. diff | Jacobians rel. diff | load |",
-            "|---|---|---|---|---|---|---|---|---|---|",
-        ]
-        for key in tables:
-            m = results[key]["micro"]
-            one, two = m["encode_table_wall_s_1t"], m["encode_table_wall_s_2t"]
-            lines.append(
-                f"| {key} | {m['encode_table_nodes']} | {m['encode_table_build_s']:.2f} | "
-                f"{one:.3f} ({m['encode_table_cpu_s_1t']:.3f}) | {1 / one:.1f} | {two:.3f} | "
-                f"{1 / two:.1f} | {m['encode_table_latent_rel_diff_median']:.1e} / "
-                f"{m['encode_table_latent_rel_diff_max']:.1e} | "
-                f"{m['encode_table_jacobian_rel_diff_median']:.1e} / "
-                f"{m['encode_table_jacobian_rel_diff_max']:.1e} | {m['load']:.1f} |"
-            )
     lines += _memory_lines(results)
-    lines += _rgbd_lines(results)
     lines.append("")
     write_text_atomic(REPORT, "\n".join(lines))
     _write_profiles(saved)
@@ -345,36 +273,5 @@ def _per_axis_lines(results: dict) -> list[str]:
         "",
         "| run | method | odometry x / y / z | SLAM x / y / z |",
         "|---|---|---|---|",
-        *rows,
-    ]
-
-
-def _rgbd_lines(results: dict) -> list[str]:
-    """The RGB-D table of ``--only rgbd`` runs; nothing when there are none."""
-    rows = []
-    for key in sorted(results):
-        rgbd = results[key].get("rgbd")
-        if not rgbd:
-            continue
-        for name in ("room", "7scenes"):
-            r = rgbd.get(name)
-            if not r:
-                continue
-            accuracy = r.get("mesh_accuracy_m")
-            rows.append(
-                f"| {key} | {name} | {r['frames']} | {r['fps']:.2f} | "
-                f"{r['ate_odometry_m']:.4f} | {r['ate_slam_m']:.4f} | "
-                f"{'n/a' if accuracy is None else f'{100 * accuracy:.2f}'} | "
-                f"{r['peak_rss_mb']:.0f} | {rgbd['load']:.1f} |"
-            )
-    if not rows:
-        return []
-    return [
-        "",
-        "RGB-D (`--only rgbd`: bench_slam's room and 7-Scenes scenarios, `NullLogger`):",
-        "",
-        "| run | sequence | frames | frames/s | ATE odometry [m] | ATE SLAM [m] | "
-        "mesh accuracy [cm] | peak RSS [MB] | load |",
-        "|---|---|---|---|---|---|---|---|---|",
         *rows,
     ]

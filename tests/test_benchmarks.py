@@ -217,7 +217,7 @@ def _variant_result(name: str, quick: bool, slam_z_m: float, worst_kept_m: float
         "worst_kept_deg": 0.2,
         "pitch_bias_mrad_per_100m": 1.0,
         "rejections": {},
-        "wall_s": 5.0,
+        "timing_s": [5.0, 4.5, 6.0],
     }
     return {
         "machine": "test machine",
@@ -267,3 +267,49 @@ def test_throughput_report_states_ours_cpu_floor_against_kiss_slam():
     before = next(line for line in lines if line.startswith("- before abc:"))
     assert "is 350 s, 1.40x" in before  # against the invocation's one KISS-SLAM run
     assert _cpu_floor_lines({"runs": runs}) == []  # no core count recorded: no claim
+
+
+def _slam_run(frames: int, loop_errors: list) -> dict:
+    return {
+        "frames": frames,
+        "submaps": 4,
+        "candidates": 3,
+        "verified": len(loop_errors),
+        "kept": sum(1 for *_, kept in loop_errors if kept),
+        "loop_errors": loop_errors,
+        "ate_odometry_m": 1.0,
+        "ate_slam_m": 0.5,
+        "ate_xyz_odometry_m": [0.5, 0.5, 0.5],
+        "ate_xyz_slam_m": [0.2, 0.2, 0.2],
+        "mesh_accuracy_m": 0.15,
+        "remap_events": 2,
+        "remap_moved": 5,
+        "move_all_s": [2.0, 1.0, 4.0],
+        "move_all_submaps": 4,
+        "move_all_frames": frames,
+        "submap_voxels_mean": 1000.0,
+    }
+
+
+def test_slam_section_shows_every_timing_with_its_range():
+    from benchmarks import bench_slam
+
+    lidar = _slam_run(550, [[0.1, 0.5, True], [2.5, 0.5, True], [3.0, 0.1, False]])
+    room = {
+        **_slam_run(240, []),
+        "remap_vs_scratch_m": [0.001, 0.002],
+        "remap_vs_scratch_median_m": [0.0005, 0.0006],
+        "scratch_encode_s": [4.0, 5.0, 4.5],
+        "scratch_encode_points": 1000,
+        "accuracy_m": 0.006,
+        "completion_m": 0.1,
+        "completion_ratio": 0.45,
+    }
+    text = bench_slam.report(
+        {"quick": True, "lidar_kiss": lidar, "room": room},
+        "python -m benchmarks.bench_slam --quick",
+    )
+    assert f"median of {REPEATS} runs (min-max)" in text and "550 scans" in text
+    assert "| 2 / 1 |" in text  # two loops beyond 1 m, one of them kept
+    assert "| 2.00 (1.00-4.00) | 2.0 (1.0-4.0) | 275 (138-550) |" in text
+    assert "| 4.5 (4.0-5.0) (1000 points) |" in text

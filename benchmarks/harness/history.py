@@ -26,7 +26,8 @@ ARCHIVED: dict[str, str] = {
     "full-runs/rgbd-memory.md": "RGB-D memory and frames/s of the demo and 7-Scenes 0-399 before "
     "and after the compact kept keyframes, with a per-object breakdown",
     "full-runs/slam-7scenes.md": "7-Scenes redkitchen 0-399: every verified loop edge judged "
-    "against a dense depth registration",
+    "against a dense depth registration (a check since removed; the accuracy section's depth "
+    "agreement asks the same of every loop edge)",
     "full-runs/throughput-1000.md": "1,000 scans, the submap worker against the code before it",
     "full-runs/throughput-4541.md": "all 4,541 scans: wall, CPU, peak RSS and RSS growth of ours, "
     "KISS-ICP alone and KISS-SLAM, before and after KISS-ICP moved to a child process",

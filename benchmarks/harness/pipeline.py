@@ -1,0 +1,104 @@
+"""One whole-pipeline run in this process, as the accuracy, SLAM and variant benchmarks make it.
+
+:func:`run_pipeline` loads a shipped config (plus overrides) with no viewer and the map on the
+CPU, builds the map and the odometry, feeds every frame of a source through
+:class:`~slam.algorithm.pipeline.SlamPipeline` and finishes it: the pipeline and the wall time.
+:func:`loop_errors`, :func:`rejections` and :func:`trajectory_summary` are what every such
+benchmark reads from the finished pipeline against the ground truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+QUIET = {
+    "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
+    "mapping": {"device": "cpu"},
+}
+"""Overrides of every benchmark run: no viewer, no periodic meshes, the map on the CPU."""
+
+
+def load_config(config_name: str, overrides: dict[str, Any] | None = None):
+    """``configs/<config_name>.yaml`` with :data:`QUIET` and ``overrides`` on top."""
+    from slam.assembly.config import default_config_path, load_run_config, merge_overrides
+
+    return load_run_config(
+        default_config_path(config_name), merge_overrides(QUIET, overrides or {})
+    )
+
+
+def run_pipeline(cfg, source, odometry=None) -> tuple[Any, float]:
+    """Every frame of ``source`` through a finished pipeline (one torch thread; ``odometry``:
+    the config's for the source's sensor unless given): ``(pipeline, wall seconds)``."""
+    import torch
+
+    from slam.algorithm.pipeline import SlamPipeline
+    from slam.assembly.builders import build_map, build_odometry
+
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING)
+    if odometry is None:
+        odometry = build_odometry(cfg, source.sensor)
+    pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, build_map(cfg))
+    start = time.perf_counter()
+    for frame in source.read_ahead():
+        pipeline.process(frame)
+    pipeline.finish()
+    return pipeline, time.perf_counter() - start
+
+
+def anchor_frames(pipeline, loop) -> tuple[int, int]:
+    """The anchor frames of a loop's reference and query submaps."""
+    return pipeline.submap_frames(loop.reference_id)[0], pipeline.submap_frames(loop.query_id)[0]
+
+
+def loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float, bool]]:
+    """(translation m, rotation deg, kept by the graph) of every verified loop against the
+    ground-truth relative pose of its anchors."""
+    from common.geometry import relative_motion
+
+    errors = []
+    for c in pipeline.accepted_loops():
+        a, b = anchor_frames(pipeline, c)
+        m, d = relative_motion(np.linalg.inv(gt[a]) @ gt[b], c.T_Ai_Aj)
+        errors.append((m, d, bool(c.graph_inlier)))
+    return errors
+
+
+def rejections(pipeline) -> dict[str, int]:
+    """Rejected loop candidates, counted by the first word of their reason."""
+    counts: dict[str, int] = {}
+    for c in pipeline.loop_candidates:
+        if not c.accepted:
+            key = c.reason.split(":")[0].split(" ")[0] if c.reason else "?"
+            counts[key] = counts.get(key, 0) + 1
+    return counts
+
+
+def trajectory_summary(pipeline, gt: np.ndarray, wall_s: float) -> dict[str, Any]:
+    """Loops, ATE (whole and per world axis) of the odometry and of SLAM, wall time, frames/s
+    and the seconds per pipeline stage."""
+    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
+
+    errors = loop_errors(pipeline, gt)
+    odometry, slam = pipeline.odometry_poses(), pipeline.slam_poses()
+    return {
+        "frames": pipeline.num_frames,
+        "submaps": len(pipeline.records),
+        "candidates": len(pipeline.loop_candidates),
+        "verified": len(errors),
+        "kept": sum(1 for *_, kept in errors if kept),
+        "loop_errors": errors,
+        "rejections": rejections(pipeline),
+        "ate_odometry_m": ate_rmse(odometry, gt),
+        "ate_slam_m": ate_rmse(slam, gt),
+        "ate_xyz_odometry_m": ate_per_axis_rmse(odometry, gt).tolist(),
+        "ate_xyz_slam_m": ate_per_axis_rmse(slam, gt).tolist(),
+        "wall_s": wall_s,
+        "fps": pipeline.num_frames / wall_s,
+        "stage_s": {k: float(sum(v)) for k, v in pipeline.timings_s.items()},
+    }
