@@ -70,6 +70,24 @@ def test_import_rules(folder: str, forbidden: tuple[str, ...]) -> None:
     assert _violations(folder, forbidden) == []
 
 
+RAY_MODULES = {"slam/app/fleet_ray.py"}
+"""The only modules that may import ``ray`` (an optional extra): the fleet's."""
+
+
+def test_only_the_fleet_imports_ray() -> None:
+    found = []
+    for folder in ("frontends", "mapping", "common", "slam"):
+        for path in _sources(folder):
+            relative = str(path.relative_to(REPO_ROOT))
+            if relative not in RAY_MODULES and any(
+                name == "ray" or name.startswith("ray.") for name in _imports(path)
+            ):
+                found.append(relative)
+    assert found == []
+    for relative in RAY_MODULES:
+        assert "ray" in _imports(REPO_ROOT / relative), relative
+
+
 def _module_name(path: Path) -> str:
     parts = list(path.relative_to(REPO_ROOT).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
