@@ -61,6 +61,7 @@ BENCHMARKS = (
     "variants",
     "real",
     "merge",
+    "fleet",
     "rerun",
     "reliability",
 )

@@ -37,7 +37,7 @@ DATASETS_WITH_GT_MESH = frozenset({"demo", "generated-lidar", "replica"})
 
 MERGE_MEMORY_BASE_MB = 900
 """Memory Ray reserves for a merge: 882 MB measured merging three 45-frame windows of the room
-at the default settings, 478-534 MB for 2-8 of the benchmark's quick windows
+at the default settings, 475-532 MB for 2-8 of the benchmark's quick windows
 (``benchmarks/results/fleet.md``); plus :data:`MERGE_MEMORY_MB_PER_SESSION` a session."""
 MERGE_MEMORY_MB_PER_SESSION = 100
 
