@@ -16,10 +16,10 @@ import trimesh
 from matplotlib.colors import to_rgb
 
 from slam.evaluation.cli import EvalError, evaluate_run, observed_face_mask, read_gt_poses
+from slam.evaluation.cli import main as eval_main
 from slam.evaluation.plots import distributions_figure
 from slam.run_folder.trajectory_io import read_kitti, write_kitti, write_tum
-from tests.helpers import assert_png_shows, colour_mask, png_pixels
-from tests.test_rerun_logger import demo_run
+from tests.helpers import assert_png_shows, call_main, colour_mask, png_pixels
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -120,21 +120,14 @@ def _assert_trajectory_plot_shows_the_lap(path: Path, run: Path) -> None:
 
 @pytest.mark.slow
 def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
-    tmp_path_factory: pytest.TempPathFactory,
+    demo_run: Path, tmp_path: Path
 ) -> None:
-    run = demo_run(tmp_path_factory, "rrd")
-    copy = tmp_path_factory.mktemp("eval") / "run"
-    shutil.copytree(run, copy)
+    copy = tmp_path / "run"
+    shutil.copytree(demo_run, copy)
     before = json.loads((copy / "metrics.json").read_text())
     assert "trajectory" in before and "mesh" in before
 
-    result = subprocess.run(
-        [sys.executable, "-m", "slam.eval", str(copy)],
-        capture_output=True,
-        text=True,
-        cwd=REPO_ROOT,
-        timeout=600,
-    )
+    result = call_main(eval_main, [str(copy)])
     assert result.returncode == 0, result.stderr[-2000:]
     after = json.loads((copy / "metrics.json").read_text())
     # Trajectory numbers from the pose files (10 significant digits) match the run's.
@@ -238,16 +231,12 @@ def test_transform_experiment_runs_on_the_demo(tmp_path: Path) -> None:
     lattice to keep it fast (measured: first-order 0.22-0.31 cm per frame, zeroth-order 0.79-0.96
     cm; on the default lattice 0.24-0.31 and 1.0-1.1 cm)."""
     out = tmp_path / "transform"
-    result = subprocess.run(
+    result = call_main(
+        eval_main,
         [
-            sys.executable, "-m", "slam.eval", "transform", "--dataset", "demo",
-            "--every", "60", "--max-frames", "4", "--samples", "20000",
-            "--set", "mapping.mesh_subdivisions=2", "--out", str(out),
+            "transform", "--dataset", "demo", "--every", "60", "--max-frames", "4",
+            "--samples", "20000", "--set", "mapping.mesh_subdivisions=2", "--out", str(out),
         ],
-        capture_output=True,
-        text=True,
-        cwd=REPO_ROOT,
-        timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads((out / "results.json").read_text())["summary"]
