@@ -50,4 +50,29 @@ def tum_row(stamp: float, pose: np.ndarray) -> str:
     return f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in (*pose[:3, 3], *q))
 
 
+def make_tum(folder: Path, n: int = 4) -> np.ndarray:
+    """A TUM RGB-D folder of ``n`` frames (plus a depth image without a colour partner);
+    returns the ground-truth poses written to ``groundtruth.txt``."""
+    rng = np.random.default_rng(2)
+    rgb_lines, depth_lines, gt_lines = ["# rgb"], ["# depth"], ["# gt"]
+    for i in range(n):
+        t = 100.0 + i / 30
+        write_rgb(folder / "rgb" / f"{t:.6f}.png")
+        write_depth(folder / "depth" / f"{t + 0.004:.6f}.png", np.full((480, 640), 1.0 + i), 5000)
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        depth_lines.append(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png")
+    # Extra depth image far in time: no colour partner.
+    write_depth(folder / "depth" / "200.000000.png", np.full((480, 640), 1.0), 5000)
+    depth_lines.append("200.000000 depth/200.000000.png")
+    poses = []
+    for k in range(3 * n + 3):
+        pose = random_pose(rng)
+        poses.append(pose)
+        gt_lines.append(tum_row(99.99 + k / 100, pose))
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (folder / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
+    return np.stack(poses)
+
+
 # --------------------------------------------------------------------------------------- KITTI

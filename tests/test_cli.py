@@ -10,12 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from slam.app.cli import UsageError, parse_frames
+from slam.app.cli import UsageError, main, parse_frames
+from tests.helpers import CommandResult, assert_error_line, call_main
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_cli(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    """``python -m slam.run ARGS`` in a new interpreter: for what only the real process shows
+    (its exit status, signals, the web viewer)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run(
         [sys.executable, "-m", "slam.run", *args],
@@ -27,47 +30,45 @@ def run_cli(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
     )
 
 
-def assert_one_line_error(result: subprocess.CompletedProcess, *needles: str) -> None:
-    assert result.returncode != 0
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, result.stderr
-    assert "Traceback" not in result.stderr
-    assert lines[0].startswith("error: ")
-    for needle in needles:
-        assert needle in lines[0], lines[0]
+def slam_run(*args: str) -> CommandResult:
+    """``python -m slam.run ARGS`` in this process (``slam.app.cli.main``)."""
+    return call_main(main, list(args))
 
 
 def test_unknown_dataset():
+    """The real command: one line on stderr and exit status 2."""
     result = run_cli("kitty", "00")
-    assert_one_line_error(result, "unknown dataset 'kitty'", "kitti")
+    assert_error_line(result, "unknown dataset 'kitty'", "kitti")
     assert result.returncode == 2
 
 
 def test_missing_root(tmp_path: Path):
-    assert_one_line_error(run_cli("kitti", "00"), "--root")
+    assert_error_line(slam_run("kitti", "00"), "--root")
     missing = tmp_path / "nowhere"
-    assert_one_line_error(run_cli("kitti", "00", "--root", str(missing)), str(missing))
+    assert_error_line(slam_run("kitti", "00", "--root", str(missing)), str(missing))
 
 
 def test_root_without_the_sequence(tmp_path: Path):
-    assert_one_line_error(
-        run_cli("kitti", "00", "--root", str(tmp_path), "--no-viz", "--out", str(tmp_path / "run")),
+    assert_error_line(
+        slam_run(
+            "kitti", "00", "--root", str(tmp_path), "--no-viz", "--out", str(tmp_path / "run")
+        ),
         "sequences",
     )
 
 
 def test_bad_frame_range(tmp_path: Path):
-    assert_one_line_error(run_cli("demo", "--frames", "9:3"), "--frames '9:3'")
-    assert_one_line_error(run_cli("demo", "--frames", "a:b"), "integers")
+    assert_error_line(slam_run("demo", "--frames", "9:3"), "--frames '9:3'")
+    assert_error_line(slam_run("demo", "--frames", "a:b"), "integers")
 
 
 def test_unknown_config_key(tmp_path: Path):
     config = tmp_path / "bad.yaml"
     config.write_text("submaps:\n  max_frame: 20\n")
-    result = run_cli("demo", "--config", str(config), "--out", str(tmp_path / "run"))
-    assert_one_line_error(result, "submaps.max_frame", str(config))
-    result = run_cli("demo", "--set", "loop_closure.rgbd.radius=2", "--out", str(tmp_path / "r"))
-    assert_one_line_error(result, "loop_closure.rgbd.radius")
+    result = slam_run("demo", "--config", str(config), "--out", str(tmp_path / "run"))
+    assert_error_line(result, "submaps.max_frame", str(config))
+    result = slam_run("demo", "--set", "loop_closure.rgbd.radius=2", "--out", str(tmp_path / "r"))
+    assert_error_line(result, "loop_closure.rgbd.radius")
 
 
 def test_parse_frames():
@@ -78,22 +79,9 @@ def test_parse_frames():
             parse_frames(bad)
 
 
-def test_short_run_writes_the_run_folder(tmp_path: Path):
-    out = tmp_path / "run"
-    result = run_cli(
-        "generated-lidar",
-        "--frames",
-        "0:30",
-        "--no-viz",
-        "--no-progress",
-        "--out",
-        str(out),
-        "--set",
-        "submaps.max_distance_m=8",
-        "--set",
-        "submaps.max_map_points=2000",
-    )
-    assert result.returncode == 0, result.stderr
+def test_short_run_writes_the_run_folder(lidar_run) -> None:
+    """30 frames of the generated street (tests/helpers.py LIDAR_ARGS)."""
+    out, result = lidar_run.folder, lidar_run.result
     assert "Traceback" not in result.stderr
     for name in (
         "config.yaml",
@@ -121,29 +109,29 @@ def test_out_never_mixes_into_or_deletes_a_folder_it_did_not_create(tmp_path: Pa
     user = tmp_path / "mine"
     user.mkdir()
     (user / "notes.txt").write_text("keep me\n")
-    result = run_cli("demo", "--no-viz", "--out", str(user))
-    assert_one_line_error(result, "not empty", str(user))
+    result = slam_run("demo", "--no-viz", "--out", str(user))
+    assert_error_line(result, "not empty", str(user))
     assert [p.name for p in user.iterdir()] == ["notes.txt"]
     # An empty folder of the user's is used; a run that fails in it does not delete it.
     empty = tmp_path / "empty"
     empty.mkdir()
     missing = tmp_path / "nowhere.bag"
-    result = run_cli("kitti", "00", "--root", str(tmp_path), "--no-viz", "--out", str(empty))
-    assert_one_line_error(result, "sequences")
+    result = slam_run("kitti", "00", "--root", str(tmp_path), "--no-viz", "--out", str(empty))
+    assert_error_line(result, "sequences")
     assert empty.is_dir()
     # A folder the failed run created itself is removed again.
     created = tmp_path / "new" / "run"
-    result = run_cli("kitti", "00", "--root", str(tmp_path), "--no-viz", "--out", str(created))
-    assert_one_line_error(result, "sequences")
+    result = slam_run("kitti", "00", "--root", str(tmp_path), "--no-viz", "--out", str(created))
+    assert_error_line(result, "sequences")
     assert not created.exists()
-    result = run_cli("lidar", str(missing), "--no-viz", "--out", str(tmp_path / "x"))
-    assert_one_line_error(result, str(missing))
+    result = slam_run("lidar", str(missing), "--no-viz", "--out", str(tmp_path / "x"))
+    assert_error_line(result, str(missing))
 
 
 def test_lidar_and_rgbd_need_a_path():
-    assert_one_line_error(run_cli("lidar"), "PATH")
-    assert_one_line_error(run_cli("rgbd"), "PATH")
-    assert_one_line_error(run_cli("demo", "--dataloader", "rosbag"), "lidar dataset only")
+    assert_error_line(slam_run("lidar"), "PATH")
+    assert_error_line(slam_run("rgbd"), "PATH")
+    assert_error_line(slam_run("demo", "--dataloader", "rosbag"), "lidar dataset only")
 
 
 def _free_port() -> int:
@@ -229,7 +217,7 @@ def test_icl_trajectories_are_written_in_the_release_frame(tmp_path: Path):
     gt_file = tmp_path / "livingRoom2.gt.freiburg"
     gt_file.write_text("".join(f"{n} {rows[n - 1]}\n" for n in range(1, 6)))
     out = tmp_path / "run"
-    result = run_cli(
+    result = slam_run(
         "icl", "lr-kt2", "--root", str(tmp_path), "--odometry", "gt", "--no-viz",
         "--no-progress", "--out", str(out), "--set", "source.depth.stride=8",
         "--set", "output.write_map=false", "--set", "mapping.device=cpu",
@@ -256,7 +244,7 @@ def test_rgbd_image_folder_runs(tmp_path: Path):
 
     room = make_source("generated", kind="rgbd", num_frames=240, seed=0, width=320, height=240)
     out = tmp_path / "run"
-    result = run_cli(
+    result = slam_run(
         "rgbd", str(room.sequence_dir), "--frames", "0:12", "--no-viz", "--no-progress",
         "--out", str(out), "--set", "source.depth.stride=4", "--set", "output.write_map=false",
     )  # fmt: skip

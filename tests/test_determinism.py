@@ -25,7 +25,7 @@ from frontends.sources import make_source
 from slam.algorithm.pipeline import SlamPipeline
 from slam.assembly.builders import build_map
 from slam.run_folder.outputs import RunOutputs
-from tests.test_pipeline import STREET, DriftingOdometry, street_config
+from tests.pipeline_setups import STREET, DriftingOdometry, street_config
 
 
 def _map_checksum(pipeline: SlamPipeline) -> str:

@@ -13,11 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from matplotlib.colors import to_rgb
 
 from slam.evaluation.cli import EvalError, evaluate_run, observed_face_mask, read_gt_poses
-from slam.run_folder.trajectory_io import write_kitti, write_tum
-from tests.test_plots import assert_png
-from tests.test_rerun_logger import demo_run
+from slam.evaluation.cli import main as eval_main
+from slam.evaluation.plots import distributions_figure
+from slam.run_folder.trajectory_io import read_kitti, write_kitti, write_tum
+from tests.helpers import assert_png_shows, call_main, colour_mask, png_pixels
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -98,23 +100,34 @@ def _close(a: object, b: object, rel: float, key: str = "") -> bool:
     return a == b
 
 
+def _assert_trajectory_plot_shows_the_lap(path: Path, run: Path) -> None:
+    """The SLAM (blue) and ground-truth (dark grey) lines of the top-down plot span the
+    ground-truth lap's extents: the same width-to-height ratio on the canvas as in metres (the
+    plot keeps the aspect), up to line width; the legend's few pixels do not move percentiles."""
+    from slam.evaluation.plots import top_down_axes
+
+    truth = read_kitti(run / "poses_gt.kitti.txt")[:, :3, 3]
+    a, b = top_down_axes(truth)
+    expected = np.ptp(truth[:, a]) / np.ptp(truth[:, b])
+    pixels = png_pixels(path)
+    for colour in ("tab:blue", "0.2"):
+        rows, cols = np.nonzero(colour_mask(pixels, colour))
+        width = np.percentile(cols, 99) - np.percentile(cols, 1)
+        height = np.percentile(rows, 99) - np.percentile(rows, 1)
+        assert len(rows) > 300 and height > 100, colour
+        assert abs(width / height - expected) < 0.15 * expected, (colour, width / height, expected)
+
+
 @pytest.mark.slow
 def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
-    tmp_path_factory: pytest.TempPathFactory,
+    demo_run: Path, tmp_path: Path
 ) -> None:
-    run = demo_run(tmp_path_factory, "rrd")
-    copy = tmp_path_factory.mktemp("eval") / "run"
-    shutil.copytree(run, copy)
+    copy = tmp_path / "run"
+    shutil.copytree(demo_run, copy)
     before = json.loads((copy / "metrics.json").read_text())
     assert "trajectory" in before and "mesh" in before
 
-    result = subprocess.run(
-        [sys.executable, "-m", "slam.eval", str(copy)],
-        capture_output=True,
-        text=True,
-        cwd=REPO_ROOT,
-        timeout=600,
-    )
+    result = call_main(eval_main, [str(copy)])
     assert result.returncode == 0, result.stderr[-2000:]
     after = json.loads((copy / "metrics.json").read_text())
     # Trajectory numbers from the pose files (10 significant digits) match the run's.
@@ -126,10 +139,15 @@ def test_eval_reproduces_the_runs_own_metrics_and_draws_plots(
         assert after[key] == before[key]
 
     plots = copy / "plots"
-    assert_png(plots / "trajectories.png")
-    assert_png(plots / "translation_error.png")
+    _assert_trajectory_plot_shows_the_lap(plots / "trajectories.png", copy)
+    errors = png_pixels(plots / "translation_error.png")
+    for colour in ("tab:orange", "tab:blue"):  # odometry and SLAM error lines
+        assert colour_mask(errors, colour).sum() > 200, colour
     if before["mesh"]["num_pred_faces"]:
-        assert_png(plots / "mesh_error_histogram.png")
+        histogram = png_pixels(plots / "mesh_error_histogram.png")
+        for colour in ("tab:blue", "tab:orange"):  # accuracy and completion bars (alpha 0.55)
+            faded = 0.55 * np.asarray(to_rgb(colour)) + 0.45
+            assert colour_mask(histogram, faded, tolerance=8).sum() > 100, colour
         colored = trimesh.load(plots / "mesh_error.ply", process=False)
         assert len(colored.faces) == before["mesh"]["num_pred_faces"]
     assert set(after["evaluation"]["plots"]) >= {"plots/trajectories.png"}
@@ -191,7 +209,16 @@ def test_transform_experiment_outputs_summarize_per_variant(tmp_path: Path) -> N
     assert math.isclose(summary["first-order"]["accuracy_m_mean"], 0.004)
     assert math.isclose(summary["zeroth-order"]["completion_m_median"], 0.005)
     files = write_outputs(tmp_path, rows, ["first-order", "zeroth-order"], "cmd")
-    assert_png(files["plot"])
+    drawn = {  # what the plot must show: each variant's per-frame values (metres)
+        "accuracy: moved -> re-encoded": {
+            "first-order": [0.002, 0.004, 0.006], "zeroth-order": [0.01] * 3,
+        },
+        "completion: re-encoded -> moved": {
+            "first-order": [0.001, 0.002, 0.003], "zeroth-order": [0.005] * 3,
+        },
+    }  # fmt: skip
+    title = "Encode-transform (moved map) vs transform-encode over 3 frames"
+    assert_png_shows(files["plot"], distributions_figure(drawn, title=title))
     assert json.loads(files["results"].read_text())["summary"] == summary
     assert "| first-order | 3 | 0.40 / 0.40 |" in files["summary"].read_text()
 
@@ -204,16 +231,12 @@ def test_transform_experiment_runs_on_the_demo(tmp_path: Path) -> None:
     lattice to keep it fast (measured: first-order 0.22-0.31 cm per frame, zeroth-order 0.79-0.96
     cm; on the default lattice 0.24-0.31 and 1.0-1.1 cm)."""
     out = tmp_path / "transform"
-    result = subprocess.run(
+    result = call_main(
+        eval_main,
         [
-            sys.executable, "-m", "slam.eval", "transform", "--dataset", "demo",
-            "--every", "60", "--max-frames", "4", "--samples", "20000",
-            "--set", "mapping.mesh_subdivisions=2", "--out", str(out),
+            "transform", "--dataset", "demo", "--every", "60", "--max-frames", "4",
+            "--samples", "20000", "--set", "mapping.mesh_subdivisions=2", "--out", str(out),
         ],
-        capture_output=True,
-        text=True,
-        cwd=REPO_ROOT,
-        timeout=600,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads((out / "results.json").read_text())["summary"]

@@ -315,12 +315,23 @@ def test_street_along_a_real_kitti_trajectory(tmp_path):
         kitti_lidar_trajectory(KITTI_POSES, KITTI_CALIB, start=4500, num_frames=100)
 
 
-def test_kitti_camera_poses_map_back_to_lidar_poses():
-    lidar = loop_lidar_trajectory(10)
-    cam = T_CAM_LIDAR @ lidar @ np.linalg.inv(T_CAM_LIDAR)
-    np.testing.assert_allclose(np.linalg.inv(T_CAM_LIDAR) @ cam @ T_CAM_LIDAR, lidar, atol=1e-12)
+def test_written_camera_poses_map_back_to_the_simulated_lidar_poses(lidar_root):
+    """The generator writes KITTI ground truth as camera poses with its calib.txt; KITTI's
+    conversion (``inv(Tr) @ T_cam @ Tr``, the reader's) gives back the LiDAR lap it simulated,
+    started at the identity."""
+    sequence = lidar_root / "sequences" / "00"
+    Tr = read_kitti_tr(sequence / "calib.txt")
+    np.testing.assert_allclose(Tr, T_CAM_LIDAR, atol=1e-12)
     # Camera optical axis (z) is the LiDAR forward axis (x).
-    np.testing.assert_allclose(T_CAM_LIDAR[:3, :3] @ [1.0, 0, 0], [0, 0, 1.0])
+    np.testing.assert_allclose(Tr[:3, :3] @ [1.0, 0, 0], [0, 0, 1.0])
+    lidar = kitti_lidar_trajectory(
+        lidar_root / "poses" / "00.txt", sequence / "calib.txt", num_frames=12
+    )
+    simulated = loop_lidar_trajectory(12)
+    np.testing.assert_allclose(lidar, np.linalg.inv(simulated[0]) @ simulated, atol=1e-6)
+    assert not np.allclose(
+        lidar[:, :3, 3], read_kitti_poses(lidar_root / "poses" / "00.txt")[:, :3, 3]
+    )
 
 
 def test_tum_loader_picks_up_the_generated_intrinsics_file(rgbd_folder):

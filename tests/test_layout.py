@@ -212,3 +212,47 @@ def test_no_source_file_is_over_500_lines() -> None:
             if lines > MAX_LINES and relative not in LONG_FILES_ALLOWED:
                 long_files.append(f"{relative}: {lines} lines")
     assert long_files == []
+
+
+def _test_module_imports(path: Path) -> list[str]:
+    """The test modules (``test_*``) that a file imports, in any spelling: ``tests.test_x``,
+    ``test_x``, ``from tests import test_x`` or ``from . import test_x``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            modules = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            modules = [base] + [f"{base}.{alias.name}".lstrip(".") for alias in node.names]
+        else:
+            continue
+        found += [m for m in modules if m.rsplit(".", 1)[-1].startswith("test_")]
+    return found
+
+
+def test_no_test_module_imports_another() -> None:
+    """Shared fixtures live in tests/conftest.py and shared helpers in plain modules
+    (tests/helpers.py, ...): a test file imported by another would run its tests twice and tie
+    the two files' fixtures together."""
+    found = [
+        f"{path.relative_to(REPO_ROOT)} imports {name}"
+        for path in _sources("tests")
+        for name in _test_module_imports(path)
+    ]
+    assert found == []
+
+
+def test_the_test_import_checker_sees_every_spelling(tmp_path: Path) -> None:
+    spellings = (
+        "from tests.test_plots import x",
+        "import tests.test_plots",
+        "from tests import test_plots",
+        "from . import test_plots",
+        "import test_plots",
+        "from test_plots import x",
+    )
+    for line in spellings:
+        (tmp_path / "a.py").write_text(f"def f():\n    {line}\n")
+        assert _test_module_imports(tmp_path / "a.py"), line
+    (tmp_path / "b.py").write_text("from tests.helpers import call_main\nimport pytest\n")
+    assert _test_module_imports(tmp_path / "b.py") == []

@@ -1,14 +1,12 @@
 """``python -m slam.run lidar PATH --dataloader NAME`` on real files written with the real
 libraries (trimesh PLY scans, ROS2 and ROS1 bags and an MCAP file with sensor_msgs/PointCloud2
-written by ``rosbags``), made from the first scans of the generated street, run end to end; the
-estimated poses are scored against the generated ground truth.
+written by ``rosbags``), made from the first scans of the generated street, run end to end (in
+this process); the estimated poses are scored against the generated ground truth.
 """
 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +16,7 @@ import trimesh
 from frontends.errors import DatasetError
 from frontends.sources import make_source
 from slam.run_folder.trajectory_io import write_kitti
+from tests.helpers import call_main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 STREET = {"kind": "lidar", "num_frames": 150, "seed": 0, "azimuth_steps": 1024}
@@ -105,10 +104,10 @@ def _write_ros1_bag(path: Path, scans: list[np.ndarray]) -> None:
 
 
 def _run(args: list[str], out: Path) -> dict:
+    """``python -m slam.run ARGS`` (in this process) with the LiDAR config, no loop closure."""
+    from slam.app.cli import main
+
     command = [
-        sys.executable,
-        "-m",
-        "slam.run",
         *args,
         "--config",
         str(REPO_ROOT / "configs" / "lidar.yaml"),
@@ -125,7 +124,7 @@ def _run(args: list[str], out: Path) -> dict:
         "--set",
         "output.mesh_samples=2000",
     ]
-    result = subprocess.run(command, capture_output=True, text=True, cwd=REPO_ROOT, timeout=600)
+    result = call_main(main, command)
     assert result.returncode == 0, result.stderr[-3000:]
     return json.loads((out / "metrics.json").read_text())
 

@@ -14,47 +14,15 @@ from mapping.compact_block import FIELDS
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
 from mapping.map_io import COMMAND_FIELDS, load_map, save_map
-from mapping.networks import PriorModel
 from mapping.neural_map import NeuralMap
+from tests.helpers import seeded_prior, sphere_points
 
 torch.set_num_threads(1)
 
 
-def _model(seed: int = 0) -> PriorModel:
-    torch.manual_seed(seed)
-    return PriorModel().eval()
-
-
-def _sphere(n: int, centre, seed: int):
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return d * 0.3 + np.asarray(centre), d
-
-
-@pytest.fixture()
-def saved(tmp_path: Path):
-    cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=1.0, device="cpu")
-    nm = NeuralMap(cfg, _model())
-    subs = []
-    for i, centre in enumerate([(0, 0, 0), (0.25, 0.1, 0), (0.5, 0.0, 0.1)]):
-        p, n = _sphere(1500, centre, i)
-        subs.append(nm.encode(10 + i, p, n, np.eye(4)))
-    nm.fuse(subs[0])
-    nm.fuse(subs[1])
-    T = np.eye(4)
-    T[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ np.eye(3)
-    T[:3, 3] = [0.0123, -0.0456, 0.078]
-    nm.move(subs[1], T)
-    nm.move(subs[2], T)  # never fused
-    path = tmp_path / "map.npz"
-    save_map(nm, path, subs)
-    return nm, subs, path
-
-
-def test_save_load_round_trip(saved) -> None:
-    nm, subs, path = saved
-    loaded, loaded_subs = load_map(path, _model())
+def test_save_load_round_trip(saved_map) -> None:
+    nm, subs, path = saved_map
+    loaded, loaded_subs = load_map(path, seeded_prior())
     # the global map is rebuilt from the submaps: equal up to float32 rounding of fusion order
     a, b = nm.voxel_block(), loaded.voxel_block()
     assert torch.equal(a.keys, b.keys)
@@ -79,13 +47,13 @@ def test_save_load_round_trip(saved) -> None:
     assert not list(path.parent.glob("*.tmp"))
 
 
-def test_truncated_file_is_rejected(saved) -> None:
-    _, _, path = saved
+def test_truncated_file_is_rejected(saved_map) -> None:
+    _, _, path = saved_map
     data = path.read_bytes()
     bad = path.with_name("truncated.npz")
     bad.write_bytes(data[: len(data) // 2])
     with pytest.raises(MapFileError, match=r"truncated\.npz") as info:
-        load_map(bad, _model())
+        load_map(bad, seeded_prior())
     assert "\n" not in str(info.value)
 
 
@@ -93,13 +61,13 @@ def test_foreign_files_are_rejected(tmp_path: Path) -> None:
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"definitely not a zip file")
     with pytest.raises(MapFileError, match=r"junk\.npz"):
-        load_map(junk, _model())
+        load_map(junk, seeded_prior())
     other = tmp_path / "other.npz"
     np.savez(other, x=np.arange(3))
     with pytest.raises(MapFileError, match="no map header"):
-        load_map(other, _model())
+        load_map(other, seeded_prior())
     with pytest.raises(MapFileError, match="not found"):
-        load_map(tmp_path / "missing.npz", _model())
+        load_map(tmp_path / "missing.npz", seeded_prior())
 
 
 def _rewrite_header(path: Path, out: Path, **changes) -> None:
@@ -111,30 +79,30 @@ def _rewrite_header(path: Path, out: Path, **changes) -> None:
     np.savez(out, **arrays)
 
 
-def test_wrong_version_and_format_are_rejected(saved, tmp_path: Path) -> None:
-    _, _, path = saved
+def test_wrong_version_and_format_are_rejected(saved_map, tmp_path: Path) -> None:
+    _, _, path = saved_map
     _rewrite_header(path, tmp_path / "v99.npz", version=99)
     with pytest.raises(MapFileError, match="version 99"):
-        load_map(tmp_path / "v99.npz", _model())
+        load_map(tmp_path / "v99.npz", seeded_prior())
     _rewrite_header(path, tmp_path / "fmt.npz", format="something-else")
     with pytest.raises(MapFileError, match="not a neural-remap-slam/map file"):
-        load_map(tmp_path / "fmt.npz", _model())
+        load_map(tmp_path / "fmt.npz", seeded_prior())
 
 
-def test_model_mismatch_is_rejected(saved) -> None:
-    _, _, path = saved
+def test_model_mismatch_is_rejected(saved_map) -> None:
+    _, _, path = saved_map
     with pytest.raises(MapFileError, match="same prior weights"):
-        load_map(path, _model(seed=1))
+        load_map(path, seeded_prior(seed=1))
 
 
-def test_missing_arrays_are_rejected(saved, tmp_path: Path) -> None:
-    _, _, path = saved
+def test_missing_arrays_are_rejected(saved_map, tmp_path: Path) -> None:
+    _, _, path = saved_map
     with zipfile.ZipFile(path) as src, zipfile.ZipFile(tmp_path / "cut.npz", "w") as dst:
         for item in src.infolist():
             if not item.filename.startswith("latent_coeffs"):
                 dst.writestr(item, src.read(item.filename))
     with pytest.raises(MapFileError, match="inconsistent"):
-        load_map(tmp_path / "cut.npz", _model())
+        load_map(tmp_path / "cut.npz", seeded_prior())
 
 
 def _rewrite_arrays(path: Path, out: Path, **changes) -> None:
@@ -144,46 +112,46 @@ def _rewrite_arrays(path: Path, out: Path, **changes) -> None:
     np.savez_compressed(out, **arrays)
 
 
-def test_version_1_files_get_a_regenerate_hint(saved, tmp_path: Path) -> None:
-    _, _, path = saved
+def test_version_1_files_get_a_regenerate_hint(saved_map, tmp_path: Path) -> None:
+    _, _, path = saved_map
     _rewrite_header(path, tmp_path / "v1.npz", version=1)
     with pytest.raises(MapFileError, match=r"v1\.npz: map format version 1 .*python -m slam\.run"):
-        load_map(tmp_path / "v1.npz", _model())
+        load_map(tmp_path / "v1.npz", seeded_prior())
 
 
 @pytest.mark.parametrize("bad", [0.0, -3.0, float("nan")])
-def test_bad_weights_are_rejected_on_load(saved, tmp_path: Path, bad: float) -> None:
-    _, _, path = saved
+def test_bad_weights_are_rejected_on_load(saved_map, tmp_path: Path, bad: float) -> None:
+    _, _, path = saved_map
     with np.load(path) as npz:
         weights = npz["weights"].copy()
     weights[5] = bad
     _rewrite_arrays(path, tmp_path / "w.npz", weights=weights)
     with pytest.raises(MapFileError, match=r"w\.npz: .*weights must be finite and positive"):
-        load_map(tmp_path / "w.npz", _model())
+        load_map(tmp_path / "w.npz", seeded_prior())
 
 
-def test_nan_coefficients_are_rejected_on_load(saved, tmp_path: Path) -> None:
-    _, _, path = saved
+def test_nan_coefficients_are_rejected_on_load(saved_map, tmp_path: Path) -> None:
+    _, _, path = saved_map
     with np.load(path) as npz:
         coeffs = npz["latent_coeffs"].copy()
     coeffs[3, 0, 1] = np.nan
     _rewrite_arrays(path, tmp_path / "nan.npz", latent_coeffs=coeffs)
     with pytest.raises(MapFileError, match="NaN"):
-        load_map(tmp_path / "nan.npz", _model())
+        load_map(tmp_path / "nan.npz", seeded_prior())
 
 
 def test_empty_map_round_trips(tmp_path: Path) -> None:
     cfg = MapConfig(device="cpu")
-    nm = NeuralMap(cfg, _model())
+    nm = NeuralMap(cfg, seeded_prior())
     save_map(nm, tmp_path / "empty.npz", [])
-    loaded, subs = load_map(tmp_path / "empty.npz", _model())
+    loaded, subs = load_map(tmp_path / "empty.npz", seeded_prior())
     assert loaded.num_voxels == 0 and subs == []
     # a submap that was encoded but never fused (and one that encoded nothing)
-    p, n = _sphere(800, (0.1, 0.2, 0.3), 4)
+    p, n = sphere_points(800, (0.1, 0.2, 0.3), 4)
     lone = nm.encode(7, p, n, np.eye(4))
     nothing = nm.encode(8, np.zeros((0, 3)), np.zeros((0, 3)), np.eye(4))
     save_map(nm, tmp_path / "unfused.npz", [lone, nothing])
-    loaded, subs = load_map(tmp_path / "unfused.npz", _model())
+    loaded, subs = load_map(tmp_path / "unfused.npz", seeded_prior())
     assert loaded.num_voxels == 0
     assert [s.fused for s in subs] == [False, False]
     assert torch.equal(subs[0].original.keys, lone.original.keys)
@@ -195,12 +163,14 @@ def test_empty_map_round_trips(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32"])
 def test_every_storage_dtype_round_trips(tmp_path: Path, dtype: str) -> None:
-    nm = NeuralMap(MapConfig(device="cpu", min_points_per_voxel=1, storage_dtype=dtype), _model())
-    p, n = _sphere(1500, (0.0, 0.0, 0.0), 5)
+    nm = NeuralMap(
+        MapConfig(device="cpu", min_points_per_voxel=1, storage_dtype=dtype), seeded_prior()
+    )
+    p, n = sphere_points(1500, (0.0, 0.0, 0.0), 5)
     sub = nm.encode(0, p, n, np.eye(4))
     nm.fuse(sub)
     save_map(nm, tmp_path / f"{dtype}.npz", [sub])
-    loaded, subs = load_map(tmp_path / f"{dtype}.npz", _model())
+    loaded, subs = load_map(tmp_path / f"{dtype}.npz", seeded_prior())
     assert subs[0].original.latent_coeffs.dtype == getattr(torch, dtype)
     for name in FIELDS:
         assert torch.equal(getattr(subs[0].original, name), getattr(sub.original, name))

@@ -2,98 +2,41 @@
 their scans, and a run continues another's map; a run merged with itself (or with a merged run
 holding it) is refused; incompatible maps and runs without a shared place are refused.
 
-One module fixture makes every run (four short runs of one generated room); each test reuses
-them."""
+Every run (short runs of one generated room) and the merge of the two sessions come from the
+session fixture ``room_sessions`` (tests/conftest.py); the commands run in this process."""
 
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mapping.map_io import load_map
+from slam.app.cli import main as run_main
+from slam.app.merge_cli import main as merge_main
 from slam.evaluation.cli import evaluate_run
 from slam.run_folder.trajectory_io import read_kitti
+from tests.helpers import ROOM_SESSION_ARGS, assert_error_line, call_main
 
-ROOT = Path(__file__).resolve().parents[1]
-# a short lap of the generated room (its end revisits its start), split in two sessions; the runs
-# do not score their meshes (no test here reads the scores)
-ROOM = ("--set", "generated.num_frames=120", "--set", "output.mesh_samples=0")
 # benchmarks/results/merge.md (the same split): combined ATE 0.48 cm; bound 3x that
 COMBINED_ATE_BOUND_M = 0.015
 MERGED_FILES = ("poses_slam.kitti.txt", "poses_slam.tum.txt", "sessions.csv", "loops.csv",
                 "map.npz", "mesh.ply", "metrics.json")  # fmt: skip
 
 
-def _python(module: str, *args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run(
-        [sys.executable, "-m", module, *args],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+@pytest.fixture()
+def runs(room_sessions: dict[str, Path]) -> dict[str, Path]:
+    return room_sessions
 
 
-def _run(folder: Path, data: Path, frames: str | None, *extra: str) -> Path:
-    result = _python(
-        "slam.run", "demo", "--root", str(data), *(("--frames", frames) if frames else ()),
-        "--no-viz", "--no-progress", "--out", str(folder), *ROOM, *extra,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    return folder
+def _merge(*args: str):
+    return call_main(merge_main, list(args))
 
 
-def _one_line_error(result: subprocess.CompletedProcess, *needles: str) -> str:
-    assert result.returncode != 0
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-    return lines[0]
-
-
-def _drop_first_frames(data: Path, count: int) -> None:
-    """Delete the images of the first ``count`` frames and their rows in the lists."""
-    (room,) = data.glob("*/room")
-    rows = (room / "associations.txt").read_text().splitlines()
-    for row in rows[:count]:
-        for name in row.split()[1::2]:
-            (room / name).unlink()
-    (room / "associations.txt").write_text("\n".join(rows[count:]) + "\n")
-    for name in ("rgb.txt", "depth.txt"):
-        lines = (room / name).read_text().splitlines()
-        header = [line for line in lines if line.startswith("#")]
-        body = [line for line in lines if not line.startswith("#")]
-        (room / name).write_text("\n".join(header + body[count:]) + "\n")
-
-
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory) -> dict[str, Path]:
-    """Two halves of one lap: the first run on its own, the second continuing the first's map
-    (``--map``) after the first half's images were deleted (it runs alone into
-    ``continued/session``); a coarser run and a run of a stretch the first half never saw; then
-    all the images deleted."""
-    base = tmp_path_factory.mktemp("merge")
-    data = base / "data"
-    folders = {
-        "a": _run(base / "a", data, "0:60"),
-        "coarse": _run(base / "coarse", data, "0:10", "--set", "mapping.voxel_size_m=0.15"),
-        "other": _run(base / "other", data, "80:90"),
-    }
-    _drop_first_frames(data, 60)  # the continuation cannot read the first run's scans
-    folders["continued"] = _run(base / "continued", data, None, "--map", str(folders["a"]))
-    folders["b"] = folders["continued"] / "session"
-    shutil.rmtree(data)  # a merge must never need the scans
-    return folders
+def _run(*args: str):
+    return call_main(run_main, list(args))
 
 
 def _first_session_aligned_rmse(poses: np.ndarray, truth: np.ndarray, n: int) -> float:
@@ -145,9 +88,7 @@ def test_continuing_a_map_relocalises_live(runs):
 
 
 def test_two_sessions_merge_without_scans(runs, tmp_path: Path):
-    out = tmp_path / "merged"
-    result = _python("slam.merge", str(runs["a"]), str(runs["b"]), "--out", str(out))
-    assert result.returncode == 0, result.stderr
+    out = runs["merged"]  # slam.merge a b, after every image was deleted
     for name in (*MERGED_FILES, "recording.rrd"):
         assert (out / name).is_file(), name
     poses = read_kitti(out / "poses_slam.kitti.txt")
@@ -164,9 +105,7 @@ def test_two_sessions_merge_without_scans(runs, tmp_path: Path):
     assert ate < COMBINED_ATE_BOUND_M, f"combined ATE {ate:.4f} m"
     # the merged run is itself a session: it merges again with another run, and lists the
     # runs it joined; one of its own parts is refused (its frames would be there twice)
-    again = _python(
-        "slam.merge", str(out), str(runs["other"]), "--out", str(tmp_path / "again"), "--no-viz"
-    )
+    again = _merge(str(out), str(runs["other"]), "--out", str(tmp_path / "again"), "--no-viz")
     assert again.returncode == 0, again.stderr
     rows = (tmp_path / "again" / "sessions.csv").read_text().splitlines()[1:]
     assert [row.split(",")[1:] for row in rows] == [
@@ -174,36 +113,36 @@ def test_two_sessions_merge_without_scans(runs, tmp_path: Path):
         [str(runs["b"]), "60", "60"],
         [str(runs["other"]), "120", "10"],
     ]
-    part = _python("slam.merge", str(out), str(runs["b"]), "--out", str(tmp_path / "part"))
-    _one_line_error(part, "same session", str(runs["b"]))
+    part = _merge(str(out), str(runs["b"]), "--out", str(tmp_path / "part"))
+    assert_error_line(part, "same session", str(runs["b"]))
     assert not (tmp_path / "part").exists()
 
 
 def test_run_merged_with_itself_is_refused(runs, tmp_path: Path):
     out = tmp_path / "self"
-    result = _python("slam.merge", str(runs["a"]), str(runs["a"]), "--out", str(out), "--no-viz")
-    _one_line_error(result, "same session", str(runs["a"]))
+    result = _merge(str(runs["a"]), str(runs["a"]), "--out", str(out), "--no-viz")
+    assert_error_line(result, "same session", str(runs["a"]))
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_different_voxel_size_or_no_descriptors_is_refused(runs, tmp_path: Path):
     out = tmp_path / "out"
-    result = _python("slam.merge", str(runs["a"]), str(runs["coarse"]), "--out", str(out))
-    _one_line_error(result, "voxel size", str(runs["coarse"]))
+    result = _merge(str(runs["a"]), str(runs["coarse"]), "--out", str(out))
+    assert_error_line(result, "voxel size", str(runs["coarse"]))
     assert not out.exists()
     # continuing it: refused before a frame is read (the data folder does not exist)
     data = tmp_path / "data"
-    result = _python(
-        "slam.run", "demo", "--root", str(data), "--no-viz", "--no-progress", "--out", str(out),
-        "--map", str(runs["coarse"]), *ROOM,
+    result = _run(
+        "demo", "--root", str(data), "--no-viz", "--no-progress", "--out", str(out),
+        "--map", str(runs["coarse"]), *ROOM_SESSION_ARGS,
     )  # fmt: skip
-    _one_line_error(result, "voxel size", str(runs["coarse"]), "mapping.voxel_size_m=0.15")
+    assert_error_line(result, "voxel size", str(runs["coarse"]), "mapping.voxel_size_m=0.15")
     assert not out.exists() and not data.exists()
-    result = _python(
-        "slam.run", "demo", "--root", str(data), "--no-viz", "--no-progress", "--out", str(out),
-        "--map", str(runs["a"]), "--set", "loop_closure.enabled=false", *ROOM,
+    result = _run(
+        "demo", "--root", str(data), "--no-viz", "--no-progress", "--out", str(out),
+        "--map", str(runs["a"]), "--set", "loop_closure.enabled=false", *ROOM_SESSION_ARGS,
     )  # fmt: skip
-    _one_line_error(result, "loop closure is off", "loop_closure.enabled=true")
+    assert_error_line(result, "loop closure is off", "loop_closure.enabled=true")
     assert not out.exists() and not data.exists()
 
 
@@ -218,14 +157,14 @@ def test_version_2_map_loads_but_is_not_merged(runs, tmp_path: Path):
     arrays["header"] = np.array(json.dumps(header))
     np.savez_compressed(old / "map.npz", **arrays)
     assert load_map(old / "map.npz")[0].num_voxels > 0  # still a map
-    result = _python("slam.merge", str(runs["a"]), str(old), "--out", str(tmp_path / "out"))
-    _one_line_error(result, "version 2", "re-run", "slam.run")
+    result = _merge(str(runs["a"]), str(old), "--out", str(tmp_path / "out"))
+    assert_error_line(result, "version 2", "re-run", "slam.run")
 
 
 def test_runs_without_shared_place_are_reported(runs, tmp_path: Path):
     out = tmp_path / "out"
-    result = _python("slam.merge", str(runs["a"]), str(runs["other"]), "--out", str(out))
-    _one_line_error(result, "shares no place", str(runs["other"]))
+    result = _merge(str(runs["a"]), str(runs["other"]), "--out", str(out))
+    assert_error_line(result, "shares no place", str(runs["other"]))
     assert not out.exists()
 
 

@@ -17,7 +17,7 @@ from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.viz import Logger, NullLogger
 from slam.app.recorder import RunRecorder, make_recorder
 from slam.assembly.builders import build_map
-from tests.test_pipeline import ROOM, FalseLoopInjector, room_config, room_odometry
+from tests.pipeline_setups import ROOM, FalseLoopInjector, room_config, room_odometry
 
 
 class CapturingLogger(Logger):

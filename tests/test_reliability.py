@@ -9,7 +9,6 @@ import os
 import stat
 import struct
 import subprocess
-import sys
 import zipfile
 from pathlib import Path
 
@@ -27,11 +26,9 @@ from mapping.networks import PriorModel
 from slam.app import cli
 from slam.assembly.config import set_overrides
 from slam.evaluation.cli import EvalError, evaluate_run
-from tests.dataset_files import write_depth, write_rgb
-from tests.test_map_io import _model, saved  # noqa: F401  (fixture)
-from tests.test_sources_rgbd import make_tum
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
+from slam.evaluation.cli import main as eval_main
+from tests.dataset_files import make_tum, write_depth, write_rgb
+from tests.helpers import call_main, seeded_prior
 
 
 def run_cli(argv: list[str], capsys) -> tuple[int, str]:
@@ -108,12 +105,12 @@ def _flip_inside_member(path: Path, out: Path, member: str) -> None:
     out.write_bytes(bytes(data))
 
 
-def test_corrupted_compressed_member_is_a_map_file_error(saved, tmp_path: Path) -> None:  # noqa: F811
-    _, _, path = saved
+def test_corrupted_compressed_member_is_a_map_file_error(saved_map, tmp_path: Path) -> None:
+    _, _, path = saved_map
     bad = tmp_path / "flipped.npz"
     _flip_inside_member(path, bad, "latent_coeffs.npy")
     with pytest.raises(MapFileError, match=r"flipped\.npz") as info:
-        load_map(bad, _model())
+        load_map(bad, seeded_prior())
     assert "\n" not in str(info.value)
 
 
@@ -205,13 +202,11 @@ def test_disk_full_during_a_run_is_one_line_naming_the_cause(tmp_path: Path) -> 
     if not _mount_tmpfs(folder, "160k"):
         pytest.skip("needs root and tmpfs mounts for a size-limited folder")
     try:
-        result = subprocess.run(
-            [sys.executable, "-m", "slam.run", "demo",
-             "--frames", "0:6", "--no-progress", "--rrd", str(folder / "out" / "recording.rrd"),
-             "--set", "output.mesh_samples=1000",
-             "--out", str(folder / "out")],
-            capture_output=True, text=True, cwd=REPO_ROOT, timeout=600,
-        )  # fmt: skip
+        result = call_main(cli.main, [
+            "demo", "--frames", "0:6", "--no-progress",
+            "--rrd", str(folder / "out" / "recording.rrd"), "--set", "output.mesh_samples=1000",
+            "--out", str(folder / "out"),
+        ])  # fmt: skip
     finally:
         _umount(folder)
     assert result.returncode == 1, result.stderr[-2000:]
@@ -233,11 +228,10 @@ def test_folder_of_truncated_scans_fails_instead_of_an_empty_success(tmp_path: P
     for i in range(3):
         (scans / f"{i:06d}.ply").write_bytes(header.encode() + b"\0" * 30)  # 2.5 of 1000 points
     out = tmp_path / "run"
-    result = subprocess.run(
-        [sys.executable, "-m", "slam.run", "lidar", str(scans), "--dataloader", "generic",
-         "--no-viz", "--no-progress", "--out", str(out)],
-        capture_output=True, text=True, cwd=REPO_ROOT, timeout=600,
-    )  # fmt: skip
+    result = call_main(cli.main, [
+        "lidar", str(scans), "--dataloader", "generic", "--no-viz", "--no-progress",
+        "--out", str(out),
+    ])  # fmt: skip
     assert result.returncode == 1, result.stderr[-2000:]
     assert "Traceback" not in result.stderr
     assert not (out / "metrics.json").exists()
@@ -307,10 +301,7 @@ def test_eval_of_an_interrupted_run_fails_and_writes_nothing(tmp_path: Path) -> 
     with pytest.raises(EvalError, match="did not finish"):
         evaluate_run(run, make_plots=False)
     assert not (run / "metrics.json").exists()
-    result = subprocess.run(
-        [sys.executable, "-m", "slam.eval", str(run), "--no-plots"],
-        capture_output=True, text=True, cwd=REPO_ROOT, timeout=300,
-    )  # fmt: skip
+    result = call_main(eval_main, [str(run), "--no-plots"])
     assert result.returncode == 1
     assert "did not finish" in one_line(result.stderr)
 

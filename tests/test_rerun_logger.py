@@ -15,28 +15,6 @@ from frontends.frame import Intrinsics
 from slam.algorithm.viz import Logger, NullLogger
 from slam.app.rerun_logger import RerunLogger, metric_entity, summarize_recording
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-# A short demo: one lap of the generated room in 60 frames with ground-truth odometry (so that a
-# 6-degree step per frame is no problem), small submaps so that the lap closes a loop and the map
-# is meshed several times, and a coarse mesh lattice to keep it fast. Shared with test_eval.py.
-DEMO_ARGS = [
-    "demo",
-    "--odometry",
-    "gt",
-    "--set",
-    "generated.num_frames=60",
-    "--set",
-    "submaps.max_frames=10",
-    "--set",
-    "source.depth.stride=4",
-    "--set",
-    "mapping.mesh_subdivisions=2",
-    "--set",
-    "output.mesh_samples=20000",
-    "--no-progress",
-]
-_DEMO_RUNS: dict[str, Path] = {}
-
 NUM_FRAMES = 24
 LOOP_FRAMES = (11, 23)
 INTRINSICS = Intrinsics(fx=120.0, fy=120.0, cx=80.0, cy=60.0, width=160, height=120)
@@ -187,28 +165,11 @@ def test_requires_a_sink() -> None:
         RerunLogger()
 
 
-def demo_run(tmp_path_factory: pytest.TempPathFactory, mode: str) -> Path:
-    """Run folder of the short demo with ``--no-viz`` or ``--rrd`` (made once per session)."""
-    if mode not in _DEMO_RUNS:
-        folder = tmp_path_factory.mktemp("demo_runs") / mode
-        viz = ["--no-viz"] if mode == "no-viz" else ["--rrd", str(folder / "recording.rrd")]
-        result = subprocess.run(
-            [sys.executable, "-m", "slam.run", *DEMO_ARGS, *viz, "--out", str(folder)],
-            capture_output=True,
-            text=True,
-            cwd=REPO_ROOT,
-            timeout=1200,
-        )
-        assert result.returncode == 0, result.stderr[-3000:]
-        _DEMO_RUNS[mode] = folder
-    return _DEMO_RUNS[mode]
-
-
 @pytest.mark.slow
 def test_demo_recording_and_null_logger_give_identical_slam_outputs(
-    tmp_path_factory: pytest.TempPathFactory,
+    demo_run: Path, demo_run_without_viewer: Path
 ) -> None:
-    runs = {mode: demo_run(tmp_path_factory, mode) for mode in ("no-viz", "rrd")}
+    runs = {"no-viz": demo_run_without_viewer, "rrd": demo_run}
     for name in ("poses_odometry.kitti.txt", "poses_slam.kitti.txt", "loops.csv"):
         assert (runs["no-viz"] / name).read_bytes() == (runs["rrd"] / name).read_bytes(), name
     assert not (runs["no-viz"] / "recording.rrd").exists()

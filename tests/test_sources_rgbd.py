@@ -18,6 +18,7 @@ from frontends.sources._io import DepthOptions, associate
 from frontends.sources.tum import FLIP_Y, icl_folder_candidates
 from tests.dataset_files import (
     assert_one_line_error,
+    make_tum,
     random_pose,
     real,
     tum_row,
@@ -33,29 +34,6 @@ def test_associate_matches_tum_greedy_rule():
     # 0.033<->0.03 (0.003) first, then 0.1<->0.09, then 0.0<->0.01; 0.066 has none left in range.
     assert matches == [(0, 0), (1, 1), (3, 3)]
     assert associate(rgb, np.array([5.0]), 0.02) == []
-
-
-def make_tum(folder: Path, n: int = 4) -> np.ndarray:
-    rng = np.random.default_rng(2)
-    rgb_lines, depth_lines, gt_lines = ["# rgb"], ["# depth"], ["# gt"]
-    for i in range(n):
-        t = 100.0 + i / 30
-        write_rgb(folder / "rgb" / f"{t:.6f}.png")
-        write_depth(folder / "depth" / f"{t + 0.004:.6f}.png", np.full((480, 640), 1.0 + i), 5000)
-        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
-        depth_lines.append(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png")
-    # Extra depth image far in time: no colour partner.
-    write_depth(folder / "depth" / "200.000000.png", np.full((480, 640), 1.0), 5000)
-    depth_lines.append("200.000000 depth/200.000000.png")
-    poses = []
-    for k in range(3 * n + 3):
-        pose = random_pose(rng)
-        poses.append(pose)
-        gt_lines.append(tum_row(99.99 + k / 100, pose))
-    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
-    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
-    (folder / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
-    return np.stack(poses)
 
 
 def test_tum_layout(tmp_path):

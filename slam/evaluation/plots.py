@@ -64,8 +64,24 @@ def plot_trajectories_top_down(
     size_in: tuple[float, float] = (7.0, 6.0),
     dpi: int = 120,
 ) -> Path:
+    """:func:`trajectories_figure` saved as a PNG at ``path``."""
+    figure = trajectories_figure(
+        trajectories, loop_edges=loop_edges, title=title, size_in=size_in, dpi=dpi
+    )
+    return _save(figure, path)
+
+
+def trajectories_figure(
+    trajectories: Mapping[str, np.ndarray],
+    *,
+    loop_edges: np.ndarray | None = None,
+    title: str = "",
+    size_in: tuple[float, float] = (7.0, 6.0),
+    dpi: int = 120,
+) -> Figure:
     """Top-down view of trajectories (``gt``, ``odometry``, ``slam`` or any name) and accepted
-    loop edges, given as (M, 2, 3) world positions, drawn on the ``slam`` trajectory."""
+    loop edges, given as (M, 2, 3) world positions, drawn on the ``slam`` trajectory. Each
+    trajectory is the line labelled with its style's label, each loop edge a two-point line."""
     named = {name: _positions(poses) for name, poses in trajectories.items() if len(poses)}
     reference = named.get("gt", next(iter(named.values()), np.zeros((1, 3))))
     a, b = top_down_axes(reference)
@@ -93,7 +109,7 @@ def plot_trajectories_top_down(
     axes.grid(True, alpha=0.3)
     axes.legend(loc="best", fontsize=8)
     axes.set_title(title or "Trajectories (top-down)")
-    return _save(figure, path)
+    return figure
 
 
 def plot_translation_error(
@@ -104,7 +120,21 @@ def plot_translation_error(
     time_label: str = "time [s]",
     title: str = "",
 ) -> Path:
-    """Per-frame position error (metres, after alignment) of each trajectory over time."""
+    """:func:`translation_error_figure` saved as a PNG at ``path``."""
+    return _save(
+        translation_error_figure(times, errors_m, time_label=time_label, title=title), path
+    )
+
+
+def translation_error_figure(
+    times: np.ndarray,
+    errors_m: Mapping[str, np.ndarray],
+    *,
+    time_label: str = "time [s]",
+    title: str = "",
+) -> Figure:
+    """Per-frame position error (metres, after alignment) of each trajectory over time, one
+    line per trajectory labelled with its RMSE."""
     figure = _new_figure(8.0, 4.0)
     axes = figure.add_subplot()
     for name, error in errors_m.items():
@@ -118,7 +148,7 @@ def plot_translation_error(
     axes.grid(True, alpha=0.3)
     axes.legend(loc="best", fontsize=8)
     axes.set_title(title or "Absolute translation error (SE(3)-aligned)")
-    return _save(figure, path)
+    return figure
 
 
 def plot_error_histogram(
@@ -128,7 +158,19 @@ def plot_error_histogram(
     threshold_m: float | None = 0.05,
     title: str = "",
 ) -> Path:
-    """Histograms of surface distances, e.g. ``{"accuracy": pred->gt, "completion": gt->pred}``."""
+    """:func:`error_histogram_figure` saved as a PNG at ``path``."""
+    figure = error_histogram_figure(distances_m, threshold_m=threshold_m, title=title)
+    return _save(figure, path)
+
+
+def error_histogram_figure(
+    distances_m: Mapping[str, np.ndarray],
+    *,
+    threshold_m: float | None = 0.05,
+    title: str = "",
+) -> Figure:
+    """Histograms of surface distances, e.g. ``{"accuracy": pred->gt, "completion": gt->pred}``,
+    and the threshold as a vertical line; the last bin holds the 1% tail."""
     figure = _new_figure(7.0, 4.0)
     axes = figure.add_subplot()
     finite = [np.asarray(d)[np.isfinite(d)] for d in distances_m.values()]
@@ -150,7 +192,7 @@ def plot_error_histogram(
     axes.set_ylabel("samples")
     axes.legend(loc="best", fontsize=8)
     axes.set_title(title or "Mesh error distribution")
-    return _save(figure, path)
+    return figure
 
 
 def plot_distributions(
@@ -161,6 +203,18 @@ def plot_distributions(
     scale: float = 100.0,
     title: str = "",
 ) -> Path:
+    """:func:`distributions_figure` saved as a PNG at ``path``."""
+    figure = distributions_figure(groups, ylabel=ylabel, scale=scale, title=title)
+    return _save(figure, path)
+
+
+def distributions_figure(
+    groups: Mapping[str, Mapping[str, Sequence[float]]],
+    *,
+    ylabel: str = "distance [cm]",
+    scale: float = 100.0,
+    title: str = "",
+) -> Figure:
     """Side-by-side box plots: one panel per group (e.g. ``accuracy``), one box per series (e.g.
     ``transform`` vs ``re-encode``), values multiplied by ``scale``."""
     figure = _new_figure(4.0 * max(1, len(groups)), 4.5)
@@ -175,7 +229,7 @@ def plot_distributions(
         axes.grid(True, axis="y", alpha=0.3)
     if title:
         figure.suptitle(title)
-    return _save(figure, path)
+    return figure
 
 
 def distance_colors(distances_m: np.ndarray, max_m: float) -> np.ndarray:

@@ -1,0 +1,129 @@
+"""Plain helpers shared by several test files (fixtures live in ``tests/conftest.py``)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+# A short demo: one lap of the generated room in 60 frames with ground-truth odometry (so that a
+# 6-degree step per frame is no problem), small submaps so that the lap closes a loop and the map
+# is meshed several times, and a coarse mesh lattice to keep it fast.
+DEMO_ARGS = [
+    "demo", "--odometry", "gt", "--set", "generated.num_frames=60",
+    "--set", "submaps.max_frames=10", "--set", "source.depth.stride=4",
+    "--set", "mapping.mesh_subdivisions=2", "--set", "output.mesh_samples=20000", "--no-progress",
+]  # fmt: skip
+# 30 scans of the generated street with 8 m submaps: several submaps in a few seconds.
+LIDAR_ARGS = [
+    "generated-lidar", "--frames", "0:30", "--no-viz", "--no-progress",
+    "--set", "submaps.max_distance_m=8", "--set", "submaps.max_map_points=2000",
+]  # fmt: skip
+# A short lap of a generated room (its end revisits its start), split in two sessions; the runs
+# do not score their meshes (no test reads the scores).
+ROOM_SESSION_ARGS = ["--set", "generated.num_frames=120", "--set", "output.mesh_samples=0"]
+ROOM_SESSION_FRAMES = 60
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    """Exit status and output of a command's ``main`` called in this process."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def call_main(main: Callable[[list[str]], int], argv: list[str]) -> CommandResult:
+    """``main(argv)`` of a command (``slam.app.cli.main``, ``slam.app.merge_cli.main``, ...) in
+    this process, as ``python -m`` would run it, without the seconds of a new interpreter and its
+    imports.
+
+    stdout and stderr are captured; the root logger starts without handlers, as in a new process
+    (so the command's own logging set-up decides what reaches stderr), and its handlers, level
+    and torch's thread count are put back afterwards (a run opens ``run.log`` on the root logger
+    and sets torch's threads)."""
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    threads = torch.get_num_threads()
+    for handler in handlers:
+        root.removeHandler(handler)
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            status = main(argv)
+    finally:
+        for handler in list(root.handlers):
+            root.removeHandler(handler)
+            handler.close()
+        for handler in handlers:
+            root.addHandler(handler)
+        root.setLevel(level)
+        torch.set_num_threads(threads)
+    return CommandResult(status, out.getvalue(), err.getvalue())
+
+
+def assert_error_line(result: CommandResult, *needles: str) -> str:
+    """The command (a :class:`CommandResult` or a ``subprocess.CompletedProcess``) failed with
+    exactly one ``error: ...`` line on stderr holding every needle; returns that line."""
+    assert result.returncode != 0
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert lines[0].startswith("error: "), lines[0]
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    return lines[0]
+
+
+def sphere_points(n: int, centre, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` random points on a sphere of radius 0.3 m around ``centre``, and their normals."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * 0.3 + np.asarray(centre), d
+
+
+def seeded_prior(seed: int = 0):
+    """A randomly initialised prior model (eval mode), the same for the same seed."""
+    from mapping.networks import PriorModel
+
+    torch.manual_seed(seed)
+    return PriorModel().eval()
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_pixels(path) -> np.ndarray:
+    """The RGB pixels (uint8) of the PNG at ``path``."""
+    from matplotlib import image
+
+    with open(path, "rb") as stream:
+        assert stream.read(8) == PNG_SIGNATURE, path
+    return (image.imread(path)[..., :3] * 255).round().astype(np.uint8)
+
+
+def figure_pixels(figure) -> np.ndarray:
+    """The RGB pixels (uint8) of a matplotlib figure drawn on its Agg canvas."""
+    figure.canvas.draw()
+    return np.asarray(figure.canvas.buffer_rgba())[..., :3].copy()
+
+
+def assert_png_shows(path, figure) -> None:
+    """The PNG at ``path`` is ``figure``, pixel for pixel (a figure drawn from the data the
+    plot should show: any other data, style or layout changes pixels)."""
+    np.testing.assert_array_equal(png_pixels(path), figure_pixels(figure))
+
+
+def colour_mask(pixels: np.ndarray, colour, tolerance: int = 24) -> np.ndarray:
+    """Where ``pixels`` (H, W, 3 uint8) are within ``tolerance`` of a matplotlib colour."""
+    from matplotlib.colors import to_rgb
+
+    target = np.round(np.asarray(to_rgb(colour)) * 255)
+    return np.abs(pixels.astype(int) - target).max(axis=-1) <= tolerance
