@@ -5,8 +5,11 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import os
+import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -127,3 +130,28 @@ def colour_mask(pixels: np.ndarray, colour, tolerance: int = 24) -> np.ndarray:
 
     target = np.round(np.asarray(to_rgb(colour)) * 255)
     return np.abs(pixels.astype(int) - target).max(axis=-1) <= tolerance
+
+
+def one_line(text: str) -> str:
+    """The one non-blank line of ``text`` (a traceback or a second line fails)."""
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1, text
+    assert "Traceback" not in text
+    return lines[0]
+
+
+def mount_tmpfs(folder: Path, size: str, read_only: bool = False) -> bool:
+    """Mount a tmpfs of ``size`` at ``folder`` (root only); False where that is not possible."""
+    folder.mkdir(parents=True, exist_ok=True)
+    options = f"size={size}" + (",ro" if read_only else "")
+    if os.geteuid() != 0:
+        return False
+    result = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True
+    )
+    return result.returncode == 0
+
+
+def umount(folder: Path) -> None:
+    """Undo :func:`mount_tmpfs`."""
+    subprocess.run(["umount", str(folder)], capture_output=True)

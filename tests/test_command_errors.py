@@ -24,7 +24,7 @@ from slam.evaluation import cli as eval_cli
 from slam.evaluation.run_metrics import CullDistanceTooSmall, check_cull_distance
 from slam.run_folder.outputs import KittiRows, RunOutputs, kitti_rows_filled
 from slam.run_folder.trajectory_io import read_kitti, read_tum
-from tests.test_reliability import _mount_tmpfs, _umount, one_line
+from tests.helpers import mount_tmpfs, one_line, umount
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHORT = ["demo", "--frames", "0:3", "--no-progress", "--set", "output.mesh_samples=1000"]
@@ -124,7 +124,7 @@ def _read_only_copy(source: Path, target: Path) -> bool:
         return False
     ro = subprocess.run(["mount", "-o", "remount,ro,bind", str(target)], capture_output=True)
     if ro.returncode != 0:
-        _umount(target)
+        umount(target)
         return False
     return True
 
@@ -144,7 +144,7 @@ def test_eval_of_a_read_only_run_or_figures_folder_is_one_line(
         assert status == 1
         assert f"--figures {mounted / 'figures'}" in one_line(err)
     finally:
-        _umount(mounted)
+        umount(mounted)
 
 
 # -- config bounds ------------------------------------------------------------------------------
@@ -260,7 +260,7 @@ def test_rrd_never_overwrites_and_is_checked_before_the_run_folder(tmp_path: Pat
 
 def test_disk_full_marks_the_run_failed_and_ends_with_the_error_line(tmp_path: Path) -> None:
     folder = tmp_path / "full"
-    if not _mount_tmpfs(folder, "160k"):
+    if not mount_tmpfs(folder, "160k"):
         pytest.skip("needs root and tmpfs mounts for a size-limited folder")
     out = folder / "out"
     try:
@@ -272,7 +272,7 @@ def test_disk_full_marks_the_run_failed_and_ends_with_the_error_line(tmp_path: P
         )  # fmt: skip
         status = json.loads((out / "run_status.json").read_text())
     finally:
-        _umount(folder)
+        umount(folder)
     assert result.returncode == 1, result.stderr[-2000:]
     assert result.stderr.strip().splitlines()[-1].startswith("error: "), result.stderr
     assert status["state"] == "failed" and "No space left" in status["reason"]
@@ -296,7 +296,7 @@ def test_kitti_files_keep_one_row_per_scan_when_frames_are_skipped(tmp_path: Pat
 
 
 def test_a_skipped_frame_keeps_the_kitti_rows_aligned_end_to_end(tmp_path: Path, capsys) -> None:
-    from tests.test_sources_rgbd import make_tum
+    from tests.dataset_files import make_tum
 
     folder = tmp_path / "cam"
     make_tum(folder, n=6)

@@ -8,7 +8,6 @@ import json
 import os
 import stat
 import struct
-import subprocess
 import zipfile
 from pathlib import Path
 
@@ -28,7 +27,7 @@ from slam.assembly.config import set_overrides
 from slam.evaluation.cli import EvalError, evaluate_run
 from slam.evaluation.cli import main as eval_main
 from tests.dataset_files import make_tum, write_depth, write_rgb
-from tests.helpers import call_main, seeded_prior
+from tests.helpers import call_main, mount_tmpfs, one_line, seeded_prior, umount
 
 
 def run_cli(argv: list[str], capsys) -> tuple[int, str]:
@@ -37,11 +36,6 @@ def run_cli(argv: list[str], capsys) -> tuple[int, str]:
     return status, err
 
 
-def one_line(text: str) -> str:
-    lines = [line for line in text.splitlines() if line.strip()]
-    assert len(lines) == 1, text
-    assert "Traceback" not in text
-    return lines[0]
 
 
 # -- atomic writes (defects 7, 14) --------------------------------------------------------------
@@ -170,36 +164,23 @@ def test_output_root_pointing_at_a_file_names_output_root(tmp_path: Path, capsys
     assert f"output.root {afile}" in one_line(err)
 
 
-def _mount_tmpfs(folder: Path, size: str, read_only: bool = False) -> bool:
-    folder.mkdir(parents=True, exist_ok=True)
-    options = f"size={size}" + (",ro" if read_only else "")
-    if os.geteuid() != 0:
-        return False
-    result = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True
-    )
-    return result.returncode == 0
-
-
-def _umount(folder: Path) -> None:
-    subprocess.run(["umount", str(folder)], capture_output=True)
 
 
 def test_read_only_out_is_one_line(tmp_path: Path, capsys) -> None:
     folder = tmp_path / "ro"
-    if not _mount_tmpfs(folder, "1m", read_only=True):
+    if not mount_tmpfs(folder, "1m", read_only=True):
         pytest.skip("needs root and tmpfs mounts to make a read-only folder (root ignores modes)")
     try:
         status, err = run_cli(["demo", "--no-viz", "--out", str(folder)], capsys)
     finally:
-        _umount(folder)
+        umount(folder)
     assert status == 2
     assert "cannot write in this folder" in one_line(err)
 
 
 def test_disk_full_during_a_run_is_one_line_naming_the_cause(tmp_path: Path) -> None:
     folder = tmp_path / "full"
-    if not _mount_tmpfs(folder, "160k"):
+    if not mount_tmpfs(folder, "160k"):
         pytest.skip("needs root and tmpfs mounts for a size-limited folder")
     try:
         result = call_main(cli.main, [
@@ -208,7 +189,7 @@ def test_disk_full_during_a_run_is_one_line_naming_the_cause(tmp_path: Path) -> 
             "--out", str(folder / "out"),
         ])  # fmt: skip
     finally:
-        _umount(folder)
+        umount(folder)
     assert result.returncode == 1, result.stderr[-2000:]
     assert "Traceback" not in result.stderr  # Rerun's own log lines may precede ours
     errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
