@@ -211,6 +211,9 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
             bar.set_postfix_str("final optimisation and mesh")
         pipeline.finish()
         recorder.finish()
+    except BaseException:  # Ctrl-C, SIGTERM, a failed job: stop the workers, skip their queue
+        pipeline.abort()
+        raise
     finally:
         if bar is not None:
             bar.close()
