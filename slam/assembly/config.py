@@ -215,6 +215,13 @@ class OdometryConfig(_Strict):
         "because its bindings hold the GIL through each registration and so stall the worker "
         "threads (frontends/odometry/child_process.py); results are the same either way",
     )
+    child_reply_timeout_s: float = Field(
+        120.0,
+        gt=0,
+        description="kiss-icp in a child process: the longest one reply of the child may take "
+        "(a registration takes 30-100 ms, starting it a few seconds); a child that takes longer "
+        "is stopped and the run ends with one line, as when the child dies",
+    )
 
 
 class VizConfig(_Strict):
