@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from slam.algorithm.executor import Executor, SubmapJobResult, clock
+from slam.algorithm.executor import Executor, MapSnapshotRequest, SubmapJobResult, clock
 from slam.algorithm.graph_view import GraphSnapshot
 from slam.algorithm.map_worker import MapWorker
 
@@ -142,3 +142,34 @@ def test_timings_are_booked_per_thread_and_merged_once_the_workers_stopped() -> 
     assert set(cpu_s) >= {"odometry", "keyframing", "mapping"}
     (keyframing,), (mapping,) = threads["keyframing"], threads["mapping"]
     assert keyframing.startswith("submap-worker") and mapping.startswith("map-worker")
+
+
+class _SlowMeshMap:
+    """Stands in for the neural map: a mesh takes 10 ms, voxel centres nothing."""
+
+    def __init__(self) -> None:
+        self.meshes = 0
+
+    def extract_mesh(self) -> str:
+        time.sleep(0.01)
+        self.meshes += 1
+        return f"mesh {self.meshes}"
+
+    def voxel_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros((3, 3)), np.ones(3)
+
+
+def test_meshes_for_the_viewer_stay_within_their_share_of_the_time() -> None:
+    executor = Executor(threaded=False)
+    executor.request_map_snapshots(MapSnapshotRequest(1, False, mesh_time_share=0.2))
+    neural_map = _SlowMeshMap()
+    start = time.perf_counter()
+    for _ in range(40):
+        time.sleep(0.005)  # the map job's own work
+        executor.publish_map(neural_map, None)
+    elapsed = time.perf_counter() - start
+    snapshot = executor.latest_map()
+    assert snapshot is not None and snapshot.job == 40
+    assert 1 <= neural_map.meshes < 40  # every job asked for one
+    assert neural_map.meshes * 0.01 <= 0.2 * elapsed + 0.011  # the last one may overrun
+    assert snapshot.mesh == f"mesh {neural_map.meshes}" and snapshot.mesh_job <= 40

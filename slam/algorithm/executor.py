@@ -94,10 +94,13 @@ class MapSnapshotRequest:
     Attributes:
         mesh_every_submaps: a mesh after every n-th encoded submap.
         mesh_after_remap: a mesh after every remapping pass that moved a submap.
+        mesh_time_share: a mesh only while the meshes so far took at most this share of the
+            time since the request (meshing the whole map costs more as it grows).
     """
 
     mesh_every_submaps: int
     mesh_after_remap: bool
+    mesh_time_share: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -138,6 +141,8 @@ class Executor:
         self._request: MapSnapshotRequest | None = None
         self._map_jobs = 0  # the map worker's
         self._mesh: tuple[object | None, int] = (None, 0)  # the map worker's
+        self._mesh_s = 0.0  # the map worker's: seconds spent extracting meshes
+        self._requested_at = 0.0
         self._latest_lock = threading.Lock()
         self._latest: MapSnapshot | None = None
         self._submitted = False
@@ -155,6 +160,7 @@ class Executor:
         if self._submitted:
             raise RuntimeError("request_map_snapshots() after the first frame")
         self._request = request
+        self._requested_at = time.perf_counter()
 
     def submit_frame(self, job: Callable[..., SubmapJobResult], *args: Any, closes: bool) -> Future:
         """Queue a frame's submap job; with ``closes`` (the frame closes a submap) the snapshot
@@ -248,8 +254,10 @@ class Executor:
         start = clock()
         moved = remap is not None and remap.num_moved > 0
         periodic = self._map_jobs % request.mesh_every_submaps == 0
-        if periodic or (moved and request.mesh_after_remap):
+        budget_s = request.mesh_time_share * (start[0] - self._requested_at)
+        if (periodic or (moved and request.mesh_after_remap)) and self._mesh_s <= budget_s:
             self._mesh = (neural_map.extract_mesh(), self._map_jobs)
+            self._mesh_s += time.perf_counter() - start[0]
         centers, weights = neural_map.voxel_centers()
         snapshot = MapSnapshot(
             job=self._map_jobs,

@@ -438,13 +438,10 @@ class SlamPipeline:
         (None without a relocaliser, or before a submap verified)."""
         return self.view.relocalisation
 
-    def request_map_snapshots(self, mesh_every_submaps: int, mesh_after_remap: bool) -> None:
+    def request_map_snapshots(self, request: MapSnapshotRequest) -> None:
         """Have the map worker publish the map after each job for a viewer (:meth:`latest_map`),
-        with a mesh after every ``mesh_every_submaps``-th closed submap and, with
-        ``mesh_after_remap``, after every remap that moved a submap. Before the first frame."""
-        self.executor.request_map_snapshots(
-            MapSnapshotRequest(mesh_every_submaps, mesh_after_remap)
-        )
+        with the meshes ``request`` asks for. Before the first frame."""
+        self.executor.request_map_snapshots(request)
 
     def latest_map(self) -> MapSnapshot | None:
         """The map as the latest finished map job left it (see :meth:`request_map_snapshots`);

@@ -25,7 +25,7 @@ import numpy as np
 
 from common.geometry import transform_points
 from frontends.frame import Frame
-from slam.algorithm.executor import MapSnapshot
+from slam.algorithm.executor import MapSnapshot, MapSnapshotRequest
 from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.viz import Logger, NullLogger
@@ -78,7 +78,9 @@ class RunRecorder(Recorder):
         self._num_frames = 0
         self._map_job = 0  # the latest map job whose snapshot was logged
         self._mesh_job = 0  # the latest map job whose mesh was logged
-        pipeline.request_map_snapshots(cfg.mesh_every_submaps, cfg.mesh_after_remap)
+        pipeline.request_map_snapshots(
+            MapSnapshotRequest(cfg.mesh_every_submaps, cfg.mesh_after_remap, cfg.mesh_time_share)
+        )
 
     def frame(self, frame: Frame, result: FrameResult) -> None:
         viz = self.viz
@@ -160,7 +162,8 @@ class RunRecorder(Recorder):
     def _published_map(self, snapshot: MapSnapshot):
         """The map the map worker published: voxel centres, weights and its mesh when that is
         newer than the last one logged (a mesh every ``mesh_every_submaps`` closed submaps and
-        after every remap that moved a submap, when ``mesh_after_remap``)."""
+        after every remap that moved a submap, when ``mesh_after_remap``, within
+        ``mesh_time_share``)."""
         self._map_job = snapshot.job
         mesh = None
         if snapshot.mesh is not None and snapshot.mesh_job > self._mesh_job:

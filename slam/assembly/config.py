@@ -259,6 +259,15 @@ class VizConfig(_Strict):
     mesh_after_remap: bool = Field(
         True, description="extract and log the mesh after every remapping pass"
     )
+    mesh_time_share: float = Field(
+        0.05,
+        gt=0,
+        le=1,
+        description="the map worker extracts a mesh for the recording (mesh_every_submaps, "
+        "mesh_after_remap) only while the meshes so far took at most this share of the run's "
+        "time, so that meshing a growing map does not slow the run; the final mesh is always "
+        "logged",
+    )
 
 
 class OutputConfig(_Strict):
