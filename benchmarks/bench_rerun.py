@@ -1,6 +1,7 @@
 """Rerun recording size and logging overhead of whole runs -> ``benchmarks/results/rerun.md``.
 
     python -m benchmarks.bench_rerun [--quick] [--frames A:B]
+    python -m benchmarks.bench_rerun --rates [--before DIR] [--repeats 3]
 
 Each case is run twice in this process with ``slam.app.runner``'s own ``execute``: once with
 ``--no-viz``
@@ -15,6 +16,15 @@ generated/cached so that neither run pays for generation. Measured:
   submap boundaries (only when a recording is made);
 - the recording's size, its largest entities, and whether both runs wrote identical poses.
 
+``--rates`` measures instead what the recording costs the pipeline: ``python -m slam.run`` as
+a child process, with the default recording and with ``--no-viz``, on the demo (240 frames) and
+the first 120 frames of the generated street (without the mesh scores and files, which come
+after the pipeline), ``--repeats`` times each (interleaved, so that the
+load of a shared machine falls on both alike), and reports the pipeline rate (frames/s,
+``timing.frames_per_s`` of ``metrics.json``) as median, min and max. With ``--before DIR`` (a
+checkout of another commit with its own ``.venv`` or this one's) the same runs are made there too,
+for a before/after table (``benchmarks/results/rerun_rates.md``).
+
 Quick mode: the first 60 frames of the demo. Full mode: the whole demo and, when
 ``../shared/data/kitti`` is present, a 1,500-frame LiDAR sequence generated along the real KITTI 00
 trajectory.
@@ -23,7 +33,10 @@ trajectory.
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
+import statistics
+import subprocess
 import sys
 import time
 from collections import defaultdict
@@ -39,6 +52,17 @@ from benchmarks.harness.paths import WORK_DIR as BENCH_OUT
 from common.atomic_io import write_text_atomic
 
 RESULTS = RESULTS_DIR / "rerun.md"
+RATES = RESULTS_DIR / "rerun_rates.md"
+RATE_CASES = {
+    "demo (240 frames)": ["demo"],
+    "generated street (120 frames)": ["generated-lidar", "--frames", "0:120"],
+}
+RATE_OUTPUTS = [
+    *("--set", "output.mesh_samples=0", "--set", "output.write_map=false"),
+    *("--set", "output.write_mesh=false"),
+]
+"""The rate runs skip what comes after the pipeline (mesh scores, map file, mesh file)."""
+RATE_MODES = {"recording": [], "--no-viz": ["--no-viz"]}
 WORK_DIR = BENCH_OUT / "rerun"
 SHARED_KITTI = DATA / "kitti"
 
@@ -297,6 +321,55 @@ def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str)
     return "\n".join(lines) + "\n"
 
 
+def pipeline_rate(tree: Path, argv: list[str], folder: Path) -> float:
+    """Frames/s of one ``python -m slam.run`` in ``tree`` (a child process)."""
+    shutil.rmtree(folder, ignore_errors=True)
+    python = tree / ".venv" / "bin" / "python"
+    command = [str(python if python.exists() else sys.executable), "-m", "slam.run", *argv]
+    command += ["--out", str(folder), "--no-progress"]
+    subprocess.run(command, cwd=tree, check=True, stdout=subprocess.DEVNULL)
+    metrics = json.loads((folder / "metrics.json").read_text())
+    shutil.rmtree(folder, ignore_errors=True)
+    return float(metrics["timing"]["frames_per_s"])
+
+
+def measure_rates(trees: dict[str, Path], repeats: int) -> dict[tuple[str, str, str], list]:
+    """``{(tree, case, mode): [frames/s per repeat]}``, the repeats interleaved."""
+    rates: dict[tuple[str, str, str], list[float]] = defaultdict(list)
+    for repeat in range(repeats):
+        for case, argv in RATE_CASES.items():
+            for tree, root in trees.items():
+                for mode, flags in RATE_MODES.items():
+                    run = [*argv, *flags, *RATE_OUTPUTS]
+                    rate = pipeline_rate(root, run, WORK_DIR / "rates")
+                    rates[(tree, case, mode)].append(rate)
+                    line = f"{tree} | {case} | {mode} | run {repeat + 1}: {rate:.2f} frames/s"
+                    print(f"bench_rerun: {line}", file=sys.stderr, flush=True)
+    return rates
+
+
+def rates_markdown(rates: dict, trees: dict[str, Path], repeats: int, command: str) -> str:
+    def cell(values: list[float]) -> str:
+        return f"{statistics.median(values):.1f} ({min(values):.1f}-{max(values):.1f})"
+
+    lines = [
+        *section_header("rerun rates", command),
+        "",
+        "Pipeline rate (frames/s from the first frame read to the end of the final optimisation,"
+        f" `timing.frames_per_s`) of `python -m slam.run`: median of {repeats} runs (min-max), "
+        "with the default recording (`recording.rrd`) and with `--no-viz`.",
+        "",
+        "| code | case | recording [frames/s] | --no-viz [frames/s] | recording / --no-viz |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for tree in trees:
+        for case in RATE_CASES:
+            logged, plain = rates[(tree, case, "recording")], rates[(tree, case, "--no-viz")]
+            ratio = statistics.median(logged) / statistics.median(plain)
+            lines.append(f"| {tree} | {case} | {cell(logged)} | {cell(plain)} | {ratio:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="first 30 demo frames only")
@@ -304,6 +377,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--skip-lidar", action="store_true", help="full mode without the 1,500-frame LiDAR case"
     )
+    parser.add_argument(
+        "--rates", action="store_true", help="pipeline rate with recording vs --no-viz instead"
+    )
+    parser.add_argument(
+        "--before", type=Path, help="--rates: also measure this checkout (e.g. a git worktree)"
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="--rates: runs of each case")
     return parser
 
 
@@ -311,6 +391,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     argv_shown = list(sys.argv[1:] if argv is None else argv)
     command = " ".join(["python -m benchmarks.bench_rerun", *argv_shown])
+    if args.rates:
+        here = Path(__file__).resolve().parents[1]
+        trees = {"before": args.before.resolve()} if args.before else {}
+        trees["this checkout"] = here
+        rates = measure_rates(trees, args.repeats)
+        write_text_atomic(RATES, rates_markdown(rates, trees, args.repeats, command))
+        print(f"bench_rerun: wrote {RATES}", file=sys.stderr)
+        return 0
 
     frames = args.frames or ("0:30" if args.quick else None)
     demo = ["demo", *(["--frames", frames] if frames else [])]

@@ -223,8 +223,8 @@ def scenario_ours(
         # thread pool, reading ahead, the final mesh and the map file
         "cpu_threads_s": {
             "main": main_cpu_s,
-            "map_worker": pipeline.worker.cpu_s,
-            "submap_worker": getattr(getattr(pipeline, "submap_worker", None), "cpu_s", None),
+            "map_worker": pipeline.executor.map_worker.cpu_s,
+            "submap_worker": pipeline.executor.submap_worker.cpu_s,
             "odometry_process": child.cpu_s if child else None,
         },
         "odometry_process_peak_rss_mb": child.peak_rss_mb if child else None,

@@ -197,7 +197,8 @@ def memory_breakdown(
         parts["odometry_state"] = buffer_bytes(pipeline.odometry, seen) / MB
     parts["place_descriptors"] = buffer_bytes(getattr(detector, "descriptors", {}), seen) / MB
     parts["submap_records"] = buffer_bytes(pipeline.records, seen) / MB
-    parts["keyframer_buffers"] = buffer_bytes(pipeline.keyframer, seen) / MB
+    keyframing = (pipeline.keyframer, pipeline.submap_points)
+    parts["keyframer_buffers"] = buffer_bytes(keyframing, seen) / MB
     parts["neural_map_submaps"] = buffer_bytes(pipeline.submaps, seen) / MB
     model = getattr(pipeline.map, "model", None)
     if model is not None:

@@ -6,3 +6,10 @@ class DatasetError(ValueError):
 
     The message is a single line that names the offending file or folder and says how to fix it.
     """
+
+
+class OdometryProcessError(RuntimeError):
+    """The odometry's child process died or stopped answering.
+
+    The message is a single line that says what happened and what to do.
+    """

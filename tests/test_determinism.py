@@ -54,7 +54,8 @@ def _run(map_worker: bool, folder: Path) -> tuple[bytes, bytes, str, int, str]:
     source = make_source("generated", **STREET)
     odometry = DriftingOdometry(yaw_deg_per_frame=0.015, scale=1.0, up_axis=2)
     pipeline = SlamPipeline(cfg.pipeline_config(), source.sensor, odometry, build_map(cfg))
-    assert pipeline.worker.threaded == pipeline.submap_worker.threaded == map_worker
+    executor = pipeline.executor
+    assert executor.map_worker.threaded == executor.submap_worker.threaded == map_worker
     frames = hashlib.sha256()
     for frame in source:
         _frame_digest(frames, pipeline.process(frame))

@@ -6,11 +6,16 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from frontends.errors import DatasetError
+from frontends.errors import DatasetError, OdometryProcessError
 from frontends.frame import Frame
 from frontends.odometry import make_odometry
 from frontends.odometry.child_process import (
@@ -116,3 +121,80 @@ def test_lidar_runs_put_kiss_icp_in_a_child_that_finish_ends() -> None:
     for off in ({"odometry": {"child_process": False}}, {"map_worker": False}):
         inline = build_odometry(RunConfig.model_validate(off), "lidar")
         assert isinstance(inline, KissIcpOdometry)
+
+
+def test_a_hung_child_is_stopped_after_the_reply_timeout() -> None:
+    child = ChildProcessOdometry("kiss-icp")
+    child.reply_timeout_s = 1.0  # after starting it, which takes longer on a loaded machine
+    os.kill(child.pid, signal.SIGSTOP)  # alive, but never answers
+    start = time.monotonic()
+    with pytest.raises(OdometryProcessError, match="no reply to 'register' within 1 s"):
+        child.register(Frame(0, 0.0, np.ones((10, 3))))
+    assert time.monotonic() - start < 10.0
+    assert child.exit_code == -signal.SIGKILL
+    child.close()
+
+
+def _parent_script(body: str) -> list[str]:
+    return [sys.executable, "-c", textwrap.dedent(body)]
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_child_dies_with_its_parent() -> None:
+    parent = subprocess.Popen(
+        _parent_script(
+            """
+            import sys
+            from frontends.odometry.child_process import ChildProcessOdometry
+            child = ChildProcessOdometry("gt")
+            print(child.pid, flush=True)
+            sys.stdin.read()
+            """
+        ),
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    child_pid = int(parent.stdout.readline())
+    parent.kill()  # no cleanup runs: only the kernel can end the child now
+    parent.wait()
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and _running(child_pid):
+        time.sleep(0.05)
+    assert not _running(child_pid)
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_a_parent_that_hangs_up_mid_call_leaves_no_traceback_from_the_child() -> None:
+    """What Ctrl-C of a LiDAR run does: the parent closes the socket while the child registers;
+    the child's reply finds nobody and it exits quietly."""
+    result = subprocess.run(
+        _parent_script(
+            """
+            import numpy as np
+            from frontends.frame import Frame
+            from frontends.odometry.child_process import ChildProcessOdometry
+            child = ChildProcessOdometry("kiss-icp")
+            points = np.random.default_rng(0).uniform(-30.0, 30.0, (200_000, 3))
+            child._channel.send(("register", Frame(0, 0.0, points)))
+            child._channel.conn.close()
+            print(child._process.wait(timeout=60))
+            """
+        ),
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.stdout.strip() == "0", result.stderr
+    assert "Traceback" not in result.stderr and "BrokenPipe" not in result.stderr

@@ -8,6 +8,9 @@ that the optimised trajectory must be recomputed once.
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -18,6 +21,9 @@ from slam.algorithm.viz import Logger, NullLogger
 from slam.app.recorder import RunRecorder, make_recorder
 from slam.assembly.builders import build_map
 from tests.pipeline_setups import ROOM, FalseLoopInjector, room_config, room_odometry
+
+WAIT_S = 20.0
+"""How long the held map worker waits for the test before it gives up."""
 
 
 class CapturingLogger(Logger):
@@ -62,8 +68,10 @@ def stretch():
     )
 
 
-def _pipeline() -> tuple[SlamPipeline, object]:
-    cfg = room_config(max_frames=5)
+def _pipeline(map_worker: bool = True) -> tuple[SlamPipeline, object]:
+    # submaps of 4 frames: the injected loop (at the 5th close) is news at the 6th, frame 24
+    cfg = room_config(max_frames=4)
+    cfg.map_worker = map_worker
     detector = FalseLoopInjector(
         make_loop_detector(cfg.loop_closure, "rgbd"), at_submap=4, wrong_by_m=0.05
     )
@@ -74,7 +82,7 @@ def _pipeline() -> tuple[SlamPipeline, object]:
 
 
 def test_recorder_grows_trajectories_by_one_and_recomputes_them_after_a_loop(stretch):
-    pipeline, cfg = _pipeline()
+    pipeline, cfg = _pipeline(map_worker=False)  # inline: every map job is done at its close
     viz = CapturingLogger()
     recorder = make_recorder(pipeline, viz, cfg.viz.model_copy(update={"mesh_every_submaps": 2}))
     assert isinstance(recorder, RunRecorder)
@@ -107,7 +115,36 @@ def test_recorder_grows_trajectories_by_one_and_recomputes_them_after_a_loop(str
     final = viz.metrics[-1]
     assert final["map_voxels"] == pipeline.map.num_voxels
     assert final["ate_slam_m"] > 0 and final["ate_odometry_m"] > 0
-    assert len(pipeline.timings_s["map_logging"]) == len(viz.maps)
+    # the map worker published after each of its jobs (the last close's included), and the
+    # recorder logged each published map during the run and the exact one at the end
+    closed = pipeline.num_closed_submaps
+    assert len(pipeline.timings_s["map_logging"]) == closed + 1
+    assert len(viz.maps) == closed
+
+
+def test_recorder_logs_the_published_map_without_waiting_for_the_map_worker(stretch):
+    """With the map worker held up, frames and submap closes go on and nothing is logged of
+    the map until it publishes (a recorder that drained the workers would wait here)."""
+    pipeline, cfg = _pipeline(map_worker=True)
+    released = threading.Event()
+    encode = pipeline.map.encode
+
+    def held_encode(*args, **kwargs):
+        assert released.wait(WAIT_S), "the recorder waited for the held map worker"
+        return encode(*args, **kwargs)
+
+    pipeline.map.encode = held_encode
+    viz = CapturingLogger()
+    recorder = make_recorder(pipeline, viz, cfg.viz)
+    start = time.perf_counter()
+    for frame in list(stretch)[:12]:
+        recorder.frame(frame, pipeline.process(frame))
+    assert time.perf_counter() - start < WAIT_S
+    assert pipeline.num_closed_submaps == 2 and viz.maps == []
+    released.set()
+    pipeline.finish()
+    recorder.finish()
+    assert len(viz.maps) == 1 and len(viz.maps[0][0]) == pipeline.map.num_voxels
 
 
 def test_null_logger_gets_a_recorder_that_computes_nothing(stretch):

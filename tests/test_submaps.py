@@ -146,7 +146,7 @@ def test_keyframer_keeps_points_within_the_range_limits_inclusive() -> None:
     )
     keyframer = Keyframer(cfg)
     keyframer.add(Frame(index=0, timestamp=0.0, points=points), np.eye(4))
-    kept = np.concatenate([chunk[0] for chunk in keyframer._chunks])
+    kept = np.concatenate([chunk[0] for chunk in keyframer.points._chunks])
     expected = points[1:4]
     order = np.argsort(voxel_keys(expected, cfg.map_voxel_m))
     np.testing.assert_allclose(kept, expected[order], atol=1e-12)
@@ -163,7 +163,7 @@ def test_a_scan_is_averaged_over_the_voxels_of_the_anchor_frame() -> None:
     keyframer.add(Frame(index=0, timestamp=0.0, points=scans[0]), np.eye(4))
     keyframer.add(Frame(index=1, timestamp=0.1, points=scans[1]), T_A_S)
     for (points_A, _, viewpoint_A), scan, T in zip(
-        keyframer._chunks, scans, [np.eye(4), T_A_S], strict=True
+        keyframer.points._chunks, scans, [np.eye(4), T_A_S], strict=True
     ):
         ranges = np.linalg.norm(scan, axis=1)
         in_range = scan[(ranges >= 1.0) & (ranges <= 20.0)]

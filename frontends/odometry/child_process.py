@@ -13,12 +13,19 @@ round trip of 3 MB each way through the socket; through the files a whole call t
 than registering in this process). Errors raised by the odometry
 (e.g. :class:`~frontends.errors.DatasetError` for an empty scan) are raised again here.
 
+Every reply must come within ``reply_timeout_s`` (``odometry.child_reply_timeout_s`` of a run):
+a child that hangs is killed and one that died is reported, each as an
+:class:`~frontends.errors.OdometryProcessError` whose one line says what happened and what to do,
+never a hang. The child dies with its parent (``PR_SET_PDEATHSIG``), ignores Ctrl-C and SIGTERM
+(the parent handles them and closes the socket), and leaves quietly when the parent is gone.
+
 Linux only (``os.memfd_create``); :func:`child_process_available` says whether it can be used.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import mmap
 import os
 import pickle
@@ -26,16 +33,27 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from frontends.errors import OdometryProcessError
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 
 INITIAL_BYTES = 8 << 20
 """First size of each shared file (a 128k-point float64 scan is 3 MB); it grows on demand."""
+
+DEFAULT_REPLY_TIMEOUT_S = 120.0
+"""How long a reply of the child may take by default: a registration takes 30-100 ms and
+building the odometry (importing KISS-ICP) a few seconds, so two minutes means it hangs."""
+
+POLL_S = 0.5
+"""While waiting for a reply, how often the child is checked for having exited."""
+
+_PR_SET_PDEATHSIG = 1
 
 
 def child_process_available() -> bool:
@@ -99,7 +117,10 @@ class _Channel:
         spans = self.outgoing.write([buffer.raw() for buffer in buffers])
         self.conn.send_bytes(pickle.dumps((header, spans), protocol=5))
 
-    def receive(self) -> Any:
+    def receive(self, ready: Any = None) -> Any:
+        """The next message; ``ready()`` is called first and must return once one is there."""
+        if ready is not None:
+            ready()
         header, spans = pickle.loads(self.conn.recv_bytes())
         return pickle.loads(header, buffers=self.incoming.read(spans))
 
@@ -123,10 +144,20 @@ class ChildProcessOdometry(Odometry):
 
     Results equal the same odometry's in this process (same code, same inputs, same thread
     count). The child exits when :meth:`close` is called, when this object is collected, or when
-    this process ends (it reads end-of-file then).
+    this process ends (it reads end-of-file then, or is killed with it).
+
+    Args:
+        name, options: the odometry, as for ``make_odometry``.
+        reply_timeout_s: the longest a call may wait for the child's reply; a child that takes
+            longer is killed and the call raises :class:`OdometryProcessError`.
     """
 
-    def __init__(self, name: str, **options: Any) -> None:
+    def __init__(
+        self, name: str, reply_timeout_s: float = DEFAULT_REPLY_TIMEOUT_S, **options: Any
+    ) -> None:
+        if reply_timeout_s <= 0:
+            raise ValueError(f"reply_timeout_s must be positive, got {reply_timeout_s}")
+        self.reply_timeout_s = reply_timeout_s
         if not child_process_available():
             raise RuntimeError("ChildProcessOdometry needs Linux (os.memfd_create)")
         parent_socket, child_socket = socket.socketpair()
@@ -139,7 +170,9 @@ class ChildProcessOdometry(Odometry):
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
         fds = (child_socket.fileno(), to_child, to_parent)
         self._process = subprocess.Popen(
-            [sys.executable, "-m", __name__, *map(str, fds)], pass_fds=fds, env=env
+            [sys.executable, "-m", __name__, *map(str, fds), str(os.getpid())],
+            pass_fds=fds,
+            env=env,
         )
         child_socket.close()
         self._channel = _Channel(
@@ -163,16 +196,37 @@ class ChildProcessOdometry(Odometry):
             raise RuntimeError("the odometry process was closed")
         try:
             self._channel.send((method, argument))
-            status, value = self._channel.receive()
+            status, value = self._channel.receive(lambda: self._wait_for_reply(method))
         except (EOFError, OSError) as exc:
             code = self._process.poll()
-            raise RuntimeError(
-                f"the {self.name} odometry process ended (exit code {code}); its own error is "
-                "printed above"
+            raise OdometryProcessError(
+                f"the {self.name} odometry process ended (exit code {code}) during '{method}'; "
+                "its own error, if any, is printed above; rerun, or set "
+                "odometry.child_process=false to run it in this process"
             ) from exc
         if status == "error":
             raise value
         return value
+
+    def _wait_for_reply(self, method: str) -> None:
+        """Return once a reply (or end-of-file) is there; kill the child and raise when none
+        came within :attr:`reply_timeout_s`."""
+        assert self._channel is not None
+        deadline = time.monotonic() + self.reply_timeout_s
+        while not self._channel.conn.poll(max(0.0, min(POLL_S, deadline - time.monotonic()))):
+            if self._process.poll() is not None:
+                return  # it exited: the socket reads end-of-file, reported by the caller
+            if time.monotonic() >= deadline:
+                self._process.kill()
+                self._process.wait()
+                self._channel.close()
+                self._channel = None
+                raise OdometryProcessError(
+                    f"the {self.name} odometry process gave no reply to '{method}' within "
+                    f"{self.reply_timeout_s:g} s and was stopped; if the machine is just slow, "
+                    "raise odometry.child_reply_timeout_s, else set "
+                    "odometry.child_process=false to run it in this process"
+                )
 
     def register(self, frame: Frame) -> OdometryResult:
         result, self.num_failures = self._call("register", frame)
@@ -213,15 +267,26 @@ class ChildProcessOdometry(Odometry):
                 self.close()
 
 
+def _die_with_parent(parent_pid: int) -> None:
+    """Have the kernel kill this process when its parent dies (Linux ``PR_SET_PDEATHSIG``); exit
+    at once if the parent is already gone."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent_pid:
+        os._exit(0)
+
+
 def _serve(channel: _Channel) -> None:
-    """The child's loop: build the odometry, then answer calls until the parent hangs up."""
+    """The child's loop: build the odometry, then answer calls until the parent hangs up (a
+    parent gone mid-call ends it quietly)."""
     from frontends.odometry.base import make_odometry
 
     odometry: Odometry | None = None
     while True:
         try:
             method, argument = channel.receive()
-        except EOFError:
+        except (EOFError, ConnectionError):
             return
         try:
             if method == "build":
@@ -237,14 +302,20 @@ def _serve(channel: _Channel) -> None:
             else:
                 raise ValueError(f"unknown odometry call {method!r}")
         except Exception as exc:
-            channel.send(("error", exc))
+            reply: tuple[str, Any] = ("error", exc)
         else:
-            channel.send(("ok", value))
+            reply = ("ok", value)
+        try:
+            channel.send(reply)
+        except ConnectionError:  # the parent hung up (Ctrl-C, SIGTERM): nobody to answer
+            return
 
 
 if __name__ == "__main__":
-    # Ctrl-C reaches the whole process group: the parent handles it, and this process ends when
-    # the parent closes the socket
+    # Ctrl-C and a SIGTERM of the process group reach this process too: the parent handles them
+    # and closes the socket, which ends this process; a parent that dies takes it along
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    socket_fd, from_parent, to_parent = (int(arg) for arg in sys.argv[1:4])
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    socket_fd, from_parent, to_parent, parent_pid = (int(arg) for arg in sys.argv[1:5])
+    _die_with_parent(parent_pid)
     _serve(_Channel(Connection(socket_fd), _SharedFile(to_parent), _SharedFile(from_parent)))

@@ -30,7 +30,8 @@ class GraphSnapshot:
     Attributes:
         anchors: every anchor's estimate after the job's loop edges, ``{submap_id: T_W_A}``.
         candidates: the loop candidates the job examined.
-        inliers: the graph's inlier decision of every loop edge so far, by ``(i, j)``.
+        inliers: the graph's inlier decisions, by ``(i, j)``, of the loop edges added or changed
+            since the previous snapshot (GNC may flip an old edge at any optimisation).
         num_accepted: loop edges added to the graph so far.
         loop_added: the job added a loop edge or relocalised the session (the anchors moved).
         remap: the remapping pass the job ran when it moved a submap (inline map worker only).
@@ -56,6 +57,7 @@ class GraphView:
     num_accepted: int = 0
     relocalisation: Relocalisation | None = None
     _last_known: int | None = None
+    _accepted: dict[tuple[int, int], list[LoopCandidate]] = field(default_factory=dict)
     _new_loops: list[LoopCandidate] = field(default_factory=list)
     _loop_added: bool = False
     _remap: RemapEvent | None = None
@@ -66,15 +68,19 @@ class GraphView:
         self.odometry_anchors[submap_id] = T_W_A_odometry
 
     def apply(self, snapshot: GraphSnapshot) -> None:
-        """Take a submap job's snapshot (in job order)."""
+        """Take a submap job's snapshot (every one, in job order): O(what the job changed), not
+        O(every candidate so far)."""
         self.anchors = snapshot.anchors
         if snapshot.anchors:
             self._last_known = max(snapshot.anchors)
         self.loop_candidates.extend(snapshot.candidates)
-        for candidate in self.loop_candidates:
+        for candidate in snapshot.candidates:
             if candidate.accepted:
                 key = (candidate.reference_id, candidate.query_id)
-                candidate.graph_inlier = snapshot.inliers.get(key, candidate.graph_inlier)
+                self._accepted.setdefault(key, []).append(candidate)
+        for key, inlier in snapshot.inliers.items():
+            for candidate in self._accepted.get(key, ()):
+                candidate.graph_inlier = inlier
         self.num_accepted = snapshot.num_accepted
         self._new_loops.extend(snapshot.candidates)
         self._loop_added |= snapshot.loop_added

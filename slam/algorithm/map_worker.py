@@ -10,7 +10,8 @@ frames; KISS-ICP's bindings do not (they hold it through a registration), which 
 in a child process (:mod:`frontends.odometry.child_process`).
 
 An exception in a job is raised again by the next :meth:`MapWorker.submit` or
-:meth:`MapWorker.drain`, so a failed map update ends the run.
+:meth:`MapWorker.drain`, so a failed map update ends the run. :meth:`MapWorker.cancel` stops a
+worker without running its queue (an interrupted run), waiting only for the job it is running.
 """
 
 from __future__ import annotations
@@ -18,8 +19,20 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import Any
+
+SIGNAL_CHECK_S = 0.2
+"""A thread waiting for a job wakes this often, so that a signal (Ctrl-C, SIGTERM) that the
+kernel handed to another thread still reaches the main thread's handler within this time."""
+
+
+def job_result(future: Future) -> Any:
+    """The job's result (its exception raised), waited for in slices of
+    :data:`SIGNAL_CHECK_S`."""
+    while not wait([future], timeout=SIGNAL_CHECK_S).done:
+        pass
+    return future.result()
 
 
 class MapWorker:
@@ -49,7 +62,7 @@ class MapWorker:
             done.set_result(job(*args))
             return done
         while self._pending and (self._pending[0].done() or len(self._pending) >= self.max_pending):
-            self._pending.popleft().result()  # re-raises a failed job
+            job_result(self._pending.popleft())  # re-raises a failed job
         future = self._pool.submit(job, *args)
         self._pending.append(future)
         return future
@@ -57,7 +70,15 @@ class MapWorker:
     def drain(self) -> None:
         """Wait until every submitted job has run (re-raises the first failure)."""
         while self._pending:
-            self._pending.popleft().result()
+            job_result(self._pending.popleft())
+
+    def cancel(self) -> None:
+        """Drop the queued jobs, wait for the running one and stop the thread; errors of jobs
+        are not raised (the run is ending for another reason)."""
+        self._pending.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
 
     def close(self) -> None:
         """Finish the queued jobs and stop the thread."""

@@ -11,12 +11,13 @@ The pipeline neither logs nor scores: each :meth:`SlamPipeline.process` returns 
 viewer shows of the map, and :meth:`SlamPipeline.report` what metrics need at the end.
 
 Only the odometry and the keyframing *decision* (poses only) run in :meth:`SlamPipeline.process`'s
-thread. The rest runs on two :class:`~slam.algorithm.map_worker.MapWorker` s (threads when
-``cfg.map_worker``), each in submission order: the *submap worker* absorbs every frame's points
-into its submap, closes submaps (normals, loop cloud), detects and verifies loops and owns the
-pose graph; the *map worker* encodes, fuses and remaps. The main thread sees the graph through a
-:class:`~slam.algorithm.graph_view.GraphView`, updated at fixed frames, so results do not depend
-on timing.
+thread. The rest runs on the two workers of an :class:`~slam.algorithm.executor.Executor`
+(threads when ``cfg.map_worker``), each in submission order: the *submap worker* absorbs every
+frame's points into its submap (:class:`~slam.algorithm.submaps.SubmapPoints`, which only it
+touches), closes submaps (normals, loop cloud), detects and verifies loops and owns the pose
+graph; the *map worker* encodes, fuses and remaps. The main thread sees the graph through the
+executor's :class:`~slam.algorithm.graph_view.GraphView`, updated at fixed frames, so results do
+not depend on timing, and the map through the snapshot the map worker publishes after each job.
 
 With a :class:`~slam.algorithm.merge.relocalise.Relocaliser` (``slam.run --map``), each closed
 submap is also tried against a stored map until one verifies; the graph is then re-expressed in the
@@ -27,8 +28,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import defaultdict, deque
-from concurrent.futures import Future
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -37,29 +36,27 @@ from common.memory import keep_large_allocations_apart, release_freed_memory
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 from slam.algorithm.config import PipelineConfig
+from slam.algorithm.executor import (
+    Executor,
+    MapSnapshot,
+    MapSnapshotRequest,
+    SubmapJobResult,
+    clock,
+)
 from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.graph.gravity import measure_up
 from slam.algorithm.graph.pose_graph import PoseGraph
-from slam.algorithm.graph_view import GraphSnapshot, GraphView
+from slam.algorithm.graph_view import GraphSnapshot
 from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
-from slam.algorithm.map_worker import MapWorker
+from slam.algorithm.map_worker import job_result
 from slam.algorithm.remap import RemapEvent, Remapper
 from slam.algorithm.report import PipelineReport
-from slam.algorithm.submaps import Keyframer, KeyframeStep, SubmapRecord
+from slam.algorithm.submaps import KeyframeDecisions, KeyframeStep, SubmapPoints, SubmapRecord
 
 if TYPE_CHECKING:
     from slam.algorithm.merge.relocalise import Relocalisation, Relocaliser
 
 logger = logging.getLogger(__name__)
-
-SUBMAP_QUEUE_FRAMES = 32
-"""Frames (a 3 MB scan each) queued for the submap worker before :meth:`SlamPipeline.process`
-waits: 32 cover a loop verification (full-length LiDAR run: waited 30 s with 8, 15 s with 32)."""
-
-
-def _clock() -> tuple[float, float]:
-    """(wall, CPU time of the calling thread) in seconds."""
-    return time.perf_counter(), time.thread_time()
 
 
 class SlamPipeline:
@@ -79,7 +76,9 @@ class SlamPipeline:
         self.sensor = sensor
         self.odometry = odometry
         self.map = neural_map
-        self.keyframer = Keyframer(cfg.submaps)
+        self.keyframer = KeyframeDecisions(cfg.submaps)  # the main thread's
+        self.submap_points = SubmapPoints(cfg.submaps)  # the submap worker's
+        self._surface_full = False  # the last submap job's SubmapPoints.surface_full
         self.graph = PoseGraph(cfg.pose_graph)
         self.loop_detector = (
             loop_detector
@@ -89,33 +88,12 @@ class SlamPipeline:
         self.remapper = Remapper(cfg.remap, neural_map)
         self.relocaliser = relocaliser if self.loop_detector is not None else None
         self._relocalisation: Relocalisation | None = None  # the submap worker's
-        self.submaps: dict[int, object] = {}
-        self.records: dict[int, SubmapRecord] = {}
-        self.timings_s: dict[str, list[float]] = defaultdict(list)
-        # CPU seconds of the thread that ran each stage (the map worker's for mapping and
-        # remap); odometry's own thread pool (KISS-ICP) is not counted
-        self.stage_cpu_s: dict[str, float] = defaultdict(float)
-        for stage in (  # created here: worker threads write them too
-            "keyframing",
-            "loop_detection",
-            "pose_graph",
-            "mapping",
-            "remap",
-            "map_logging",
-            "map_worker_wait",
-            "submap_worker_wait",
-        ):
-            self.timings_s[stage] = []
-        if self.relocaliser is not None:
-            self.timings_s["relocalisation"] = []
-        self.worker = MapWorker(threaded=cfg.map_worker)
-        self.submap_worker = MapWorker(
-            threaded=cfg.map_worker, max_pending=SUBMAP_QUEUE_FRAMES, name="submap-worker"
-        )
-        self.view = GraphView()
-        self._unsynced: deque[Future] = deque()  # close jobs whose snapshot is not taken yet
-        self._num_accepted = 0  # the submap worker's count
-        self._last_remap_moved = False
+        self.submaps: dict[int, object] = {}  # the map worker's (complete after finish())
+        self.records: dict[int, SubmapRecord] = {}  # the submap worker's
+        self.executor = Executor(threaded=cfg.map_worker)
+        self.view = self.executor.view
+        self._num_accepted = 0  # the submap worker's
+        self._published_inliers: dict[tuple[int, int], bool] = {}  # the submap worker's
         self._frame_submap: list[int] = []
         self._frames_of: dict[int, list[int]] = {}
         self._frame_T_A_S: list[np.ndarray] = []
@@ -126,14 +104,6 @@ class SlamPipeline:
         self._finished = False
 
     # --- per frame ----------------------------------------------------------------------------
-
-    def _timed(self, name: str, start: tuple[float, float]) -> tuple[float, float]:
-        """Book the wall and thread-CPU time since ``start`` (a :func:`_clock` reading) to a
-        stage; returns the new reading."""
-        now = _clock()
-        self.timings_s[name].append(now[0] - start[0])
-        self.stage_cpu_s[name] += now[1] - start[1]
-        return now
 
     @staticmethod
     def _map_frame(frame: Frame, odometry: OdometryResult) -> Frame:
@@ -155,13 +125,14 @@ class SlamPipeline:
         """Consume the next frame."""
         if self._finished:
             raise RuntimeError("process() after finish()")
-        start = _clock()
+        timings = self.executor.main_timings
+        start = clock()
         odometry = self.odometry.register(frame)
         T_W_S_odometry = np.asarray(odometry.T_W_S, dtype=np.float64)
-        t = self._timed("odometry", start)
+        timings.book("odometry", start)
 
         map_frame = self._map_frame(frame, odometry)
-        step = self.keyframer.decide(map_frame, T_W_S_odometry)
+        step = self.keyframer.decide(map_frame, T_W_S_odometry, self._surface_full)
         current = step.current
         assert current is not None and step.T_A_S is not None
         covariance = None
@@ -171,15 +142,13 @@ class SlamPipeline:
                 covariance = np.array(odometry.covariance, dtype=np.float64)
             self.odometry.restart_covariance()
         queued = map_frame.without_images()  # the submap worker absorbs points and normals
-        job = self.submap_worker.submit(self._submap_job, step, queued, covariance, frame.index)
-        if not self.keyframer.decides_from_poses:
-            job.result()  # the next decision needs this frame's points
         if step.closing is not None:
             self._closed_count += 1
-            self._unsynced.append(job)
-            while len(self._unsynced) > 1:  # the snapshot of the submap closed before
-                self.view.apply(self._unsynced.popleft().result())
-        self._book_wait(t)
+        job = self.executor.submit_frame(
+            self._submap_job, step, queued, covariance, frame.index, closes=step.closing is not None
+        )
+        if not self.keyframer.decides_from_poses:  # the next decision needs this frame's points
+            self._surface_full = job_result(job).surface_full
 
         self._frame_submap.append(current.submap_id)
         self._frames_of.setdefault(current.submap_id, []).append(len(self._frame_submap) - 1)
@@ -197,16 +166,10 @@ class SlamPipeline:
         if step.closing is not None:
             result.closed_submap_id = step.closing.submap_id
         result.loops, result.remap, result.loop_added, result.relocalised = self.view.take_news()
-        result.odometry_s = self.timings_s["odometry"][-1]
+        result.odometry_s = timings.wall_s["odometry"][-1]
         result.frame_s = time.perf_counter() - start[0]
-        self.timings_s["frame"].append(result.frame_s)
+        timings.wall_s["frame"].append(result.frame_s)
         return result
-
-    def _book_wait(self, start: tuple[float, float]) -> None:
-        """Book the main thread's time since ``start`` as waiting for the submap worker (with a
-        threaded worker; inline, the jobs book their own stages)."""
-        if self.submap_worker.threaded:
-            self._timed("submap_worker_wait", start)
 
     def _submap_job(
         self,
@@ -214,12 +177,12 @@ class SlamPipeline:
         frame: Frame | None,
         covariance: np.ndarray | None,
         frame_index: int,
-    ) -> GraphSnapshot | None:
+    ) -> SubmapJobResult:
         """One frame on the submap worker: its points into its submap, its anchor into the
         graph when it opened one, and the submap it closed through loop detection to the map
         worker."""
-        start = _clock()
-        closed = self.keyframer.absorb(step, frame)
+        start = clock()
+        closed = self.submap_points.absorb(step, frame)
         current = step.current
         if step.opened and current is not None and current.submap_id not in self.graph:
             self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, covariance)
@@ -228,10 +191,9 @@ class SlamPipeline:
                 up = measure_up(frame, self.graph.up_in(current.submap_id), gravity)
                 if up is not None:
                     self.graph.add_gravity(current.submap_id, up)
-        self._timed("keyframing", start)
-        if closed is None:
-            return None
-        return self._on_submap_closed(closed, frame_index)
+        self.executor.submap_timings.book("keyframing", start)
+        snapshot = None if closed is None else self._on_submap_closed(closed, frame_index)
+        return SubmapJobResult(snapshot, self.submap_points.surface_full)
 
     def _record_gt(self, frame: Frame) -> None:
         gt = None if frame.T_W_S_gt is None else np.asarray(frame.T_W_S_gt, dtype=np.float64)
@@ -241,13 +203,14 @@ class SlamPipeline:
 
     def _on_submap_closed(self, record: SubmapRecord, frame_index: int) -> GraphSnapshot:
         """Loop detection, loop edges and the map job of a closed submap (submap worker)."""
-        start = _clock()
+        timings = self.executor.submap_timings
+        start = clock()
         candidates: list[LoopCandidate] = []
         if self.loop_detector is not None:
             candidates = self.loop_detector.process(
                 record, self.graph.poses(), self.graph.relative_covariance
             )
-        t = self._timed("loop_detection", start)
+        t = timings.book("loop_detection", start)
         added = False
         for candidate in candidates:
             if candidate.accepted and candidate.T_Ai_Aj is not None:
@@ -260,7 +223,7 @@ class SlamPipeline:
                 candidate.graph_inlier = edge.inlier
                 added = True
                 self._num_accepted += 1
-        self._timed("pose_graph", t)
+        timings.book("pose_graph", t)
         relocalised = self._relocalise(record)
         added |= relocalised is not None
 
@@ -269,12 +232,11 @@ class SlamPipeline:
         self.records[record.submap_id] = record
         T_W_A = self.graph.pose(record.submap_id).copy()
         remap_poses = self.graph.poses() if added else None
-        t = _clock()
-        self.worker.submit(self._map_job, record, T_W_A, remap_poses, frame_index)
-        self._timed("map_worker_wait", t)  # only when the worker is two submaps behind
+        job = self.executor.submit_map_job(self._map_job, record, T_W_A, remap_poses, frame_index)
         remap = None
-        if added and not self.worker.threaded and self._last_remap_moved:
-            remap = self.remapper.events[-1]
+        if not self.executor.threaded:  # the job ran already: its remap is this frame's news
+            remap = job.result()
+            remap = remap if remap is not None and remap.num_moved > 0 else None
         return self._snapshot(candidates, added, remap, relocalised)
 
     def _relocalise(self, record: SubmapRecord) -> Relocalisation | None:
@@ -283,7 +245,7 @@ class SlamPipeline:
         if self.relocaliser is None or self._relocalisation is not None:
             return None
         assert self.loop_detector is not None
-        start = _clock()
+        start = clock()
         found = self.relocaliser.locate(
             record.submap_id,
             (int(record.frame_indices[0]), int(record.frame_indices[-1])),
@@ -294,7 +256,7 @@ class SlamPipeline:
         if found is not None:
             self.graph.reframe(found.T_M_W)
             self._relocalisation = found
-        self._timed("relocalisation", start)
+        self.executor.submap_timings.book("relocalisation", start)
         return found
 
     def _snapshot(
@@ -304,10 +266,15 @@ class SlamPipeline:
         remap: RemapEvent | None = None,
         relocalised: Relocalisation | None = None,
     ) -> GraphSnapshot:
-        """The graph as the main thread will see it (taken by the graph's owner)."""
-        inliers = {(e.i, e.j): e.inlier for e in self.graph.loops}
+        """The graph as the main thread will see it (taken by the graph's owner): the inlier
+        decisions that changed since the last snapshot."""
+        changed = {}
+        for edge in self.graph.loops:
+            key = (edge.i, edge.j)
+            if self._published_inliers.get(key) != edge.inlier:
+                changed[key] = self._published_inliers[key] = edge.inlier
         return GraphSnapshot(
-            self.graph.poses(), candidates, inliers, self._num_accepted, added, remap, relocalised
+            self.graph.poses(), candidates, changed, self._num_accepted, added, remap, relocalised
         )
 
     def _map_job(
@@ -316,17 +283,20 @@ class SlamPipeline:
         T_W_A: np.ndarray,
         remap_poses: dict[int, np.ndarray] | None,
         frame_index: int,
-    ) -> None:
-        """Encode and fuse a closed submap, then remap if the graph moved (worker thread)."""
-        start = _clock()
+    ) -> RemapEvent | None:
+        """Encode and fuse a closed submap, then remap if the graph moved (map worker); returns
+        the remapping pass, if one ran."""
+        timings = self.executor.map_timings
+        start = clock()
         self._encode(record, T_W_A)
-        start = self._timed("mapping", start)
-        self._last_remap_moved = False
+        start = timings.book("mapping", start)
+        event = None
         if remap_poses is not None:
             event = self.remapper.apply(self.submaps, remap_poses, frame_index)
-            self._last_remap_moved = event.num_moved > 0
-            self._timed("remap", start)
+            timings.book("remap", start)
         release_freed_memory()
+        self.executor.publish_map(self.map, event)
+        return event
 
     def _encode(self, record: SubmapRecord, T_W_A: np.ndarray) -> None:
         if len(record.points_A) == 0:
@@ -356,34 +326,38 @@ class SlamPipeline:
         last_index = len(self._frame_submap) - 1
         step = self.keyframer.decide_finish()
         self.odometry.close()
-        t = _clock()
         if step is not None:
             self._closed_count += 1
-            self._unsynced.append(
-                self.submap_worker.submit(self._submap_job, step, None, None, last_index)
-            )
-        self.submap_worker.close()
-        self._sync_all()
+            self.executor.submit_frame(self._submap_job, step, None, None, last_index, closes=True)
+        self.executor.close_submap_worker()
         if self.loop_detector is not None:  # no submap is left to verify
             self.loop_detector.release()
-        t = self._timed("submap_worker_wait", t)
+        timings = self.executor.main_timings
+        t = clock()
         self.graph.optimize_batch()
-        t = self._timed("pose_graph", t)
-        self.worker.close()
-        t = self._timed("map_worker_wait", t)
+        timings.book("pose_graph", t)
+        self.executor.close_map_worker()
+        t = clock()
         remap = self.remapper.apply(self.submaps, self.graph.poses(), -1)
         release_freed_memory()
-        self._timed("remap", t)
+        timings.book("remap", t)
         self.view.apply(self._snapshot([], False))
         self._finished = True
         return remap
 
-    def _sync_all(self) -> None:
-        """Take the snapshots of every submitted close job (they must have run)."""
-        while self._unsynced:
-            self.view.apply(self._unsynced.popleft().result())
+    def abort(self) -> None:
+        """Stop the workers without running their queued jobs (an interrupted or failed run);
+        the pipeline cannot go on after it."""
+        self._finished = True
+        self.executor.abort()
+        self.odometry.close()
 
     # --- results ------------------------------------------------------------------------------
+
+    @property
+    def finished(self) -> bool:
+        """:meth:`finish` ran (every result is final) or :meth:`abort` did (the run ended)."""
+        return self._finished
 
     @property
     def num_frames(self) -> int:
@@ -433,9 +407,7 @@ class SlamPipeline:
     def drain(self) -> None:
         """Wait for both workers: the graph view, the loop candidates and the map then reflect
         every submap closed so far."""
-        self.submap_worker.drain()
-        self.worker.drain()
-        self._sync_all()
+        self.executor.sync()
 
     @property
     def loop_candidates(self) -> list[LoopCandidate]:
@@ -466,20 +438,36 @@ class SlamPipeline:
         (None without a relocaliser, or before a submap verified)."""
         return self.view.relocalisation
 
-    @property
-    def last_remap_moved(self) -> bool:
-        """The latest map job's remap moved a submap (up to date after :meth:`drain`)."""
-        return self._last_remap_moved
+    def request_map_snapshots(self, request: MapSnapshotRequest) -> None:
+        """Have the map worker publish the map after each job for a viewer (:meth:`latest_map`),
+        with the meshes ``request`` asks for. Before the first frame."""
+        self.executor.request_map_snapshots(request)
+
+    def latest_map(self) -> MapSnapshot | None:
+        """The map as the latest finished map job left it (see :meth:`request_map_snapshots`);
+        never waits for the workers."""
+        return self.executor.latest_map()
 
     def map_snapshot(self, with_mesh: bool) -> tuple[np.ndarray, np.ndarray, object | None]:
-        """What a viewer shows of the map now: voxel centres, their weights and, when asked,
-        a mesh (waits for the map worker; booked as the ``map_logging`` stage)."""
+        """What a viewer shows of the map now, exactly: voxel centres, their weights and, when
+        asked, a mesh (waits for the workers; booked as the ``map_logging`` stage)."""
         self.drain()
-        start = _clock()
+        start = clock()
         centers, weights = self.map.voxel_centers()
         mesh = self.map.extract_mesh() if with_mesh else None
-        self._timed("map_logging", start)
+        self.executor.main_timings.book("map_logging", start)
         return np.asarray(centers), np.asarray(weights, dtype=np.float64), mesh
+
+    @property
+    def timings_s(self) -> dict[str, list[float]]:
+        """Wall seconds of every call of each stage, over all threads (the workers' stages once
+        :meth:`finish` stopped them)."""
+        return self.executor.timings()[0]
+
+    @property
+    def stage_cpu_s(self) -> dict[str, float]:
+        """CPU seconds of the thread that ran each stage (KISS-ICP's own pool is not counted)."""
+        return self.executor.timings()[1]
 
     def report(self) -> PipelineReport:
         """The results and statistics metrics need (after :meth:`finish`)."""
@@ -495,6 +483,6 @@ class SlamPipeline:
             submap_frame_counts={i: len(frames) for i, frames in self._frames_of.items()},
             neural_map=self.map,
             submaps=list(self.submaps.values()),
-            timings_s={name: list(values) for name, values in self.timings_s.items()},
-            stage_cpu_s=dict(self.stage_cpu_s),
+            timings_s=self.timings_s,
+            stage_cpu_s=self.stage_cpu_s,
         )

@@ -219,8 +219,10 @@ class KeyframeStep(NamedTuple):
     opened: bool
 
 
-class Keyframer:
-    """Groups frames into submaps and accumulates their points in the anchor frame."""
+class KeyframeDecisions:
+    """Which submap each frame belongs to, decided from poses (and, with ``max_surface_views``,
+    whether the open submap's points cover enough surface): the half of keyframing that the
+    pipeline's main thread runs. :class:`SubmapPoints` holds the points."""
 
     def __init__(self, cfg: SubmapConfig) -> None:
         self.cfg = cfg
@@ -228,53 +230,35 @@ class Keyframer:
         self._next_id = 0
         self._travelled_m = 0.0
         self._last_T_W_S: np.ndarray | None = None
-        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self._has_normals = True
-        self._accumulated = 0
-        self._surface_keys = np.zeros(0, dtype=np.int64)
-        self._view_surface = 0
 
     @property
     def current(self) -> SubmapRecord | None:
-        """The open submap (None before the first frame and after :meth:`finish`)."""
+        """The open submap (None before the first frame and after the last)."""
         return self._current
-
-    def _should_close(self, T_A_S: np.ndarray) -> bool:
-        c = self.cfg
-        sub = self._current
-        assert sub is not None
-        if len(sub.frame_indices) >= c.max_frames:
-            return True
-        if np.linalg.norm(T_A_S[:3, 3]) > c.max_distance_m:
-            return True
-        if c.max_surface_views is not None and self._view_surface > 0:
-            if len(self._surface_keys) > c.max_surface_views * self._view_surface:
-                return True
-        return np.degrees(rotation_angle_rad(T_A_S[:3, :3])) > c.max_rotation_deg
 
     @property
     def decides_from_poses(self) -> bool:
         """Whether :meth:`decide` needs only poses: without ``max_surface_views`` a submap closes
         by distance, rotation and frame count, so the points can be absorbed later (on a worker
-        thread); with it, every :meth:`absorb` must run before the next :meth:`decide`."""
+        thread); with it, every :meth:`SubmapPoints.absorb` must run before the next
+        :meth:`decide`, which takes its :attr:`SubmapPoints.surface_full`."""
         return self.cfg.max_surface_views is None
 
-    def add(
-        self, frame: Frame, T_W_S: np.ndarray
-    ) -> tuple[SubmapRecord | None, SubmapRecord, np.ndarray]:
-        """Add a frame with its odometry pose (:meth:`decide`, then :meth:`absorb`).
+    def _should_close(self, T_A_S: np.ndarray, surface_full: bool) -> bool:
+        c = self.cfg
+        sub = self._current
+        assert sub is not None
+        if len(sub.frame_indices) >= c.max_frames or surface_full:
+            return True
+        if np.linalg.norm(T_A_S[:3, 3]) > c.max_distance_m:
+            return True
+        return np.degrees(rotation_angle_rad(T_A_S[:3, :3])) > c.max_rotation_deg
 
-        Returns ``(closed, current, T_A_S)``: the submap this frame closed (or None), the submap
-        the frame now belongs to (a new one when it opened one), and the frame's pose relative
-        to that submap's anchor.
-        """
-        step = self.decide(frame, T_W_S)
-        return self.absorb(step, frame), step.current, step.T_A_S
-
-    def decide(self, frame: Frame, T_W_S: np.ndarray) -> KeyframeStep:
+    def decide(self, frame: Frame, T_W_S: np.ndarray, surface_full: bool = False) -> KeyframeStep:
         """The keyframing decision for a frame: whether it closes the open submap, which submap
-        it belongs to and its pose relative to that anchor. Poses only (see
-        :attr:`decides_from_poses`); the points follow with :meth:`absorb`."""
+        it belongs to and its pose relative to that anchor. ``surface_full``: the open submap's
+        points cover ``max_surface_views`` times its largest view (see
+        :attr:`decides_from_poses`)."""
         T_W_S = np.asarray(T_W_S, dtype=np.float64)
         if self._last_T_W_S is not None:
             self._travelled_m += float(np.linalg.norm(T_W_S[:3, 3] - self._last_T_W_S[:3, 3]))
@@ -282,7 +266,7 @@ class Keyframer:
         closing = None
         if self._current is not None:
             T_A_S = np.linalg.inv(self._current.T_W_A_odometry) @ T_W_S
-            if self._should_close(T_A_S):
+            if self._should_close(T_A_S, surface_full):
                 closing = self._current
                 self._current = None
         opened = self._current is None
@@ -297,29 +281,11 @@ class Keyframer:
 
     def decide_finish(self) -> KeyframeStep | None:
         """The decision that closes the open submap at the end of the sequence (None when there
-        is none); :meth:`absorb` it without a frame."""
+        is none); absorb it without a frame."""
         if self._current is None:
             return None
         closing, self._current = self._current, None
         return KeyframeStep(closing, None, None, False)
-
-    def absorb(self, step: KeyframeStep, frame: Frame | None) -> SubmapRecord | None:
-        """Apply a :meth:`decide` step to the points: close the submap it closes (returned, with
-        its points, normals and loop cloud), then add the frame's points to its submap. Steps
-        must be absorbed in the order they were decided."""
-        closed = None
-        if step.closing is not None:
-            closed = self._close(step.closing)
-        if step.opened:
-            self._reset_points()
-        if frame is not None and step.T_A_S is not None:
-            self._accumulate(frame, step.T_A_S)
-        return closed
-
-    def finish(self) -> SubmapRecord | None:
-        """Close the open submap (end of the sequence)."""
-        step = self.decide_finish()
-        return None if step is None else self.absorb(step, None)
 
     def _open(self, frame: Frame, T_W_S: np.ndarray) -> None:
         keep_images = frame.depth is not None and self.cfg.keep_keyframe_images
@@ -343,6 +309,42 @@ class Keyframer:
             keyframe=keyframe,
         )
         self._next_id += 1
+
+
+class SubmapPoints:
+    """The open submap's points in its anchor frame, and the closing of a submap (normals, loop
+    cloud): the half of keyframing that the pipeline's submap worker runs, in the order the
+    :class:`KeyframeDecisions` were taken."""
+
+    def __init__(self, cfg: SubmapConfig) -> None:
+        self.cfg = cfg
+        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._has_normals = True
+        self._accumulated = 0
+        self._surface_keys = np.zeros(0, dtype=np.int64)
+        self._view_surface = 0
+
+    @property
+    def surface_full(self) -> bool:
+        """The open submap covers more than ``max_surface_views`` times the largest surface one
+        of its frames saw (False without ``max_surface_views``)."""
+        views = self.cfg.max_surface_views
+        if views is None or self._view_surface == 0:
+            return False
+        return len(self._surface_keys) > views * self._view_surface
+
+    def absorb(self, step: KeyframeStep, frame: Frame | None) -> SubmapRecord | None:
+        """Apply a decision to the points: close the submap it closes (returned, with its
+        points, normals and loop cloud), then add the frame's points to its submap. Steps must be
+        absorbed in the order they were decided."""
+        closed = None
+        if step.closing is not None:
+            closed = self._close(step.closing)
+        if step.opened:
+            self._reset_points()
+        if frame is not None and step.T_A_S is not None:
+            self._accumulate(frame, step.T_A_S)
+        return closed
 
     def _reset_points(self) -> None:
         """Empty the point buffers for a new submap."""
@@ -434,3 +436,54 @@ class Keyframer:
             sub.normals_A = normals_A
         self._chunks = []
         return sub
+
+
+class Keyframer:
+    """Groups frames into submaps and accumulates their points in the anchor frame, in one
+    thread: :class:`KeyframeDecisions` and :class:`SubmapPoints` together."""
+
+    def __init__(self, cfg: SubmapConfig) -> None:
+        self.cfg = cfg
+        self.decisions = KeyframeDecisions(cfg)
+        self.points = SubmapPoints(cfg)
+
+    @property
+    def current(self) -> SubmapRecord | None:
+        """The open submap (None before the first frame and after :meth:`finish`)."""
+        return self.decisions.current
+
+    @property
+    def decides_from_poses(self) -> bool:
+        """See :attr:`KeyframeDecisions.decides_from_poses`."""
+        return self.decisions.decides_from_poses
+
+    def add(
+        self, frame: Frame, T_W_S: np.ndarray
+    ) -> tuple[SubmapRecord | None, SubmapRecord, np.ndarray]:
+        """Add a frame with its odometry pose (:meth:`decide`, then :meth:`absorb`).
+
+        Returns ``(closed, current, T_A_S)``: the submap this frame closed (or None), the submap
+        the frame now belongs to (a new one when it opened one), and the frame's pose relative
+        to that submap's anchor.
+        """
+        step = self.decide(frame, T_W_S)
+        closed = self.absorb(step, frame)
+        assert step.current is not None and step.T_A_S is not None
+        return closed, step.current, step.T_A_S
+
+    def decide(self, frame: Frame, T_W_S: np.ndarray) -> KeyframeStep:
+        """The keyframing decision for a frame (:meth:`KeyframeDecisions.decide`)."""
+        return self.decisions.decide(frame, T_W_S, self.points.surface_full)
+
+    def decide_finish(self) -> KeyframeStep | None:
+        """See :meth:`KeyframeDecisions.decide_finish`."""
+        return self.decisions.decide_finish()
+
+    def absorb(self, step: KeyframeStep, frame: Frame | None) -> SubmapRecord | None:
+        """See :meth:`SubmapPoints.absorb`."""
+        return self.points.absorb(step, frame)
+
+    def finish(self) -> SubmapRecord | None:
+        """Close the open submap (end of the sequence)."""
+        step = self.decide_finish()
+        return None if step is None else self.absorb(step, None)

@@ -34,7 +34,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from common.atomic_io import write_problem
-from frontends.errors import DatasetError
+from frontends.errors import DatasetError, OdometryProcessError
 from mapping.errors import MapFileError, WeightsFileError
 from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
 from slam.app.summary import summary_lines
@@ -327,6 +327,7 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
     UsageError,
     ConfigError,
     DatasetError,
+    OdometryProcessError,
     MapFileError,
     WeightsFileError,
     OSError,

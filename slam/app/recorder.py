@@ -8,6 +8,12 @@ grow by one position, and the optimised one is recomputed only when a loop moved
 only a recording needs (voxel centres, meshes, the error so far) is handed to the logger as a
 callable that the null logger never calls, and :func:`make_recorder` gives a recorder that does
 nothing at all for the null logger.
+
+The recorder never waits for the pipeline's workers during the run: at each closed submap it logs
+the map the map worker published after its latest finished job
+(:meth:`~slam.algorithm.pipeline.SlamPipeline.latest_map`, meshes extracted on that worker), and
+the trajectories and loops as the main thread knows them. After the run it logs the exact final
+map, trajectories and errors.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import numpy as np
 
 from common.geometry import transform_points
 from frontends.frame import Frame
+from slam.algorithm.executor import MapSnapshot, MapSnapshotRequest
 from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.viz import Logger, NullLogger
@@ -69,6 +76,11 @@ class RunRecorder(Recorder):
         self._T_W_Wgt: np.ndarray | None = None
         self._T_W_O = np.eye(4)  # the odometry's frame in the shown world (moves at relocalisation)
         self._num_frames = 0
+        self._map_job = 0  # the latest map job whose snapshot was logged
+        self._mesh_job = 0  # the latest map job whose mesh was logged
+        pipeline.request_map_snapshots(
+            MapSnapshotRequest(cfg.mesh_every_submaps, cfg.mesh_after_remap, cfg.mesh_time_share)
+        )
 
     def frame(self, frame: Frame, result: FrameResult) -> None:
         viz = self.viz
@@ -76,9 +88,9 @@ class RunRecorder(Recorder):
         if result.closed_submap_id is not None:
             if result.loop_added:
                 self._log_loops()
-            periodic = self.pipeline.num_closed_submaps % self.cfg.mesh_every_submaps == 0
-            added = result.loop_added
-            viz.log_map_from(lambda: self._map_snapshot(periodic, added))
+            snapshot = self.pipeline.latest_map()
+            if snapshot is not None and snapshot.job > self._map_job:
+                viz.log_map_from(lambda: self._published_map(snapshot))
             viz.log_metrics_from(self._errors_so_far)
         self._track(frame, result)
         if frame.index % self.cfg.scan_every == 0:
@@ -102,7 +114,7 @@ class RunRecorder(Recorder):
         self._log_loops()
         self._tracks["optimized"].replace(self.pipeline.slam_poses()[:, :3, 3])
         self._log_trajectories()
-        self.viz.log_map_from(lambda: self._map_snapshot(True, False))
+        self.viz.log_map_from(lambda: self.pipeline.map_snapshot(with_mesh=True))
         self.viz.log_metrics_from(self._errors_so_far)
 
     def _track(self, frame: Frame, result: FrameResult) -> None:
@@ -147,21 +159,29 @@ class RunRecorder(Recorder):
             (accepted if c.accepted and c.graph_inlier else rejected).append(segment)
         self.viz.log_loop_closures(accepted, rejected)
 
-    def _map_snapshot(self, periodic: bool, loop_added: bool):
-        """What the recording shows of the map now (waits for the map worker); a mesh every
-        ``mesh_every_submaps`` closed submaps, and after a loop's remap moved a submap when
-        ``mesh_after_remap``."""
-        self.pipeline.drain()
-        remapped = loop_added and self.pipeline.last_remap_moved and self.cfg.mesh_after_remap
-        return self.pipeline.map_snapshot(with_mesh=periodic or remapped)
+    def _published_map(self, snapshot: MapSnapshot):
+        """The map the map worker published: voxel centres, weights and its mesh when that is
+        newer than the last one logged (a mesh every ``mesh_every_submaps`` closed submaps and
+        after every remap that moved a submap, when ``mesh_after_remap``, within
+        ``mesh_time_share``)."""
+        self._map_job = snapshot.job
+        mesh = None
+        if snapshot.mesh is not None and snapshot.mesh_job > self._mesh_job:
+            mesh, self._mesh_job = snapshot.mesh, snapshot.mesh_job
+        return snapshot.voxel_centers, snapshot.voxel_weights, mesh
 
     def _errors_so_far(self) -> dict[str, float]:
-        """Map size and, with ground truth, the ATE of both trajectories so far (waits for the
-        map worker)."""
+        """Map size and, with ground truth, the ATE of both trajectories so far: as far as the
+        main thread knows them during the run (never waiting for the workers), exact after
+        it."""
         from slam.evaluation.metrics.trajectory import ate_rmse
 
-        self.pipeline.drain()
-        scalars = {"map_voxels": float(self.pipeline.map.num_voxels)}
+        scalars = {}
+        snapshot = self.pipeline.latest_map()
+        if self.pipeline.finished:
+            scalars["map_voxels"] = float(self.pipeline.map.num_voxels)
+        elif snapshot is not None:
+            scalars["map_voxels"] = float(len(snapshot.voxel_centers))
         gt = self.pipeline.gt_poses()
         if gt is None or len(gt) < 3:
             return scalars

@@ -219,11 +219,15 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         if bar is not None:
             bar.set_postfix_str("final optimisation and mesh")
         pipeline.finish()
+        # the rate ends with the final optimisation: the recording's exact final map is after it
+        pipeline_s = time.perf_counter() - loop_start
         recorder.finish()
+    except BaseException:  # Ctrl-C, SIGTERM, a failed job: stop the workers, skip their queue
+        pipeline.abort()
+        raise
     finally:
         if bar is not None:
             bar.close()
-    pipeline_s = time.perf_counter() - loop_start
     write_poses()
     outputs.write_loops(pipeline.loop_candidates)
     mesh = neural_map.extract_mesh(threads=threads.mesh_threads)

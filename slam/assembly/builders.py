@@ -27,7 +27,9 @@ def _kiss_icp(cfg: RunConfig) -> Odometry:
 
     options = {"config": cfg.odometry.kiss_icp, "start_scans": cfg.odometry.kiss_icp_start_scans}
     if cfg.odometry.child_process and cfg.map_worker and child_process_available():
-        return ChildProcessOdometry("kiss-icp", **options)
+        return ChildProcessOdometry(
+            "kiss-icp", reply_timeout_s=cfg.odometry.child_reply_timeout_s, **options
+        )
     return make_odometry("kiss-icp", **options)
 
 

@@ -60,6 +60,13 @@ class OdometryConfig(Strict):
         "because its bindings hold the GIL through each registration and so stall the worker "
         "threads (frontends/odometry/child_process.py); results are the same either way",
     )
+    child_reply_timeout_s: float = Field(
+        120.0,
+        gt=0,
+        description="kiss-icp in a child process: the longest one reply of the child may take "
+        "(a registration takes 30-100 ms, starting it a few seconds); a child that takes longer "
+        "is stopped and the run ends with one line, as when the child dies",
+    )
 
 
 class VizConfig(Strict):
@@ -96,6 +103,15 @@ class VizConfig(Strict):
     )
     mesh_after_remap: bool = Field(
         True, description="extract and log the mesh after every remapping pass"
+    )
+    mesh_time_share: float = Field(
+        0.05,
+        gt=0,
+        le=1,
+        description="the map worker extracts a mesh for the recording (mesh_every_submaps, "
+        "mesh_after_remap) only while the meshes so far took at most this share of the run's "
+        "time, so that meshing a growing map does not slow the run; the final mesh is always "
+        "logged",
     )
 
 
