@@ -147,8 +147,9 @@ def test_timings_are_booked_per_thread_and_merged_once_the_workers_stopped() -> 
 class _SlowMeshMap:
     """Stands in for the neural map: a mesh takes 10 ms, voxel centres nothing."""
 
-    def __init__(self) -> None:
+    def __init__(self, num_voxels: int = 3) -> None:
         self.meshes = 0
+        self.num_voxels = num_voxels
 
     def extract_mesh(self) -> str:
         time.sleep(0.01)
@@ -173,3 +174,16 @@ def test_meshes_for_the_viewer_stay_within_their_share_of_the_time() -> None:
     assert 1 <= neural_map.meshes < 40  # every job asked for one
     assert neural_map.meshes * 0.01 <= 0.2 * elapsed + 0.011  # the last one may overrun
     assert snapshot.mesh == f"mesh {neural_map.meshes}" and snapshot.mesh_job <= 40
+
+
+def test_a_first_mesh_the_share_cannot_pay_for_is_not_extracted() -> None:
+    """Before any mesh was timed, its cost is predicted from the map's size: a map whose first
+    mesh would take longer than the time share so far gets none (the map still is published)."""
+    executor = Executor(threaded=False)
+    executor.request_map_snapshots(MapSnapshotRequest(1, False, mesh_time_share=0.2))
+    large = _SlowMeshMap(num_voxels=4000)  # predicted 1 s: more than 0.2 of the 0.2 s below
+    for _ in range(40):
+        time.sleep(0.005)
+        executor.publish_map(large, None)
+    snapshot = executor.latest_map()
+    assert large.meshes == 0 and snapshot is not None and snapshot.mesh is None

@@ -84,7 +84,8 @@ def _pipeline(map_worker: bool = True) -> tuple[SlamPipeline, object]:
 def test_recorder_grows_trajectories_by_one_and_recomputes_them_after_a_loop(stretch):
     pipeline, cfg = _pipeline(map_worker=False)  # inline: every map job is done at its close
     viz = CapturingLogger()
-    recorder = make_recorder(pipeline, viz, cfg.viz.model_copy(update={"mesh_every_submaps": 2}))
+    every_second = {"mesh_every_submaps": 2, "mesh_time_share": 1.0}  # 1.0: no time limit
+    recorder = make_recorder(pipeline, viz, cfg.viz.model_copy(update=every_second))
     assert isinstance(recorder, RunRecorder)
     loop_frames = 0
     for n, frame in enumerate(stretch, start=1):

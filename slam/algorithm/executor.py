@@ -57,6 +57,12 @@ def clock() -> tuple[float, float]:
     return time.perf_counter(), time.thread_time()
 
 
+MESH_S_PER_VOXEL_PRIOR = 2.5e-4
+"""Seconds a mesh extraction takes per voxel of the map before one has been timed (a whole
+room's first mesh on 2 cores of an x86 VM); each extraction replaces it with its own figure, so
+that a viewer's mesh is extracted only when the run's time share can pay for it."""
+
+
 class StageTimings:
     """Wall seconds of every call of each stage and the CPU seconds of the thread that ran it,
     booked by one thread only."""
@@ -142,6 +148,7 @@ class Executor:
         self._map_jobs = 0  # the map worker's
         self._mesh: tuple[object | None, int] = (None, 0)  # the map worker's
         self._mesh_s = 0.0  # the map worker's: seconds spent extracting meshes
+        self._mesh_s_per_voxel = MESH_S_PER_VOXEL_PRIOR  # the map worker's estimate
         self._requested_at = 0.0
         self._latest_lock = threading.Lock()
         self._latest: MapSnapshot | None = None
@@ -255,9 +262,14 @@ class Executor:
         moved = remap is not None and remap.num_moved > 0
         periodic = self._map_jobs % request.mesh_every_submaps == 0
         budget_s = request.mesh_time_share * (start[0] - self._requested_at)
-        if (periodic or (moved and request.mesh_after_remap)) and self._mesh_s <= budget_s:
+        wanted = periodic or (moved and request.mesh_after_remap)
+        voxels = max(1, neural_map.num_voxels)
+        affordable = self._mesh_s + self._mesh_s_per_voxel * voxels <= budget_s
+        if wanted and (affordable or request.mesh_time_share >= 1.0):
             self._mesh = (neural_map.extract_mesh(), self._map_jobs)
-            self._mesh_s += time.perf_counter() - start[0]
+            took_s = time.perf_counter() - start[0]
+            self._mesh_s += took_s
+            self._mesh_s_per_voxel = took_s / voxels
         centers, weights = neural_map.voxel_centers()
         snapshot = MapSnapshot(
             job=self._map_jobs,

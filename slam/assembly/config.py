@@ -109,9 +109,10 @@ class VizConfig(Strict):
         gt=0,
         le=1,
         description="the map worker extracts a mesh for the recording (mesh_every_submaps, "
-        "mesh_after_remap) only while the meshes so far took at most this share of the run's "
-        "time, so that meshing a growing map does not slow the run; the final mesh is always "
-        "logged",
+        "mesh_after_remap) only when the meshes so far plus the next one (predicted from the "
+        "map's size and the last mesh's time) take at most this share of the run's time, so "
+        "that meshing a growing map does not slow the run; 1 extracts every mesh asked for; "
+        "the final mesh is always logged",
     )
 
 
