@@ -1,6 +1,6 @@
 """Reliability cases, run as a user would, before and after the fixes.
 
-    python benchmarks/bench_reliability.py [--quick] [--only general|maps] [--before REV]
+    python benchmarks/bench_reliability.py [--quick] [--only general|maps|commands] [--before REV]
         [--out FILE]
 
 Each case is a command on generated data in a temporary folder (bad input, environment errors,
@@ -9,8 +9,9 @@ happened (the ``error:`` line, else the first warning, else the last line of a t
 plus what a probe saw (bound addresses, file modes, temporaries left). ``--before REV`` runs
 every case also against a ``git worktree`` checkout of REV (e.g. df1b174) with ``PYTHONPATH``
 pointing at it. ``--quick`` leaves out the cases that run the pipeline more than once.
-Cases come in groups (``--only`` runs one): ``general`` here, ``maps`` (map files from elsewhere)
-in ``benchmarks/reliability_maps.py``; each cell also gives the command's peak RSS, and a table
+Cases come in groups (``--only`` runs one): ``general`` here, ``maps`` (map files from elsewhere) in
+``benchmarks/reliability_maps.py``, ``commands`` (arguments, config bounds, ``--rrd``, ``--serve``)
+in ``benchmarks/reliability_commands.py``; each cell also gives the command's peak RSS, and a table
 per group counts one-line errors, tracebacks and cases that left files behind.
 Writes ``benchmarks/results/reliability.md``. Self-contained: standard library, numpy and cv2.
 """
@@ -37,6 +38,7 @@ from benchmarks.harness.checkout import checkout
 from benchmarks.harness.net import free_port, listening_addresses
 from benchmarks.harness.paths import REPO
 from benchmarks.harness.reliability import PY, Case, Outcome, message_of, outcome, run
+from benchmarks.reliability_commands import COMMAND_CASES
 from benchmarks.reliability_maps import MAP_CASES
 
 DEMO = ["demo", "--no-progress", "--set", "output.mesh_samples=1000"]
@@ -350,7 +352,7 @@ CASES = [
     Case("14", "--frames -5:10", "slam.run demo --frames -5:10", case_negative_frames),
     Case("14", "atomic writes fsync", "write_text_atomic(x.txt)", case_fsync),
 ]  # fmt: skip
-CASES += MAP_CASES
+CASES += MAP_CASES + COMMAND_CASES
 
 
 def base_run(code: Path, work: Path) -> Path:
@@ -405,7 +407,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--quick", action="store_true", help="skip the multi-run cases")
     parser.add_argument("--before", metavar="REV", help="also run every case at this revision")
     parser.add_argument(
-        "--only", metavar="GROUP", help="run only this group of cases (general or maps)"
+        "--only", metavar="GROUP", help="run only this group of cases (general, maps or commands)"
     )
     parser.add_argument(
         "--out", type=Path, help="default: benchmarks/results/reliability[-GROUP].md"
