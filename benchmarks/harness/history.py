@@ -55,6 +55,12 @@ ARCHIVED: dict[str, str] = {
     "ICP refinements",
     "full-runs/variants-4541-all.md": "every data variant at full length in one table, with "
     "targets",
+    "before-after/rerun-rates.md": "the pipeline's rate with the default recording against "
+    "--no-viz, before (2eec4f2) and after the executor",
+    "before-after/reliability-maps.md": "crafted map files, self-merges, racing and stopped "
+    "merges, --map of another sensor: before (a9b0bc8) and after untrusted-map loading",
+    "before-after/reliability-commands.md": "slam.eval bounds, config bounds, --rrd, --serve "
+    "ports, RERUN=off: before (a9b0bc8) and after",
 }
 """Archived report files (relative to :data:`ARCHIVE_DIR`) and what each measured."""
 
