@@ -1,7 +1,8 @@
 """Reliability cases of the commands' arguments and environment (``bench_reliability.py --only
 commands``): ``slam.eval`` bounds and bad files, config values that size memory or work, ``--rrd``
 targets, ``--serve`` ports, ``RERUN=off``. Each cell says what the user saw and the command's peak
-RSS; a case that exhausted memory or time would show it there."""
+RSS; a case that exhausted memory or time would show it there. They run in the full benchmark
+(not ``--quick``), which keeps the quick report within its size limit."""
 
 from __future__ import annotations
 
@@ -105,33 +106,34 @@ def case_absurd_generated_config(code: Path, work: Path, base: Path) -> Outcome:
 
 COMMAND_CASES = [
     Case("C1", "slam.eval --cull-distance-m 0", "slam.eval RUN --cull-distance-m 0",
-         _eval_case("--cull-distance-m", "0"), group="commands"),
+         _eval_case("--cull-distance-m", "0"), quick=False, group="commands"),
     Case("C1", "slam.eval --cull-distance-m 0.0001", "slam.eval RUN --cull-distance-m 0.0001",
-         _eval_case("--cull-distance-m", "0.0001"), group="commands"),
+         _eval_case("--cull-distance-m", "0.0001"), quick=False, group="commands"),
     Case("C2", "slam.eval --samples -5", "slam.eval RUN --samples -5",
-         _eval_case("--samples", "-5"), group="commands"),
+         _eval_case("--samples", "-5"), quick=False, group="commands"),
     Case("C2", "slam.eval --samples 1e10", "slam.eval RUN --samples 1e10",
-         _eval_case("--samples", "1e10"), group="commands"),
+         _eval_case("--samples", "1e10"), quick=False, group="commands"),
     Case("C2", "slam.eval --gt-mesh of random bytes", "slam.eval RUN --gt-mesh garbage.ply",
-         case_garbage_gt_mesh, group="commands"),
+         case_garbage_gt_mesh, quick=False, group="commands"),
     Case("C2", "run config with generated.num_frames 10^9", "slam.eval RUN (edited config.yaml)",
-         case_absurd_generated_config, group="commands"),
+         case_absurd_generated_config, quick=False, group="commands"),
     Case("C3", "mapping.voxel_size_m=inf", "slam.run demo --set mapping.voxel_size_m=inf",
-         _set_case("mapping.voxel_size_m=inf"), group="commands"),
+         _set_case("mapping.voxel_size_m=inf"), quick=False, group="commands"),
     Case("C3", "mapping.voxel_size_m=1e-9", "slam.run demo --set mapping.voxel_size_m=1e-9",
-         _set_case("mapping.voxel_size_m=1e-9"), group="commands"),
+         _set_case("mapping.voxel_size_m=1e-9"), quick=False, group="commands"),
     Case("C3", "mapping.encoder_table_nodes=1000000",
          "slam.run demo --set mapping.encoder_table_nodes=1000000",
-         _set_case("mapping.encoder_table_nodes=1000000"), group="commands"),
+         _set_case("mapping.encoder_table_nodes=1000000"), quick=False, group="commands"),
     Case("C3", "threads=1000000", "slam.run demo --set threads=1000000",
-         _set_case("threads=1000000"), group="commands"),
+         _set_case("threads=1000000"), quick=False, group="commands"),
     Case("C5", "--serve with the data port taken", "slam.run demo --serve (gRPC port in use)",
-         case_grpc_port_taken, group="commands"),
+         case_grpc_port_taken, quick=False, group="commands"),
     Case("C5", "--serve bound to 8.8.8.8", "slam.run demo --serve --set viz.serve_bind_ip=8.8.8.8",
-         case_foreign_bind_ip, group="commands"),
+         case_foreign_bind_ip, quick=False, group="commands"),
     Case("C6", "--rrd onto an existing file", "slam.run demo --rrd EXISTING", case_rrd_exists,
-         group="commands"),
+         quick=False, group="commands"),
     Case("C6", "--rrd under /proc", "slam.run demo --rrd /proc/x/recording.rrd",
-         case_rrd_unwritable, group="commands"),
-    Case("C9", "RERUN=off", "RERUN=off slam.run demo", case_rerun_off, group="commands"),
+         case_rrd_unwritable, quick=False, group="commands"),
+    Case("C9", "RERUN=off", "RERUN=off slam.run demo", case_rerun_off, quick=False,
+         group="commands"),
 ]
