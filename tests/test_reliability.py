@@ -1,4 +1,4 @@
-"""Issue 24: every bad input, environment error and viewer setting that used to look valid or
+"""Every bad input, environment error and viewer setting that used to look valid or
 end in a traceback, reproduced on generated data in ``tmp_path`` (the fault-injection runs are
 in ``tests/test_faults.py``)."""
 
