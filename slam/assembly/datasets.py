@@ -3,7 +3,7 @@ and the keyword arguments that source takes from a run's config.
 
 Adding a dataset family means a source module in ``frontends/sources`` (listed in
 :data:`frontends.sources.SOURCES`), its options function in :data:`SOURCE_OPTIONS`, a
-:class:`DatasetEntry` and a YAML file in ``configs/``; ``tests/test_config.py`` checks that the
+:class:`DatasetEntry` and a YAML file in ``configs/``; ``tests/test_datasets.py`` checks that the
 four agree.
 """
 
