@@ -13,7 +13,12 @@ import trimesh
 
 from frontends.frame import Intrinsics
 from slam.algorithm.viz import Logger, NullLogger
-from slam.app.rerun_logger import RerunLogger, metric_entity, summarize_recording
+from slam.app.rerun_logger import (
+    TRAJECTORY_MIN_RELOG_FRAMES,
+    RerunLogger,
+    metric_entity,
+    summarize_recording,
+)
 
 NUM_FRAMES = 24
 LOOP_FRAMES = (11, 23)
@@ -83,7 +88,7 @@ def test_recording_has_expected_entities(tmp_path: Path, rgbd: bool) -> None:
     assert summary.rows("world/sensor") == NUM_FRAMES
     # Optimised trajectory after each loop closure, mesh versions, loop edges.
     assert summary.rows("world/trajectory/optimized") == len(LOOP_FRAMES)
-    assert summary.rows("world/trajectory/odometry") >= NUM_FRAMES // 2
+    assert summary.rows("world/trajectory/odometry") >= NUM_FRAMES // TRAJECTORY_MIN_RELOG_FRAMES
     assert summary.rows("world/map/mesh") == len(LOOP_FRAMES)
     assert summary.rows("world/map/voxels") == len(LOOP_FRAMES)
     assert summary.entities["world/map/voxels"].max_instances == 500
@@ -148,9 +153,9 @@ def test_long_trajectory_is_throttled_but_moves_and_final_state_are_logged(
         logger.log_trajectory("odometry", positions[: i + 1])
     logger.close()
     rows = summarize_recording(path).rows("world/trajectory/odometry")
-    # Every frame up to 10 poses, then every ceil(N/10) frames (~27 rows over 100 frames),
-    # plus the two moves and the pending last state.
-    assert 25 <= rows <= 40
+    # Every TRAJECTORY_MIN_RELOG_FRAMES frames up to 50 poses, then every ceil(N/10) frames
+    # (~18 rows over 100 frames), plus the two moves and the pending last state.
+    assert 15 <= rows <= 25
 
     logger = RerunLogger(rrd_path=tmp_path / "moves.rrd", trajectory_relog_points=1)
     for i in range(10):
@@ -224,3 +229,16 @@ def test_stored_map_of_a_continued_run_is_shown_once(tmp_path: Path) -> None:
     summary = summarize_recording(tmp_path / "shown.rrd")
     assert "world/stored_map/mesh" in summary.entities
     assert "world/stored_map/mesh" not in summarize_recording(tmp_path / "missing.rrd").entities
+
+
+def test_colormap_table_matches_matplotlib_within_one_level() -> None:
+    from matplotlib import colormaps
+
+    from slam.app.rerun_images import colormap
+
+    values = np.linspace(-0.2, 1.2, 1001)  # out of range values clip to the ends
+    for name in ("viridis", "turbo"):
+        exact = colormaps[name](np.clip(values, 0.0, 1.0), bytes=True)[:, :3].astype(int)
+        table = colormaps[name](np.linspace(0.0, 1.0, 256), bytes=True)[:, :3].astype(int)
+        step = np.abs(np.diff(table, axis=0))  # the colour change of one of the 256 levels
+        assert np.abs(colormap(name, values).astype(int) - exact).max() <= step.max()

@@ -23,8 +23,10 @@ written by one process.
 
 Size and time budget: scans and voxel maps are randomly subsampled (own RNG, the pipeline's random
 state is never touched), images are shrunk and compressed, and a growing trajectory of N poses is
-re-logged every ``ceil(N / trajectory_relog_points)`` frames (at once when an optimisation moved
-it), so that a long run does not log a quadratic amount of polyline data.
+re-logged every ``ceil(N / trajectory_relog_points)`` frames, and at least
+``TRAJECTORY_MIN_RELOG_FRAMES`` apart (at once when an optimisation moved it), so that a long run
+does not log a quadratic amount of polyline data. Scalars are buffered and sent as columns every
+``METRICS_FLUSH_FRAMES`` frames: one call per entity instead of one per value and frame.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from slam.algorithm.viz import Logger
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
 from slam.app.mesh_decimation import decimate_mesh
 from slam.app.recording_summary import summarize_recording
+from slam.app.rerun_images import colormap, encode_depth, encode_rgb
 from slam.app.web_viewer import WebViewerServer, check_serve_ports, viewer_executable
 
 log = logging.getLogger(__name__)
@@ -58,6 +61,10 @@ ACCEPTED_LOOP_COLOR = (40, 220, 80)
 REJECTED_LOOP_COLOR = (230, 40, 40)
 UP_AXES = {"+z": 2, "+y": 1, "-y": 1}
 EPOCH_THRESHOLD_S = 1e8
+TRAJECTORY_MIN_RELOG_FRAMES = 5
+"""A growing (not moved) trajectory is re-logged at most this often: each log has a fixed cost."""
+METRICS_FLUSH_FRAMES = 10
+"""Buffered scalars are sent at least this often (in frames), and on :meth:`RerunLogger.close`."""
 
 
 def metric_entity(name: str) -> str:
@@ -160,6 +167,9 @@ class RerunLogger(Logger):
         self._rng = np.random.default_rng(seed)
         self._frame = 0
         self._sensor_time_is_epoch: bool | None = None
+        self._sensor_time_s = 0.0
+        self._metrics_buffer: dict[str, list[tuple[int, float, float]]] = {}
+        self._metrics_flushed_frame = 0
         self._sensor_calls = 0
         self._height_range: tuple[float, float] | None = None
         self._intrinsics: Intrinsics | None = None
@@ -208,6 +218,7 @@ class RerunLogger(Logger):
     def set_time(self, frame_index: int, timestamp_s: float) -> None:
         self._frame = int(frame_index)
         self.rec.set_time("frame", sequence=self._frame)
+        self._sensor_time_s = float(timestamp_s)
         if self._sensor_time_is_epoch is None:
             self._sensor_time_is_epoch = float(timestamp_s) > EPOCH_THRESHOLD_S
         if self._sensor_time_is_epoch:
@@ -262,9 +273,11 @@ class RerunLogger(Logger):
             self._camera_view = True
             self.rec.send_blueprint(default_blueprint(with_camera=True))
         if rgb is not None:
-            self.rec.log(f"{CAMERA_ENTITY}/rgb", self._encode_rgb(rgb))
+            image = encode_rgb(rgb, self._image_scale, self.jpeg_quality)
+            self.rec.log(f"{CAMERA_ENTITY}/rgb", image)
         if depth_m is not None:
-            self.rec.log(f"{DEPTH_ENTITY}/depth", self._encode_depth(depth_m))
+            image = encode_depth(depth_m, self._depth_scale, self.depth_png)
+            self.rec.log(f"{DEPTH_ENTITY}/depth", image)
 
     def _log_pinhole(self, entity: str, intrinsics: Intrinsics, max_width: int) -> int:
         """Static pinhole of ``intrinsics`` shrunk to at most ``max_width``; returns the factor."""
@@ -295,7 +308,9 @@ class RerunLogger(Logger):
             self._log_trajectory_now(name, positions)
             return
         last_frame = self._trajectory_logged_frame[name]
-        every = max(1, math.ceil(len(positions) / self.trajectory_relog_points))
+        every = max(
+            TRAJECTORY_MIN_RELOG_FRAMES, math.ceil(len(positions) / self.trajectory_relog_points)
+        )
         if len(positions) != len(last) and self._frame - last_frame >= every:
             self._log_trajectory_now(name, positions)
         elif len(positions) != len(last):
@@ -352,7 +367,7 @@ class RerunLogger(Logger):
         values = np.asarray(voxel_values, dtype=np.float64).reshape(-1)[keep]
         scaled = np.log1p(np.maximum(values, 0.0))
         top = float(scaled.max()) if len(scaled) else 1.0
-        colors = _colormap("viridis", scaled / top if top > 0 else scaled)
+        colors = colormap("viridis", scaled / top if top > 0 else scaled)
         radius = (
             0.5 * self.voxel_size_m if self.voxel_size_m is not None else rr.Radius.ui_points(2.0)
         )
@@ -412,11 +427,31 @@ class RerunLogger(Logger):
         for name, value in scalars.items():
             if value is None or not math.isfinite(float(value)):
                 continue
-            entity = metric_entity(name)
             if name not in self._metric_names:
                 self._metric_names.add(name)
-                self.rec.log(entity, rr.SeriesLines(names=[name]), static=True)
-            self.rec.log(entity, rr.Scalars(float(value)))
+                self.rec.log(metric_entity(name), rr.SeriesLines(names=[name]), static=True)
+            row = (self._frame, self._sensor_time_s, float(value))
+            self._metrics_buffer.setdefault(name, []).append(row)
+        if self._frame - self._metrics_flushed_frame >= METRICS_FLUSH_FRAMES:
+            self._flush_metrics()
+
+    def _flush_metrics(self) -> None:
+        """Send the buffered scalars, one column chunk per entity, on both timelines."""
+        import rerun as rr
+
+        self._metrics_flushed_frame = self._frame
+        for name, rows in self._metrics_buffer.items():
+            frames, times_s, values = zip(*rows, strict=True)
+            clock = "timestamp" if self._sensor_time_is_epoch else "duration"
+            self.rec.send_columns(
+                metric_entity(name),
+                indexes=[
+                    rr.TimeColumn("frame", sequence=frames),
+                    rr.TimeColumn("sensor_time", **{clock: times_s}),
+                ],
+                columns=rr.Scalars.columns(scalars=values),
+            )
+        self._metrics_buffer.clear()
 
     def close(self) -> None:
         if self._closed:
@@ -424,6 +459,7 @@ class RerunLogger(Logger):
         self._closed = True
         for name, positions in list(self._trajectory_pending.items()):
             self._log_trajectory_now(name, positions)
+        self._flush_metrics()
         with contextlib.ExitStack() as stack:  # each step even when an earlier one failed
             if self._web_viewer is not None:
                 stack.callback(self._web_viewer.close)
@@ -455,46 +491,4 @@ class RerunLogger(Logger):
             low, high = min(low, self._height_range[0]), max(high, self._height_range[1])
         self._height_range = (float(low), float(high))
         span = max(high - low, 1e-6)
-        return _colormap("turbo", (height - low) / span)
-
-    @staticmethod
-    def _shrink(image: np.ndarray, scale: int, interpolation: int) -> np.ndarray:
-        """Shrink by ``scale`` (nearest for depth, so invalid zeros never blend)."""
-        import cv2
-
-        if scale == 1:
-            return image
-        size = (image.shape[1] // scale, image.shape[0] // scale)
-        return cv2.resize(image, size, interpolation=interpolation)
-
-    def _encode_rgb(self, rgb: np.ndarray) -> object:
-        import cv2
-        import rerun as rr
-
-        bgr = np.ascontiguousarray(np.asarray(rgb, dtype=np.uint8)[..., ::-1])
-        bgr = self._shrink(bgr, self._image_scale, cv2.INTER_AREA)
-        ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-        if not ok:
-            return rr.Image(bgr, color_model="BGR")
-        return rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg")
-
-    def _encode_depth(self, depth_m: np.ndarray) -> object:
-        import cv2
-        import rerun as rr
-
-        depth_m = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0, posinf=0.0)
-        depth_m = self._shrink(depth_m, self._depth_scale, cv2.INTER_NEAREST)
-        if self.depth_png:
-            depth_mm = np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16)
-            ok, png = cv2.imencode(".png", depth_mm)
-            if ok:
-                return rr.EncodedDepthImage(png.tobytes(), media_type="image/png", meter=1000.0)
-        return rr.DepthImage(depth_m, meter=1.0)
-
-
-def _colormap(name: str, values: np.ndarray) -> np.ndarray:
-    """(N,) values in [0, 1] -> (N, 3) uint8 colours of a matplotlib colormap."""
-    from matplotlib import colormaps
-
-    rgba = colormaps[name](np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0), bytes=True)
-    return np.asarray(rgba)[:, :3]
+        return colormap("turbo", (height - low) / span)
