@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import torch
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+if TYPE_CHECKING:
+    import torch
 
 
 class MapConfig(BaseModel):
@@ -170,6 +172,8 @@ class MapConfig(BaseModel):
 
 def resolve_device(device: str) -> torch.device:
     """Map ``auto``/``cpu``/``cuda`` to a torch device; asking for CUDA without one is an error."""
+    import torch  # here, not at the top: reading a config must not cost torch's import
+
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cuda" and not torch.cuda.is_available():

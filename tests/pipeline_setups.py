@@ -9,7 +9,7 @@ import numpy as np
 from frontends.frame import Frame
 from frontends.odometry.base import Odometry, OdometryResult
 from frontends.odometry.ground_truth import GroundTruthOdometry
-from slam.algorithm.loops import LoopCandidate, LoopDetector
+from slam.algorithm.loops.base import LoopCandidate, LoopDetector
 from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.submaps import SubmapRecord
 from slam.assembly.builders import build_map

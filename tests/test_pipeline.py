@@ -13,7 +13,7 @@ import torch
 
 from frontends.frame import Frame
 from frontends.sources import make_source
-from slam.algorithm.loops import make_loop_detector
+from slam.algorithm.loops.registry import make_loop_detector
 from slam.assembly.builders import build_map
 from slam.evaluation.metrics.mesh import mesh_metrics
 from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse

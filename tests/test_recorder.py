@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from frontends.sources import make_source
-from slam.algorithm.loops import make_loop_detector
+from slam.algorithm.loops.registry import make_loop_detector
 from slam.algorithm.pipeline import SlamPipeline
 from slam.algorithm.viz import Logger, NullLogger
 from slam.app.recorder import RunRecorder, make_recorder

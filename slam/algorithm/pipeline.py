@@ -47,7 +47,8 @@ from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.graph.gravity import measure_up
 from slam.algorithm.graph.pose_graph import PoseGraph
 from slam.algorithm.graph_view import GraphSnapshot
-from slam.algorithm.loops import LoopCandidate, LoopDetector, make_loop_detector
+from slam.algorithm.loops.base import LoopCandidate, LoopDetector
+from slam.algorithm.loops.registry import make_loop_detector
 from slam.algorithm.map_worker import job_result
 from slam.algorithm.remap import RemapEvent, Remapper
 from slam.algorithm.report import PipelineReport
