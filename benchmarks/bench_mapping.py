@@ -263,15 +263,14 @@ def fidelity(model, quick: bool, lines: list[str]) -> None:
         ),
         Variant(
             f"ours, stored {STORAGE_VARIANTS[0][0]}, Jacobian from <= {JACOBIAN_PAIRS} pairs "
-            "per voxel (the default since stop 17)",
+            "per voxel",
             "gaussian",
             True,
             storage=STORAGE_VARIANTS[0][1],
             jacobian_pairs=JACOBIAN_PAIRS,
         ),
         Variant(
-            f"ours, as above, latents from the encoder's {TABLE_NODES}-node table (the default "
-            "since stop 20)",
+            f"ours, as above, latents from the encoder's {TABLE_NODES}-node table (the default)",
             "gaussian",
             True,
             storage=STORAGE_VARIANTS[0][1],

@@ -136,7 +136,7 @@ def case_serve(code: Path, work: Path, base: Path) -> Outcome:
 def case_corrupt_map(code: Path, work: Path, base: Path) -> Outcome:
     bad = work / "bad.npz"
     flip_member(base / "map.npz", bad)
-    snippet = f"from mapping.neural_map import NeuralMap\nload_map({str(bad)!r})"
+    snippet = f"from mapping.map_io import load_map\nload_map({str(bad)!r})"
     return outcome(run(code, [PY, "-c", snippet]))
 
 
