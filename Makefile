@@ -25,10 +25,12 @@ BEFORE_LABEL := $(if $(BEFORE), BEFORE=$(BEFORE),)$(if $(BEFORE_IN), BEFORE_IN='
 
 .PHONY: setup demo test lint bench bench-quick kiss-slam-env clean
 
+# --no-compile: Python compiles what a run imports on first use; compiling every module of torch,
+# ray and sympy at install time is CPU a 2-core machine spends before the first test.
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q $(TORCH_INDEX_ARG) "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q --no-compile $(TORCH_INDEX_ARG) "$(TORCH_SPEC)"
+	$(PY) -m pip install -q --no-compile -e ".[dev]"
 	touch $@
 
 setup: $(VENV)/.installed
