@@ -48,7 +48,7 @@ def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth
     """Fraction of keyframe ``a``'s depth that agrees (3 cm) with keyframe ``b``'s, moved by the
     loop edge and by the ground truth: a check of the ground truth that needs no ground truth."""
     from slam.algorithm.loops.keyframes import depth_agreement
-    from slam.algorithm.loops.rgbd import RgbdVerifier
+    from slam.algorithm.loops.rgbd_verify import RgbdVerifier
 
     verifier = RgbdVerifier(pipeline.cfg.loop_closure.rgbd)
     fa, fb = verifier.features(source[a]), verifier.features(source[b])
@@ -67,7 +67,7 @@ def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[s
     poses, so that a trajectory error against the ground truth can be put into proportion.
     """
     from slam.algorithm.loops.keyframes import depth_agreement
-    from slam.algorithm.loops.rgbd import RgbdVerifier
+    from slam.algorithm.loops.rgbd_verify import RgbdVerifier
 
     verifier = RgbdVerifier(pipeline.cfg.loop_closure.rgbd)
     sets = {"gt": gt, "odometry": pipeline.odometry_poses(), "slam": pipeline.slam_poses()}

@@ -13,7 +13,7 @@ from frontends.sources import make_source
 from slam.algorithm.loops.base import Verification
 from slam.algorithm.loops.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
 from slam.algorithm.loops.lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
-from slam.algorithm.loops.rgbd import RgbdVerifier
+from slam.algorithm.loops.rgbd_verify import RgbdVerifier
 from slam.algorithm.submaps import SubmapRecord
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

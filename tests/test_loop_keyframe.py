@@ -16,7 +16,7 @@ from common.geometry import relative_motion, transform_points
 from frontends.sources import make_source
 from slam.algorithm.loops.config import RgbdLoopConfig
 from slam.algorithm.loops.keyframes import compact_depth
-from slam.algorithm.loops.rgbd import RgbdVerifier
+from slam.algorithm.loops.rgbd_verify import RgbdVerifier
 
 ROOM = {"kind": "rgbd", "num_frames": 240, "seed": 0, "width": 320, "height": 240}
 REFERENCE, QUERY = 2, 236
