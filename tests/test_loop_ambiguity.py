@@ -21,7 +21,7 @@ from slam.algorithm.graph.config import PoseGraphConfig
 from slam.algorithm.graph.pose_graph import PoseGraph
 from slam.algorithm.loops.ambiguity import mahalanobis_distance2
 from slam.algorithm.loops.config import LidarLoopConfig
-from slam.algorithm.loops.lidar import IcpVerifier
+from slam.algorithm.loops.lidar_verify import IcpVerifier
 
 LOOP_CONFIG = {"icp_max_correspondence_m": 1.5}  # configs/kitti.yaml
 

@@ -12,7 +12,8 @@ from common.geometry import relative_motion, transform_points
 from frontends.sources import make_source
 from slam.algorithm.loops.base import Verification
 from slam.algorithm.loops.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
-from slam.algorithm.loops.lidar import IcpVerifier, LidarLoopDetector, voxel_overlap
+from slam.algorithm.loops.lidar import LidarLoopDetector
+from slam.algorithm.loops.lidar_verify import IcpVerifier, voxel_overlap
 from slam.algorithm.loops.rgbd_verify import RgbdVerifier
 from slam.algorithm.submaps import SubmapRecord
 

@@ -81,7 +81,7 @@ class LidarLoopConfig(Strict):
         True,
         description="finish the registration with point-to-plane ICP on the reference cloud's "
         "PCA normals (gates 2, 1 and 0.5 x inlier_distance_m): KISS-ICP's point-to-point cost "
-        "can settle up to 1 deg off on sparse streets (slam/algorithm/loops/lidar.py)",
+        "can settle up to 1 deg off on sparse streets (slam/algorithm/loops/lidar_verify.py)",
     )
     icp_max_iterations: int = Field(
         200, ge=1, le=10_000, description="ICP iterations; at most 10,000"
