@@ -6,10 +6,11 @@ Each variant is a generated street along the real KITTI 00 trajectory (and its e
 standard street with seeds 0, 1 and 2, a sparse street (long blank walls far apart), a periodic
 street (one identical building every 16 m), 1,024 vs 2,048 firings, range noise 5 cm with
 2 % dropouts (the default is 2 cm), and the standard street read with KISS-ICP's KITTI
-vertical-angle correction (``source.kitti.correct_vertical_angle``, on in configs/kitti.yaml):
-what ``slam.run kitti`` does to a KITTI-layout simulation whose scans lack the HDL-64E's
-0.205 deg beam error. configs/kitti.yaml with KISS-ICP odometry; the odometry
-columns are KISS-ICP alone on the same scans. KISS-SLAM (0.0.2, default config, its own process,
+vertical-angle correction (``source.kitti.correct_vertical_angle=true``): what ``slam.run kitti``
+did to a KITTI-layout simulation whose scans lack the HDL-64E's 0.205 deg beam error before
+``auto`` (the default now) chose it from the road, and still does when it is set.
+configs/kitti.yaml with KISS-ICP odometry; the odometry columns are KISS-ICP alone on the same
+scans. KISS-SLAM (0.0.2, default config, its own process,
 benchmarks.harness.reference.kiss_slam) runs on the same scans in the same invocation, read as
 ours reads them (with the KITTI correction only in that variant); ``--no-kiss-slam`` skips it.
 ``--before-set KEY=VALUE`` runs every variant a second time with those overrides (e.g.
