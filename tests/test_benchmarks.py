@@ -235,12 +235,16 @@ def test_variant_results_combine_into_one_table_with_targets(tmp_path):
     files = []
     for name, z, worst in (("sparse", 0.2, 0.1), ("periodic", 0.7, 1.5)):
         path = tmp_path / f"{name}.json"
-        path.write_text(json.dumps(_variant_result(name, False, z, worst)))
+        result = _variant_result(name, False, z, worst)
+        if name == "sparse":  # results written before the unaligned column lack it
+            result["runs"][name]["slam_unaligned"] = [0.5, 0.05, 0.3]
+        path.write_text(json.dumps(result))
         files.append(path)
     out = tmp_path / "all.md"
     assert bench_variants.main(["--combine", *map(str, files), "--out", str(out)]) == 0
     report = out.read_text()
     assert report.count("| sparse | 10 |") == 1 and report.count("| periodic | 10 |") == 1
+    assert "| 0.50 / 0.05 / 0.30 |" in report and "/ 0.70 | - |" in report
     assert "- sparse: z ratio 0.20 (met); worst kept loop 0.10 m / 0.20 deg (met)" in report
     assert "- periodic: z ratio 0.70 (missed); worst kept loop 1.50 m / 0.20 deg (missed)" in report
     assert report.count("Combined from `") == 2

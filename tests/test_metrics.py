@@ -21,8 +21,10 @@ from slam.evaluation.metrics import (
     rpe,
     surface_distances,
     trajectory_metrics,
+    unaligned_error,
     visible_face_mask,
 )
+from slam.evaluation.metrics.trajectory import CAMERA_UP
 from slam.run_folder.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
 
 
@@ -224,6 +226,41 @@ def test_trajectory_metrics_bundle() -> None:
     assert result.kitti_t_err_percent < 1e-7
     assert result.num_poses == 60 and result.length_m > 50
     assert set(result.as_dict()) >= {"ate_rmse_m", "kitti_t_err_percent", "length_m"}
+    assert result.unaligned_rmse_m < 1e-9 and result.unaligned_tilt_mean_deg < 1e-6
+
+
+def _turned_after(gt: np.ndarray, first: int, rotvec) -> np.ndarray:
+    """``gt`` with every pose from ``first`` on turned by ``rotvec`` about the pose before it:
+    an attitude step that stays."""
+    pivot = gt[first - 1]
+    turn = pivot @ _se3(rotvec) @ np.linalg.inv(pivot)
+    est = gt.copy()
+    est[first:] = turn @ gt[first:]
+    return est
+
+
+def test_an_attitude_step_that_stays_shows_unaligned_only() -> None:
+    gt = _straight_line(100, 1.0)
+    yawed = _turned_after(gt, 10, (0.0, 0.0, math.radians(0.5)))
+    tilted = _turned_after(gt, 10, (0.0, math.radians(0.5), 0.0))
+    for est, yaw, tilt in ((yawed, 0.45, 0.0), (tilted, 0.0, 0.45)):
+        error = unaligned_error(est, gt)
+        assert error.yaw_mean_abs_deg == pytest.approx(yaw, abs=1e-6)
+        assert error.tilt_mean_deg == pytest.approx(tilt, abs=1e-6)
+        # 0.5 deg over up to 89 m: the positions drift off by up to 0.78 m...
+        assert 0.35 < error.position_rmse_m < 0.5
+        # ... which an alignment spreads over the whole line
+        assert ate_rmse(est, gt) < 0.6 * error.position_rmse_m
+
+
+def test_unaligned_errors_ignore_the_world_frame_and_take_the_up_axis() -> None:
+    gt = _random_trajectory(60, seed=5)
+    moved = _se3((0.3, -0.2, 1.0), (5.0, 1.0, -2.0)) @ gt
+    assert unaligned_error(moved, gt).position_rmse_m < 1e-9
+    # a camera (y down): a turn about its y axis is a yaw, about its x axis a tilt
+    turned = _turned_after(gt, 1, (0.0, math.radians(1.0), 0.0))
+    camera = unaligned_error(turned, gt, CAMERA_UP)
+    assert camera.tilt_mean_deg < 1e-6 and camera.yaw_mean_abs_deg > 0.9
 
 
 # --- trajectory files -----------------------------------------------------------------------

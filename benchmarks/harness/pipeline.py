@@ -80,9 +80,12 @@ def rejections(pipeline) -> dict[str, int]:
 
 
 def trajectory_summary(pipeline, gt: np.ndarray, wall_s: float) -> dict[str, Any]:
-    """Loops, ATE (whole and per world axis) of the odometry and of SLAM, wall time, frames/s
-    and the seconds per pipeline stage."""
-    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
+    """Loops, ATE (whole and per world axis) of the odometry and of SLAM, SLAM's unaligned
+    errors in the first pose's frame (``unaligned_slam``: position RMSE m, mean |yaw| and mean
+    tilt deg), wall time, frames/s and the seconds per pipeline stage."""
+    from dataclasses import astuple
+
+    from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse, unaligned_error
 
     errors = loop_errors(pipeline, gt)
     odometry, slam = pipeline.odometry_poses(), pipeline.slam_poses()
@@ -98,6 +101,7 @@ def trajectory_summary(pipeline, gt: np.ndarray, wall_s: float) -> dict[str, Any
         "ate_slam_m": ate_rmse(slam, gt),
         "ate_xyz_odometry_m": ate_per_axis_rmse(odometry, gt).tolist(),
         "ate_xyz_slam_m": ate_per_axis_rmse(slam, gt).tolist(),
+        "unaligned_slam": list(astuple(unaligned_error(slam, gt))),
         "wall_s": wall_s,
         "fps": pipeline.num_frames / wall_s,
         "stage_s": {k: float(sum(v)) for k, v in pipeline.timings_s.items()},

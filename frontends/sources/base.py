@@ -11,7 +11,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from frontends.errors import DatasetError
 from frontends.frame import Frame
 
 SensorKind = Literal["lidar", "rgbd"]
+
 
 class Source(ABC):
     """A recorded sequence.
@@ -50,6 +51,11 @@ class Source(ABC):
         """(N_raw, 4, 4) ground-truth T_W_S of every frame on disk (rows of NaN for frames
         without one), or None."""
         return None
+
+    def data_choices(self) -> dict[str, Any]:
+        """Settings the source chose from the data itself, with their evidence (a run writes
+        them into ``metrics.json``'s ``input``); none by default."""
+        return {}
 
     @property
     def indices(self) -> np.ndarray:

@@ -224,6 +224,9 @@ class GeneratedSource(Source):
     def _raw_gt_poses(self) -> np.ndarray | None:
         return self.inner._raw_gt_poses()
 
+    def data_choices(self) -> dict[str, Any]:
+        return self.inner.data_choices()
+
     @property
     def gt_mesh_path(self) -> Path | None:
         path = self.sequence_dir / "gt_mesh.ply"

@@ -15,13 +15,19 @@ Ground truth is returned in the LiDAR frame, ``T_lidar = inv(Tr) @ T_cam @ Tr``,
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
+from frontends.errors import DatasetError
 from frontends.frame import Frame
 from frontends.sources._io import fail, load_table, require_dir, require_file
 from frontends.sources.base import SensorKind, Source
+from frontends.sources.beam_correction import (
+    CorrectionSetting,
+    choose_correction,
+    examined_indices,
+)
 
 BYTES_PER_POINT = 16  # four float32
 
@@ -82,8 +88,10 @@ class KittiSource(Source):
         sequence: sequence id, e.g. ``"00"`` or ``"7"``.
         frames: optional slice of scans.
         correct_vertical_angle: apply KISS-ICP's KITTI intrinsic correction (a 0.205 deg
-            elevation fix for the HDL-64E calibration) as ``kiss_icp.datasets.kitti`` does. Turn it
-            off for data that did not come from the real KITTI sensor (e.g. simulated scans).
+            elevation fix for the HDL-64E calibration) as ``kiss_icp.datasets.kitti`` does:
+            ``"auto"`` decides from the road in the scans
+            (:func:`frontends.sources.beam_correction.choose_correction`), True or False is kept
+            (with a warning where the road disagrees). ``correction`` holds the choice.
         max_range_m: drop points farther than this (None keeps all).
     """
 
@@ -95,7 +103,7 @@ class KittiSource(Source):
         sequence: str,
         frames: slice | None = None,
         *,
-        correct_vertical_angle: bool = True,
+        correct_vertical_angle: CorrectionSetting = "auto",
         max_range_m: float | None = None,
     ) -> None:
         root = Path(root).expanduser()
@@ -103,7 +111,6 @@ class KittiSource(Source):
         super().__init__(f"kitti-{seq}", frames)
         self.root = root
         self.sequence = seq
-        self.correct_vertical_angle = correct_vertical_angle
         self.max_range_m = max_range_m
 
         require_dir(root, "the KITTI odometry root holding sequences/ and poses/")
@@ -136,12 +143,30 @@ class KittiSource(Source):
                     "use the poses file of this sequence and a complete velodyne/ folder",
                 )
             self._gt = camera_to_lidar_poses(T_cam, self.T_cam_lidar)
+        self.correction = choose_correction(
+            correct_vertical_angle, self._examined_scans(), str(velodyne)
+        )
+        self.correct_vertical_angle = self.correction.apply
 
     def _num_raw_frames(self) -> int:
         return len(self.scan_files)
 
+    def _examined_scans(self) -> list[np.ndarray]:
+        """The raw points of the scans the correction is chosen on; an unreadable one is left
+        out here and reported when its frame is read."""
+        scans = []
+        for i in examined_indices(len(self.indices)):
+            try:
+                scans.append(self._read(int(self.indices[i]))[:, :3])
+            except DatasetError:
+                continue
+        return scans
+
     def _raw_gt_poses(self) -> np.ndarray | None:
         return self._gt
+
+    def data_choices(self) -> dict[str, Any]:
+        return {"kitti_vertical_angle_correction": self.correction.record()}
 
     def reflectance(self, i: int) -> np.ndarray:
         """(N,) float32 reflectance of selected frame ``i``, in the order of its points."""

@@ -271,6 +271,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         "frames_processed": state.frames_total - len(skipped),
         "skipped_frames": skipped,
         "tracking_failures": odometry.num_failures,
+        **source.data_choices(),
     }
     if relocaliser is not None:
         metrics["relocalisation"] = _relocalisation_metrics(pipeline, relocaliser)

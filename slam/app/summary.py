@@ -39,6 +39,12 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             f"ATE odometry {length(trajectory['odometry']['ate_rmse_m'])} -> "
             f"SLAM {length(trajectory['slam']['ate_rmse_m'])}"
         )
+        slam = trajectory["slam"]
+        lines.append(
+            f"SLAM relative to its first pose, unaligned: "
+            f"{length(slam['unaligned_rmse_m'])}, yaw {slam['unaligned_yaw_mean_abs_deg']:.2f} "
+            f"deg, tilt {slam['unaligned_tilt_mean_deg']:.2f} deg (means)"
+        )
     lines += mesh_lines(metrics)
     for warning in metrics.get("warnings", []):
         lines.append(f"WARNING: {warning}")

@@ -18,8 +18,12 @@ SOURCE_NAMES = ", ".join(SOURCES)
 class KittiOptions(Strict):
     """Options of the KITTI source."""
 
-    correct_vertical_angle: bool = Field(
-        True, description="apply KISS-ICP's 0.205 deg vertical-angle correction of KITTI scans"
+    correct_vertical_angle: bool | Literal["auto"] = Field(
+        "auto",
+        description="apply KISS-ICP's 0.205 deg vertical-angle correction of KITTI's HDL-64E "
+        "scans: auto decides from the road in the scans (metrics.json, "
+        "input.kitti_vertical_angle_correction, says what and why; on where the road does not "
+        "tell); true or false is kept, with a warning where the road disagrees",
     )
     max_range_m: float | None = Field(
         None, description="drop points farther than this when loading (None: keep all)"

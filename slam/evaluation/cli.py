@@ -84,11 +84,13 @@ __all__ = ["EvalError", "evaluate_run", "observed_face_mask", "read_gt_poses"]
 logger = logging.getLogger("slam.eval")
 
 
-def trajectory_section(trajectories: RunTrajectories, gt_poses: np.ndarray) -> dict[str, Any]:
+def trajectory_section(
+    trajectories: RunTrajectories, gt_poses: np.ndarray, sensor: str | None
+) -> dict[str, Any]:
     """``metrics.json["trajectory"]``: the same numbers ``slam.evaluation.run_metrics`` writes."""
     from slam.evaluation.run_metrics import trajectory_section as section
 
-    result = section(trajectories.odometry, trajectories.slam, gt_poses)
+    result = section(trajectories.odometry, trajectories.slam, gt_poses, sensor)
     if result is None:
         raise EvalError("fewer than two frames have a ground-truth pose; nothing to score")
     return result
@@ -207,7 +209,7 @@ def evaluate_run(
         metrics.pop(stale, None)
     T_gt_W = np.eye(4)
     if gt.poses is not None and np.isfinite(gt.poses).all(axis=(1, 2)).sum() >= 2:
-        metrics["trajectory"] = trajectory_section(trajectories, gt.poses)
+        metrics["trajectory"] = trajectory_section(trajectories, gt.poses, gt.sensor)
         scored = np.isfinite(gt.poses).all(axis=(1, 2))
         T_gt_W = align_se3(trajectories.slam[scored], gt.poses[scored])
     else:
@@ -341,6 +343,12 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
                 f"{name:8s} ATE {length(t['ate_rmse_m'])}{axes}, "
                 f"RPE {length(t['rpe_trans_rmse_m'])}/frame, KITTI t_err {kitti_text}"
             )
+            if "unaligned_rmse_m" in t:  # metrics.json written before the unaligned errors
+                lines.append(
+                    f"{'':8s} unaligned (first pose = identity, as the files): "
+                    f"{length(t['unaligned_rmse_m'])}, yaw {t['unaligned_yaw_mean_abs_deg']:.2f} "
+                    f"deg, tilt {t['unaligned_tilt_mean_deg']:.2f} deg (means)"
+                )
     lines += mesh_lines(metrics)
     for plot in (metrics.get("evaluation") or {}).get("plots", []):
         lines.append(f"plot     {plot}")

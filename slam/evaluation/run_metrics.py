@@ -349,11 +349,19 @@ def gt_subset(estimates: np.ndarray, gt: np.ndarray | None) -> tuple[np.ndarray,
     return np.asarray(estimates)[mask], np.asarray(gt)[mask]
 
 
+def sensor_up(sensor: str | None) -> tuple[float, float, float]:
+    """The up axis of a sensor's frame, for the unaligned yaw and tilt errors."""
+    from slam.evaluation.metrics.trajectory import CAMERA_UP, LIDAR_UP
+
+    return CAMERA_UP if sensor == "rgbd" else LIDAR_UP
+
+
 def trajectory_section(
-    odometry: np.ndarray | None, slam: np.ndarray, gt: np.ndarray
+    odometry: np.ndarray | None, slam: np.ndarray, gt: np.ndarray, sensor: str | None = None
 ) -> dict[str, Any] | None:
     """``metrics.json["trajectory"]`` over the frames that have ground truth (NaN rows skipped;
-    no ``odometry`` entry without odometry poses, as in a merged run)."""
+    no ``odometry`` entry without odometry poses, as in a merged run); ``sensor`` ("lidar",
+    "rgbd") says which axis is up for the unaligned errors."""
     from slam.evaluation.metrics.trajectory import kitti_lengths_within, trajectory_metrics
 
     mask = np.isfinite(np.asarray(gt)).all(axis=(1, 2))
@@ -367,7 +375,9 @@ def trajectory_section(
     try:
         named = {"slam": slam} if odometry is None else {"odometry": odometry, "slam": slam}
         section = {
-            name: trajectory_metrics(np.asarray(poses)[mask], gt, kitti_lengths_m=lengths).as_dict()
+            name: trajectory_metrics(
+                np.asarray(poses)[mask], gt, kitti_lengths_m=lengths, up=sensor_up(sensor)
+            ).as_dict()
             for name, poses in named.items()
         }
     finally:
@@ -411,7 +421,8 @@ def collect_metrics(
     }
     gt = report.gt_poses
     slam = report.slam_poses
-    section = None if gt is None else trajectory_section(report.odometry_poses, slam, gt)
+    sensor = metrics.get("sensor")
+    section = None if gt is None else trajectory_section(report.odometry_poses, slam, gt, sensor)
     if section is not None:
         metrics["trajectory"] = section
     can_score = mesh is not None and gt_mesh_path is not None and section is not None

@@ -19,6 +19,7 @@ from slam.evaluation.metrics.trajectory import (
     trajectory_length_m,
     trajectory_metrics,
     umeyama_alignment,
+    unaligned_error,
 )
 
 __all__ = [
@@ -37,5 +38,6 @@ __all__ = [
     "trajectory_length_m",
     "trajectory_metrics",
     "umeyama_alignment",
+    "unaligned_error",
     "visible_face_mask",
 ]

@@ -10,6 +10,10 @@ frame ``i`` of the ground truth.
   float32 (relative precision ~1e-7).
 - :func:`align_se3` is the same alignment, returned: KISS-ICP computes it but does not expose it,
   and :func:`ate_per_axis_rmse` (the ATE split into x, y and z) and the plots need it.
+- :func:`unaligned_error` is what alignment hides: both trajectories re-expressed relative to
+  their first pose (the frame a run's output files claim: the first pose is the identity), the
+  position RMSE and the mean heading (yaw) and tilt errors, with no alignment. An attitude offset
+  that appears early and stays costs ATE little but puts every later pose off in that frame.
 - :func:`kitti_relative_error` follows the KITTI odometry devkit like
   ``kiss_icp.metrics.sequence_error``: segments of 100, 200, ..., 800 m of ground-truth path
   length starting every 10th frame; the error of each segment's relative motion is divided by
@@ -32,6 +36,10 @@ from common.geometry import rotation_angle_rad
 logger = logging.getLogger(__name__)
 
 KITTI_LENGTHS_M: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+LIDAR_UP = (0.0, 0.0, 1.0)
+"""The up axis of a LiDAR's frame (x forward, z up)."""
+CAMERA_UP = (0.0, -1.0, 0.0)
+"""The up axis of a camera's frame (x right, y down, z forward)."""
 
 
 def _check_pair(est: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -217,6 +225,47 @@ def kitti_relative_error(
 
 
 @dataclass(frozen=True)
+class UnalignedError:
+    """:func:`unaligned_error`'s numbers.
+
+    Attributes:
+        position_rmse_m: RMSE of the positions in the first pose's frame.
+        yaw_mean_abs_deg: mean absolute heading error (rotation about the up axis).
+        tilt_mean_deg: mean angle between the estimated and the true up axis.
+    """
+
+    position_rmse_m: float
+    yaw_mean_abs_deg: float
+    tilt_mean_deg: float
+
+
+def unaligned_error(
+    est: np.ndarray, gt: np.ndarray, up: Sequence[float] = LIDAR_UP
+) -> UnalignedError:
+    """Position, heading and tilt errors with both trajectories expressed relative to their
+    first pose and no alignment. ``up``: the up axis in the sensor's frame (:data:`LIDAR_UP`,
+    :data:`CAMERA_UP`). The orientation error is the world-frame ``R_est R_gt^T``: its tilt is
+    how far it turns the up axis, its yaw how far it turns a horizontal direction about it."""
+    est, gt = _check_pair(est, gt)
+    est = np.linalg.inv(est[0]) @ est
+    gt = np.linalg.inv(gt[0]) @ gt
+    position = est[:, :3, 3] - gt[:, :3, 3]
+    error = est[:, :3, :3] @ np.swapaxes(gt[:, :3, :3], 1, 2)
+    up_axis = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    turned_up = error @ up_axis
+    tilt = np.arctan2(np.linalg.norm(np.cross(up_axis, turned_up), axis=1), turned_up @ up_axis)
+    horizontal = np.cross(up_axis, [1.0, 0.0, 0.0] if abs(up_axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    horizontal /= np.linalg.norm(horizontal)
+    turned = error @ horizontal
+    yaw = np.arctan2(np.cross(horizontal, turned) @ up_axis, turned @ horizontal)
+    return UnalignedError(
+        position_rmse_m=float(np.sqrt(np.mean(np.sum(position**2, axis=1)))),
+        yaw_mean_abs_deg=float(np.degrees(np.mean(np.abs(yaw)))),
+        tilt_mean_deg=float(np.degrees(np.mean(tilt))),
+    )
+
+
+@dataclass(frozen=True)
 class TrajectoryMetrics:
     """The trajectory numbers a run reports (see the module docstring for definitions).
 
@@ -228,6 +277,8 @@ class TrajectoryMetrics:
         rpe_rot_rmse_deg: RPE rotation RMSE for consecutive frames.
         kitti_t_err_percent: KITTI relative translation error (nan when too short).
         kitti_r_err_deg_per_100m: KITTI relative rotation error (nan when too short).
+        unaligned_rmse_m, unaligned_yaw_mean_abs_deg, unaligned_tilt_mean_deg:
+            :func:`unaligned_error`, in the frame the run's output files claim.
         kitti_lengths_m: segment lengths used for the KITTI error.
         length_m: ground-truth path length.
         num_poses: number of poses compared.
@@ -242,6 +293,9 @@ class TrajectoryMetrics:
     rpe_rot_rmse_deg: float
     kitti_t_err_percent: float
     kitti_r_err_deg_per_100m: float
+    unaligned_rmse_m: float
+    unaligned_yaw_mean_abs_deg: float
+    unaligned_tilt_mean_deg: float
     kitti_lengths_m: tuple[float, ...]
     length_m: float
     num_poses: int
@@ -258,9 +312,12 @@ def trajectory_metrics(
     gt: np.ndarray,
     *,
     kitti_lengths_m: Sequence[float] = KITTI_LENGTHS_M,
+    up: Sequence[float] = LIDAR_UP,
 ) -> TrajectoryMetrics:
-    """All of :func:`ate_rmse`, :func:`rpe` (delta 1) and :func:`kitti_relative_error` at once."""
+    """All of :func:`ate_rmse`, :func:`rpe` (delta 1), :func:`kitti_relative_error` and
+    :func:`unaligned_error` (about ``up``) at once."""
     est, gt = _check_pair(est, gt)
+    unaligned = unaligned_error(est, gt, up)
     relative = rpe(est, gt, 1)
     t_err, r_err = kitti_relative_error(est, gt, lengths_m=kitti_lengths_m)
     per_axis = ate_per_axis_rmse(est, gt)
@@ -275,6 +332,9 @@ def trajectory_metrics(
         rpe_rot_rmse_deg=relative.rot_rmse_deg,
         kitti_t_err_percent=t_err,
         kitti_r_err_deg_per_100m=r_err,
+        unaligned_rmse_m=unaligned.position_rmse_m,
+        unaligned_yaw_mean_abs_deg=unaligned.yaw_mean_abs_deg,
+        unaligned_tilt_mean_deg=unaligned.tilt_mean_deg,
         kitti_lengths_m=tuple(float(x) for x in kitti_lengths_m),
         length_m=trajectory_length_m(gt),
         num_poses=len(gt),

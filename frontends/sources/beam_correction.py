@@ -1,0 +1,183 @@
+"""Whether KITTI-layout scans need KISS-ICP's vertical-angle correction, judged from the scans.
+
+KITTI's own HDL-64E reports its beams 0.205 deg lower than they fire, so level ground seen from
+the sensor bends down into a cone: its height falls by ``tan(0.205 deg)`` per metre of horizontal
+range. KISS-ICP's correction (``kiss_icp_pybind._correct_kitti_scan``) raises every point by
+0.205 deg, which flattens that cone; on KITTI-layout scans without the error (another LiDAR, a
+simulation) it bends level ground up into a cone instead, and KISS-ICP's pitch drifts.
+
+The evidence is the road ahead of and behind the sensor (the lane it drives in, away from kerbs
+and sidewalks), fitted by ``z = a + b x + c y + k |x|``: the cone angle ``atan(k)`` is about
+-0.205 deg where the correction is needed and about 0 where it is not. The road's own shape (a
+sag, a crest, a turn) bends one place's fit by more, so the decision takes the median over scans
+spread over the whole selection, and decides nothing where that median is near neither value or
+not a standard error nearer one of them.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+VERTICAL_ANGLE_OFFSET_DEG = 0.205
+"""KISS-ICP's correction of the KITTI HDL-64E's beam elevations."""
+CorrectionSetting = bool | Literal["auto"]
+
+SCANS_EXAMINED = 40
+"""Scans whose road is fitted, spread evenly over the selected frames (the first among them):
+one scan's cone angle spreads over an interquartile range of about 0.5 deg on the generated
+KITTI 00 street, so it takes tens of them to tell 0 from -0.205."""
+MIN_SCANS_TO_TURN_OFF = 30
+"""Fewer scans with road than this never turn the correction off. Over windows of the generated
+street's 550-scan quick window, scans lowered by 0.205 deg were judged 'not needed' in 3 of 103
+windows of 40 scans, 1 of 71 of 60 and none of 150 or more; ideal scans were judged 'needed' in
+1 of 103 of 40 and none beyond (the rest: not told, so corrected)."""
+_LANE_HALF_WIDTH_M = 2.5
+_LANE_RANGE_M = (4.0, 12.0)
+"""The road fitted: within this half-width of the sensor's x axis, at these distances ahead and
+behind (past the car, short of where a sag or crest bends the road more than the cone does)."""
+_GATES_M = (0.4, 0.2, 0.1, 0.05)
+"""Residual gates of the successive road fits (the last one keeps the road, not the cars)."""
+_MIN_ROAD_POINTS = 300
+"""Fewer road points than this in a scan: the scan gives no evidence."""
+
+
+def correct_vertical_angle(
+    points: np.ndarray, offset_deg: float = VERTICAL_ANGLE_OFFSET_DEG
+) -> np.ndarray:
+    """KISS-ICP's KITTI correction in numpy: every point raised by ``offset_deg`` of elevation
+    (rotated about ``p x z``; a negative offset lowers it); points on the z axis stay."""
+    points = np.asarray(points, dtype=np.float64)
+    axes = np.cross(points, np.array([0.0, 0.0, 1.0]))
+    norms = np.linalg.norm(axes, axis=1, keepdims=True)
+    axes = np.divide(axes, norms, out=np.zeros_like(axes), where=norms > 0)
+    angle = np.deg2rad(offset_deg)
+    # Rodrigues, with the axis orthogonal to the point: p cos + (k x p) sin
+    return points * np.cos(angle) + np.cross(axes, points) * np.sin(angle)
+
+
+def road_cone_angle_deg(points: np.ndarray) -> float | None:
+    """The cone angle of the road ahead of and behind the sensor in one scan (sensor frame, x
+    forward, z up): ``atan(k)`` of ``z = a + b x + c y + k |x|`` fitted to it, in degrees, or
+    None where the scan shows too little road. The road starts as the densest height band
+    below the sensor and is refined by fits with shrinking residual gates."""
+    x, y, z = np.asarray(points, dtype=np.float64).T
+    lane = (np.abs(y) < _LANE_HALF_WIDTH_M) & (z < 0.0)
+    lane &= (np.abs(x) > _LANE_RANGE_M[0]) & (np.abs(x) < _LANE_RANGE_M[1])
+    x, y, z = x[lane], y[lane], z[lane]
+    if len(z) < _MIN_ROAD_POINTS:
+        return None
+    counts, edges = np.histogram(z, bins=np.arange(z.min(), 0.1, 0.1))
+    densest = int(np.argmax(counts))
+    design = np.column_stack([np.ones_like(x), x, y, np.abs(x)])
+    coefficients = np.array([0.5 * (edges[densest] + edges[densest + 1]), 0.0, 0.0, 0.0])
+    for gate in _GATES_M:
+        road = np.abs(design @ coefficients - z) < gate
+        if int(road.sum()) < _MIN_ROAD_POINTS:
+            return None
+        coefficients = np.linalg.lstsq(design[road], z[road], rcond=None)[0]
+    return float(np.degrees(np.arctan(coefficients[3])))
+
+
+def examined_indices(num_frames: int) -> np.ndarray:
+    """Positions (into the selected frames) of the scans :func:`choose_correction` is given."""
+    return np.unique(np.linspace(0, num_frames - 1, min(SCANS_EXAMINED, num_frames)).astype(int))
+
+
+@dataclass(frozen=True)
+class CorrectionChoice:
+    """What a KITTI source does about the vertical-angle correction, and why.
+
+    Attributes:
+        setting: the configured value (``"auto"``, True or False).
+        apply: whether the scans are corrected.
+        needed: what the road says (None: it does not tell, see :func:`choose_correction`).
+        cone_angle_deg: median over the examined scans of the road's cone angle without the
+            correction: about -0.205 for KITTI's HDL-64E, about 0 without the error.
+        cone_angle_error_deg: the median's standard error (:func:`median_and_error`).
+        per_scan_deg: each examined scan's cone angle (None where it showed too little road).
+    """
+
+    setting: CorrectionSetting
+    apply: bool
+    needed: bool | None
+    cone_angle_deg: float | None
+    cone_angle_error_deg: float | None
+    per_scan_deg: list[float | None] = field(default_factory=list)
+
+    def record(self) -> dict[str, Any]:
+        """The choice and its evidence, for a run's ``metrics.json``."""
+        return {
+            "setting": self.setting,
+            "applied": self.apply,
+            "needed_by_the_road": self.needed,
+            "road_cone_angle_deg": self.cone_angle_deg,
+            "road_cone_angle_standard_error_deg": self.cone_angle_error_deg,
+            "road_cone_angle_if_needed_deg": -VERTICAL_ANGLE_OFFSET_DEG,
+            "per_scan_road_cone_angle_deg": self.per_scan_deg,
+        }
+
+
+def median_and_error(angles: Sequence[float]) -> tuple[float, float]:
+    """The median of per-scan cone angles and its standard error (from their interquartile
+    range: ``1.253 sigma / sqrt(n)``, ``sigma = IQR / 1.349``)."""
+    values = np.asarray(angles, dtype=np.float64)
+    q25, q50, q75 = np.percentile(values, [25, 50, 75])
+    return float(q50), float(1.253 * (q75 - q25) / 1.349 / np.sqrt(len(values)))
+
+
+def needed_by(cone_angle_deg: float | None, standard_error_deg: float, scans: int) -> bool | None:
+    """What the road's median cone angle says: needed where it lies within half the offset of
+    -0.205 deg and a standard error nearer it than 0; not needed, which departs from what
+    KISS-ICP does for KITTI, only on :data:`MIN_SCANS_TO_TURN_OFF` scans or more with the median
+    within half the offset of 0 and two standard errors nearer it; None elsewhere (the road is
+    no plane either way, or too few scans agree)."""
+    if cone_angle_deg is None:
+        return None
+    half = 0.5 * VERTICAL_ANGLE_OFFSET_DEG
+    if -3.0 * half < cone_angle_deg < -half - standard_error_deg:
+        return True
+    if scans >= MIN_SCANS_TO_TURN_OFF and -half + 2.0 * standard_error_deg < cone_angle_deg < half:
+        return False
+    return None
+
+
+def choose_correction(
+    setting: CorrectionSetting, scans: Sequence[np.ndarray], where: str
+) -> CorrectionChoice:
+    """Decide from raw scans (sensor frame; :func:`examined_indices` says which) whether to
+    correct them. ``"auto"`` follows the road, and where it does not tell, corrects (what
+    KISS-ICP does for KITTI); an explicit True or False is kept, with one warning when the road
+    says otherwise. ``where`` names the scans in the log."""
+    angles = [road_cone_angle_deg(scan) for scan in scans]
+    measured = [a for a in angles if a is not None]
+    median, error = median_and_error(measured) if measured else (None, None)
+    needed = needed_by(median, error or 0.0, len(measured))
+    apply = (needed is not False) if setting == "auto" else bool(setting)
+    evidence = (
+        "too little road in the scans to tell"
+        if median is None
+        else f"the road's median cone angle over {len(measured)} scans is {median:+.3f} "
+        f"+- {error:.3f} deg (-{VERTICAL_ANGLE_OFFSET_DEG} where the correction is needed, 0 "
+        "where not" + ("; neither, so it does not tell)" if needed is None else ")")
+    )
+    if setting == "auto":
+        log.info(
+            "%s: KITTI vertical-angle correction %s: %s", where, "on" if apply else "off", evidence
+        )
+    elif needed is not None and needed != apply:
+        log.warning(
+            "%s: source.kitti.correct_vertical_angle=%s looks wrong for these scans: %s; "
+            "set it to auto or %s",
+            where,
+            str(apply).lower(),
+            evidence,
+            str(needed).lower(),
+        )
+    return CorrectionChoice(setting, apply, needed, median, error, angles)

@@ -1,0 +1,116 @@
+"""KISS-ICP's KITTI vertical-angle correction, chosen from the road in the scans
+(frontends/sources/beam_correction.py): off for ideal generated scans, on for the same scans
+lowered by the HDL-64E's 0.205 deg, an explicit choice kept with one warning where the road
+disagrees, and real HDL-64E scans not refused the correction."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from frontends.sources import make_source
+from frontends.sources.beam_correction import (
+    VERTICAL_ANGLE_OFFSET_DEG,
+    choose_correction,
+    correct_vertical_angle,
+    examined_indices,
+)
+from frontends.sources.kitti import KittiSource, read_kitti_bin
+from frontends.sources.pcd_folder import read_pcd_points
+from slam.assembly.source_config import KittiOptions
+from tests.pipeline_setups import STREET
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+REAL_KITTI = DATA / "kitti" / "real_scans"
+KITTI_RAW = DATA / "kitti_raw_22"
+
+
+@pytest.fixture(scope="module")
+def street_root() -> Path:
+    """The KITTI-layout root of the generated street (ideal beam elevations)."""
+    return make_source("generated", **STREET).cache_dir
+
+
+def _examined_scans(root: Path) -> list[np.ndarray]:
+    source = KittiSource(root, "00", correct_vertical_angle=False)
+    return [source._read(int(i))[:, :3].astype(np.float64) for i in examined_indices(len(source))]
+
+
+def test_the_numpy_correction_is_kiss_icps():
+    from kiss_icp.pybind import kiss_icp_pybind
+
+    points = np.random.default_rng(0).normal(0.0, 20.0, (1000, 3))
+    theirs = kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(points))
+    np.testing.assert_allclose(correct_vertical_angle(points), np.asarray(theirs), atol=1e-9)
+    lowered = correct_vertical_angle(points, -VERTICAL_ANGLE_OFFSET_DEG)
+    np.testing.assert_allclose(correct_vertical_angle(lowered), points, atol=1e-9)
+
+
+def test_auto_leaves_ideal_generated_scans_uncorrected(street_root, caplog):
+    with caplog.at_level(logging.INFO, logger="frontends.sources.beam_correction"):
+        source = KittiSource(street_root, "00", correct_vertical_angle="auto")
+    choice = source.correction
+    assert (choice.apply, choice.needed) == (False, False)
+    assert abs(choice.cone_angle_deg) < 0.05
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    record = source.data_choices()["kitti_vertical_angle_correction"]
+    assert record["setting"] == "auto" and record["applied"] is False
+
+
+def test_an_explicit_correction_of_ideal_scans_is_kept_with_one_warning(street_root, caplog):
+    with caplog.at_level(logging.WARNING, logger="frontends.sources.beam_correction"):
+        source = KittiSource(street_root, "00", correct_vertical_angle=True)
+    assert source.correct_vertical_angle is True
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "\n" not in warnings[0]
+    assert "correct_vertical_angle=true looks wrong" in warnings[0]
+    assert "set it to auto or false" in warnings[0]
+
+
+def test_scans_with_the_hdl64e_error_get_the_correction(street_root, caplog):
+    lowered = [
+        correct_vertical_angle(scan, -VERTICAL_ANGLE_OFFSET_DEG)
+        for scan in _examined_scans(street_root)
+    ]
+    choice = choose_correction("auto", lowered, "lowered street")
+    assert (choice.apply, choice.needed) == (True, True)
+    assert abs(choice.cone_angle_deg + VERTICAL_ANGLE_OFFSET_DEG) < 0.05
+    with caplog.at_level(logging.WARNING, logger="frontends.sources.beam_correction"):
+        kept = choose_correction(False, lowered, "lowered street")
+    assert kept.apply is False
+    assert "set it to auto or true" in caplog.text
+
+
+@pytest.mark.skipif(not REAL_KITTI.is_dir(), reason=f"real KITTI scans not found at {REAL_KITTI}")
+def test_real_hdl64e_odometry_scans_are_not_refused_the_correction():
+    scans = [
+        read_kitti_bin(path)[:, :3].astype(np.float64) for path in sorted(REAL_KITTI.rglob("*.bin"))
+    ]
+    choice = choose_correction("auto", scans, str(REAL_KITTI))
+    assert choice.apply is True and choice.needed is not False
+
+
+@pytest.mark.skipif(not KITTI_RAW.is_dir(), reason=f"KITTI raw scans not found at {KITTI_RAW}")
+def test_real_hdl64e_raw_scans_need_the_correction():
+    scans = [read_pcd_points(path) for path in sorted(KITTI_RAW.glob("*.pcd"))]
+    choice = choose_correction("auto", scans, str(KITTI_RAW))
+    assert (choice.apply, choice.needed) == (True, True)
+
+
+def test_the_setting_takes_auto_true_or_false_only():
+    assert KittiOptions().correct_vertical_angle == "auto"
+    assert KittiOptions(correct_vertical_angle=False).correct_vertical_angle is False
+    with pytest.raises(ValidationError):
+        KittiOptions(correct_vertical_angle="maybe")
+
+
+def test_a_run_records_the_choice_in_its_metrics(lidar_run):
+    metrics = json.loads((lidar_run.folder / "metrics.json").read_text())
+    record = metrics["input"]["kitti_vertical_angle_correction"]
+    assert record["applied"] is False and record["needed_by_the_road"] is False
+    assert len(record["per_scan_road_cone_angle_deg"]) > 1
