@@ -61,6 +61,7 @@ BENCHMARKS = (
     "variants",
     "real",
     "merge",
+    "localise",
     "fleet",
     "rerun",
     "reliability",

@@ -148,7 +148,8 @@ def room_sessions(shared_dir: Path) -> dict[str, Path]:
     ``a``: the first half of a lap; ``continued``: the second half continuing ``a``'s map
     (``--map``) after the first half's images were deleted, its run alone in ``b``
     (``continued/session``); ``merged``: ``python -m slam.merge a b`` afterwards, with the
-    merge's stdout and stderr beside it (``merged.stdout``, ``merged.stderr``). Also ``coarse``
+    merge's stdout and stderr beside it (``merged.stdout``, ``merged.stderr``); ``localised``:
+    the second half localised in ``a``'s map (``--map a --localise``). Also ``coarse``
     (another voxel size) and ``other`` (a stretch ``a`` never saw). Every image is deleted
     before the merge: a merge must never need the scans."""
 
@@ -162,6 +163,7 @@ def room_sessions(shared_dir: Path) -> dict[str, Path]:
         _room_session(base / "other", data, "80:90")
         _drop_first_frames(data, half)  # the continuation cannot read the first run's scans
         continued = _room_session(base / "continued", data, None, "--map", str(a))
+        _room_session(base / "localised", data, None, "--map", str(a), "--localise")
         shutil.rmtree(data)
         merged = base / "merged"
         result = call_main(merge_main, [str(a), str(continued / "session"), "--out", str(merged)])
@@ -170,7 +172,7 @@ def room_sessions(shared_dir: Path) -> dict[str, Path]:
         (base / "merged.stderr").write_text(result.stderr)
 
     base = built_once(shared_dir, "room-sessions", build)
-    names = ("a", "coarse", "other", "continued", "merged")
+    names = ("a", "coarse", "other", "continued", "merged", "localised")
     return {name: base / name for name in names} | {"b": base / "continued" / "session"}
 
 

@@ -36,6 +36,7 @@ class GraphSnapshot:
         loop_added: the job added a loop edge or relocalised the session (the anchors moved).
         remap: the remapping pass the job ran when it moved a submap (inline map worker only).
         relocalised: the session's placement in a stored map, when this job found it.
+        map_anchored: the submaps anchored in a stored map by a prior the graph keeps.
     """
 
     anchors: dict[int, np.ndarray]
@@ -45,6 +46,7 @@ class GraphSnapshot:
     loop_added: bool
     remap: RemapEvent | None = None
     relocalised: Relocalisation | None = None
+    map_anchored: frozenset[int] = frozenset()
 
 
 @dataclass
@@ -56,6 +58,7 @@ class GraphView:
     loop_candidates: list[LoopCandidate] = field(default_factory=list)
     num_accepted: int = 0
     relocalisation: Relocalisation | None = None
+    map_anchored: frozenset[int] = frozenset()
     _last_known: int | None = None
     _accepted: dict[tuple[int, int], list[LoopCandidate]] = field(default_factory=dict)
     _new_loops: list[LoopCandidate] = field(default_factory=list)
@@ -71,6 +74,7 @@ class GraphView:
         """Take a submap job's snapshot (every one, in job order): O(what the job changed), not
         O(every candidate so far)."""
         self.anchors = snapshot.anchors
+        self.map_anchored = snapshot.map_anchored
         if snapshot.anchors:
             self._last_known = max(snapshot.anchors)
         self.loop_candidates.extend(snapshot.candidates)

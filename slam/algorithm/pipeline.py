@@ -21,7 +21,9 @@ not depend on timing, and the map through the snapshot the map worker publishes 
 
 With a :class:`~slam.algorithm.merge.relocalise.Relocaliser` (``slam.run --map``), each closed
 submap is also tried against a stored map until one verifies; the graph is then re-expressed in the
-map's frame, and every later result is in that frame.
+map's frame, every later result is in that frame, and each later closed submap is registered to
+the stored map and anchored in it (:mod:`slam.algorithm.localisation`). Without ``encode`` (a
+localisation-only run) no submap is encoded: the run keeps poses only.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from slam.algorithm.frame_result import FrameResult
 from slam.algorithm.graph.gravity import measure_up
 from slam.algorithm.graph.pose_graph import PoseGraph
 from slam.algorithm.graph_view import GraphSnapshot
+from slam.algorithm.localisation import MapLocalisation
 from slam.algorithm.loops.base import LoopCandidate, LoopDetector
 from slam.algorithm.loops.registry import make_loop_detector
 from slam.algorithm.map_worker import job_result
@@ -71,6 +74,7 @@ class SlamPipeline:
         neural_map,
         loop_detector: LoopDetector | None = None,
         relocaliser: Relocaliser | None = None,
+        encode: bool = True,
     ) -> None:
         keep_large_allocations_apart()
         self.cfg = cfg
@@ -87,8 +91,12 @@ class SlamPipeline:
             else make_loop_detector(cfg.loop_closure, sensor)
         )
         self.remapper = Remapper(cfg.remap, neural_map)
-        self.relocaliser = relocaliser if self.loop_detector is not None else None
-        self._relocalisation: Relocalisation | None = None  # the submap worker's
+        self.localisation = (  # the submap worker's
+            MapLocalisation(relocaliser)
+            if relocaliser is not None and self.loop_detector is not None
+            else None
+        )
+        self.encode = encode
         self.submaps: dict[int, object] = {}  # the map worker's (complete after finish())
         self.records: dict[int, SubmapRecord] = {}  # the submap worker's
         self.executor = Executor(threaded=cfg.map_worker)
@@ -225,40 +233,30 @@ class SlamPipeline:
                 added = True
                 self._num_accepted += 1
         timings.book("pose_graph", t)
-        relocalised = self._relocalise(record)
-        added |= relocalised is not None
+        relocalised = None
+        if self.localisation is not None:
+            assert self.loop_detector is not None
+            start = clock()
+            relocalised, moved = self.localisation.on_submap_closed(
+                record, self.graph, self.loop_detector.descriptors.get(record.submap_id)
+            )
+            added |= moved
+            timings.book("relocalisation", start)
 
         # the keyframe's images were for loop detection; the map only needs the points
         record.keyframe = None
         self.records[record.submap_id] = record
+        remap = None
+        if not self.encode:  # localisation only: the run keeps no map
+            record.points_A = record.normals_A = np.zeros((0, 3))
+            return self._snapshot(candidates, added, remap, relocalised)
         T_W_A = self.graph.pose(record.submap_id).copy()
         remap_poses = self.graph.poses() if added else None
         job = self.executor.submit_map_job(self._map_job, record, T_W_A, remap_poses, frame_index)
-        remap = None
         if not self.executor.threaded:  # the job ran already: its remap is this frame's news
             remap = job.result()
             remap = remap if remap is not None and remap.num_moved > 0 else None
         return self._snapshot(candidates, added, remap, relocalised)
-
-    def _relocalise(self, record: SubmapRecord) -> Relocalisation | None:
-        """Try to place the session in the stored map by a closed submap, until one verifies;
-        on success the graph moves into the map's frame (submap worker)."""
-        if self.relocaliser is None or self._relocalisation is not None:
-            return None
-        assert self.loop_detector is not None
-        start = clock()
-        found = self.relocaliser.locate(
-            record.submap_id,
-            (int(record.frame_indices[0]), int(record.frame_indices[-1])),
-            self.loop_detector.descriptors.get(record.submap_id),
-            record.points_A,
-            self.graph.pose(record.submap_id),
-        )
-        if found is not None:
-            self.graph.reframe(found.T_M_W)
-            self._relocalisation = found
-        self.executor.submap_timings.book("relocalisation", start)
-        return found
 
     def _snapshot(
         self,
@@ -274,9 +272,12 @@ class SlamPipeline:
             key = (edge.i, edge.j)
             if self._published_inliers.get(key) != edge.inlier:
                 changed[key] = self._published_inliers[key] = edge.inlier
-        return GraphSnapshot(
+        snapshot = GraphSnapshot(
             self.graph.poses(), candidates, changed, self._num_accepted, added, remap, relocalised
         )
+        if self.localisation is not None:
+            snapshot.map_anchored = self.localisation.anchored(self.graph)
+        return snapshot
 
     def _map_job(
         self,
@@ -438,6 +439,12 @@ class SlamPipeline:
         """Where the session was placed in the stored map, as far as the main thread knows
         (None without a relocaliser, or before a submap verified)."""
         return self.view.relocalisation
+
+    @property
+    def map_anchored(self) -> frozenset[int]:
+        """Submaps anchored in the stored map by a registration the graph keeps, as far as the
+        main thread knows (:mod:`slam.algorithm.localisation`)."""
+        return self.view.map_anchored
 
     def request_map_snapshots(self, request: MapSnapshotRequest) -> None:
         """Have the map worker publish the map after each job for a viewer (:meth:`latest_map`),

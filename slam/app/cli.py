@@ -103,6 +103,12 @@ def build_parser() -> argparse.ArgumentParser:
         "is a merged run (the run alone goes to OUT/session)",
     )
     parser.add_argument(
+        "--localise",
+        action="store_true",
+        help="with --map: only localise in the map (poses in its frame with a status per frame; "
+        "no map, mesh or merge is written)",
+    )
+    parser.add_argument(
         "--set",
         action="append",
         default=[],
@@ -409,11 +415,13 @@ def _main(argv: list[str], debug: bool) -> int:
         args = build_parser().parse_args(argv)
         entry, cfg = resolve_config(args)
         previous = continued = None
+        if args.localise and args.map is None:
+            raise UsageError("--localise needs --map RUN_DIR, the map to localise in")
         if args.map is not None:  # refuse a map the run cannot join before reading a frame
             from slam.app.continue_map import continued_map, load_map_folder
 
             previous = load_map_folder(args.map, cfg)
-            continued = continued_map(previous, args.map)
+            continued = continued_map(previous, args.map, cfg, args.localise)
         check_recording_target(cfg, args)
         folder, created = run_folder(cfg, args)
         _setup_logging(folder / "run.log", args.verbose)
@@ -428,13 +436,17 @@ def _main(argv: list[str], debug: bool) -> int:
         metrics = execute(
             entry,
             cfg,
-            folder if previous is None else folder / "session",
+            folder if previous is None or args.localise else folder / "session",
             progress=not args.no_progress,
             announce=lambda line: print(line, file=sys.stderr, flush=True),
             check_config=None if previous is None else _map_check(previous, args.map),
             continued=continued,
         )
-        if previous is not None:
+        if args.localise:
+            from slam.app.continue_map import check_placed
+
+            check_placed(metrics, args.map, folder)
+        if previous is not None and not args.localise:
             from slam.app.continue_map import merge_into
 
             merged = merge_into(

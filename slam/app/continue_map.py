@@ -19,10 +19,15 @@ the new one), ``loops.csv``, ``map.npz``, ``mesh.ply``, ``metrics.json`` and the
 no submap of the new run verifies against the map, the run ends with one line saying so and exit
 status 1; its own run folder ``OUT/session`` is kept (nothing is lost: ``python -m slam.merge``
 can join it later, e.g. with a run linking both).
+
+With ``--localise`` the run only localises in the map: its run folder is ``OUT`` itself, its poses
+are in the map's frame with a status per frame (``localisation.csv``), no live submap is encoded
+and no map, mesh or merge is written.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,18 +84,25 @@ class ContinuedMap:
     Attributes:
         relocaliser: places the run's submaps in the map (:mod:`slam.algorithm.merge.relocalise`).
         mesh_path: the map's mesh, shown beneath the run in its recording.
+        localise_only: ``--localise``: poses in the map's frame only, no map and no merge.
     """
 
     relocaliser: Relocaliser
     mesh_path: Path
+    localise_only: bool = False
 
 
-def continued_map(previous: tuple, folder: Path) -> ContinuedMap:
-    """The :class:`ContinuedMap` of the loaded map folder ``folder``."""
+def continued_map(previous: tuple, folder: Path, cfg, localise_only: bool) -> ContinuedMap:
+    """The :class:`ContinuedMap` of the loaded map folder ``folder`` for the run config
+    ``cfg``."""
     from slam.algorithm.merge.relocalise import Relocaliser
 
     stored, stored_map = previous
-    return ContinuedMap(Relocaliser(stored, stored_map), folder / "mesh.ply")
+    relocaliser = Relocaliser(stored, stored_map, localise=cfg.relocalise)
+    if localise_only:  # every frame's registration then finds the surfaces ready
+        seconds = relocaliser.decode_map()
+        logging.getLogger("slam.run").info("decoded the map's surfaces in %.1f s", seconds)
+    return ContinuedMap(relocaliser, folder / "mesh.ply", localise_only)
 
 
 def check_config(neural_map, cfg, folder: Path, before_first_scan: bool) -> None:
@@ -137,3 +149,15 @@ def merge_into(previous: tuple, map_folder: Path, session_folder: Path, out: Pat
             f"is kept in {session_folder}"
         ) from None
     return metrics
+
+
+def check_placed(metrics: dict[str, Any], map_folder: Path, folder: Path) -> None:
+    """A ``--localise`` run that no submap placed in the map ends with one line (its poses are
+    the odometry's, not in the map's frame)."""
+    placed = metrics.get("relocalisation", {})
+    if not placed.get("relocalised"):
+        raise DatasetError(
+            f"--map {map_folder}: this run was never placed in it ({placed.get('submaps_tried', 0)}"
+            f" submaps tried; does it pass through the mapped place?); its odometry-only poses "
+            f"are in {folder}"
+        )

@@ -10,8 +10,10 @@ The command line around it is :mod:`slam.app.cli`.
 from __future__ import annotations
 
 import logging
+import re
 import time
 import uuid
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -150,16 +152,24 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     if viewer_url:
         say(f"viewer: {viewer_url}")
     relocaliser = None
+    localise_only = continued is not None and continued.localise_only
     if continued is not None:
         relocaliser = continued.relocaliser
         viz.log_stored_map(continued.mesh_path)
     pipeline = SlamPipeline(
-        cfg.pipeline_config(), sensor, odometry, neural_map, relocaliser=relocaliser
+        cfg.pipeline_config(),
+        sensor,
+        odometry,
+        neural_map,
+        relocaliser=relocaliser,
+        encode=not localise_only,
     )
     recorder = make_recorder(pipeline, viz, cfg.viz)
     logger.info("%s: %d frames, sensor %s", source.name, len(source), sensor)
 
     kitti_rows: list[int] = []  # position in the sequence of each processed frame
+    frame_indices: list[int] = []  # the dataset's index of each processed frame
+    placed_at: list[int] = []  # the frame at which the run was placed in the stored map
 
     def write_poses() -> None:
         outputs.write_poses(
@@ -190,9 +200,11 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
                 )
                 continue
             kitti_rows.append(state.frames_done - 1)
+            frame_indices.append(frame.index)
             result = pipeline.process(frame)
             recorder.frame(frame, result)
             if result.relocalised is not None:
+                placed_at.append(frame.index)
                 line = _relocalised_line(frame.index, result.relocalised)
                 logger.info("%s", line)
                 if announce is not None:
@@ -202,6 +214,8 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
             if result.closed_submap_id is not None:
                 write_poses()
                 outputs.write_loops(pipeline.loop_candidates)
+                if relocaliser is not None:
+                    _localisation(outputs, pipeline, frame_indices, placed_at)
                 outputs.write_status("running", state.frames_done, state.frames_total)
             if bar is not None:
                 bar.update(1)
@@ -230,8 +244,8 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
             bar.close()
     write_poses()
     outputs.write_loops(pipeline.loop_candidates)
-    mesh = neural_map.extract_mesh(threads=threads.mesh_threads)
-    if cfg.output.write_mesh:
+    mesh = None if localise_only else neural_map.extract_mesh(threads=threads.mesh_threads)
+    if mesh is not None and cfg.output.write_mesh:
         outputs.write_mesh(mesh)
     gt = pipeline.gt_poses()
     if gt is not None and len(gt):
@@ -240,7 +254,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
             pipeline.timestamps(),
             KittiRows(np.asarray(kitti_rows), state.frames_done),
         )
-    if cfg.output.write_map:
+    if cfg.output.write_map and not localise_only:
         from slam.algorithm.merge.session import session_from_pipeline
 
         setup = {
@@ -273,9 +287,12 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         "tracking_failures": odometry.num_failures,
         **source.data_choices(),
     }
+    if localise_only:  # no submap was encoded: count the closed ones
+        metrics["num_submaps"] = len(np.unique(pipeline.frame_anchors()[0]))
     if relocaliser is not None:
         metrics["relocalisation"] = _relocalisation_metrics(pipeline, relocaliser)
-    metrics["warnings"] = input_warnings(metrics, cfg.source.min_points)
+        metrics["localisation"] = _localisation(outputs, pipeline, frame_indices, placed_at)
+    metrics["warnings"] = input_warnings(metrics, cfg.source.min_points, not localise_only)
     for warning in metrics["warnings"]:
         logger.warning("%s", warning)
     outputs.write_metrics(metrics)
@@ -313,6 +330,7 @@ def _relocalisation_metrics(pipeline, relocaliser) -> dict[str, Any]:
         "relocalised": found is not None,
         "submaps_tried": relocaliser.attempts,
         "seconds": relocaliser.seconds,
+        "map_decode_seconds": relocaliser.decode_seconds,
     }
     if found is not None:
         out.update(
@@ -325,9 +343,43 @@ def _relocalisation_metrics(pipeline, relocaliser) -> dict[str, Any]:
     return out
 
 
-def input_warnings(metrics: dict[str, Any], min_points: int) -> list[str]:
+def _localisation(outputs, pipeline, frame_indices: list[int], placed_at: list[int]) -> dict:
+    """Write ``localisation.csv`` (every processed frame's status as the main thread knows it)
+    and return ``metrics.json``'s ``localisation`` (complete after ``pipeline.finish()``)."""
+    from slam.run_folder.localisation import (
+        frame_statuses,
+        localisation_csv,
+        localisation_summary,
+    )
+
+    frame_submaps = pipeline.frame_anchors()[0].tolist()
+    statuses = frame_statuses(frame_submaps, pipeline.map_anchored)
+    outputs.write_localisation(
+        localisation_csv(frame_indices, pipeline.timestamps().tolist(), frame_submaps, statuses)
+    )
+    if not pipeline.finished:
+        return {}
+    found, localisation = pipeline.relocalisation, pipeline.localisation
+    summary = localisation_summary(
+        frame_indices,
+        frame_submaps,
+        statuses,
+        None if found is None else found.submap_id,
+        placed_at[0] if placed_at else None,
+    )
+    constraints = [] if localisation is None else localisation.constraints
+    summary["submaps_registered"] = sum(c.accepted for c in constraints)
+    summary["submaps_not_registered"] = dict(
+        Counter(re.split(r"[\d:(]", c.reason)[0].strip() for c in constraints if not c.accepted)
+    )
+    if localisation is not None:
+        summary["registration_seconds"] = localisation.registration_seconds
+    return summary
+
+
+def input_warnings(metrics: dict[str, Any], min_points: int, maps: bool = True) -> list[str]:
     """What makes a finished run's result doubtful: skipped frames, tracking failures, an
-    empty map (each also in ``metrics.json``)."""
+    empty map when the run ``maps`` (each also in ``metrics.json``)."""
     warnings = []
     info = metrics["input"]
     skipped = info["skipped_frames"]
@@ -341,7 +393,7 @@ def input_warnings(metrics: dict[str, Any], min_points: int) -> list[str]:
         warnings.append(
             f"odometry failed on {info['tracking_failures']} frames (pose extrapolated)"
         )
-    if not metrics.get("map", {}).get("voxels"):
+    if maps and not metrics.get("map", {}).get("voxels"):
         warnings.append("the map is empty: no depth or points were fused")
     return warnings
 

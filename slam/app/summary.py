@@ -24,6 +24,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         f"remapping: {remap['submaps_moved']} submap moves in {remap['events']} passes, "
         f"{remap['seconds_total']:.2f} s; map {metrics['map']['voxels']} voxels",
     ]
+    if "localisation" in metrics and not metrics["map"]["voxels"]:
+        lines[-1] = "localisation only: no map kept (no submap encoded)"
     placed = metrics.get("relocalisation")
     if placed is not None:
         lines.append(
@@ -32,6 +34,14 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             f"{placed['seconds']:.1f} s)"
             if placed["relocalised"]
             else f"not relocalised in the map ({placed['submaps_tried']} submaps tried)"
+        )
+    anchored = metrics.get("localisation")
+    if anchored is not None and placed is not None and placed["relocalised"]:
+        gaps = ", ".join(f"{a}-{b}" for a, b in anchored["coverage_gaps"][:5]) or "none"
+        lines.append(
+            f"map-anchored frames {100 * anchored['fraction_anchored']:.0f} % "
+            f"({anchored['frames_before_placement']} before the placement); odometry-only "
+            f"stretches after it: {gaps}"
         )
     trajectory = metrics.get("trajectory")
     if trajectory:

@@ -21,6 +21,7 @@ from mapping.config import MapConfig
 from slam.algorithm.config import PipelineConfig
 from slam.algorithm.graph.config import PoseGraphConfig
 from slam.algorithm.loops.config import LoopClosureConfig
+from slam.algorithm.merge.config import LocaliseConfig
 from slam.algorithm.remap import RemapConfig
 from slam.algorithm.submaps import SubmapConfig
 from slam.assembly.source_config import GeneratedConfig, SourceConfig
@@ -155,6 +156,9 @@ class RunConfig(Strict):
     )
     pose_graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig, description="pose graph")
     remap: RemapConfig = Field(default_factory=RemapConfig, description="remapping")
+    relocalise: LocaliseConfig = Field(
+        default_factory=LocaliseConfig, description="localisation in a stored map (--map)"
+    )
     mapping: MapConfig = Field(default_factory=MapConfig, description="the neural implicit map")
     viz: VizConfig = Field(default_factory=VizConfig, description="Rerun logging")
     output: OutputConfig = Field(default_factory=OutputConfig, description="run folder")

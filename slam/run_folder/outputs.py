@@ -229,6 +229,12 @@ class RunOutputs:
         write_kitti(self.path("poses_gt.kitti.txt"), kitti_rows_filled(poses, kitti_rows))
         write_tum(self.path("poses_gt.tum.txt"), poses, timestamps)
 
+    def write_localisation(self, text: str) -> None:
+        """``localisation.csv`` (:mod:`slam.run_folder.localisation`)."""
+        from slam.run_folder.localisation import LOCALISATION_FILE
+
+        write_text_atomic(self.path(LOCALISATION_FILE), text)
+
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         text = json.dumps(_json_safe(metrics), indent=2, sort_keys=False) + "\n"
         write_text_atomic(self.path("metrics.json"), text)

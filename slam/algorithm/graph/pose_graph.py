@@ -54,6 +54,8 @@ CAUCHY_INLIER_WEIGHT = 0.1
 """A Cauchy weight above this (whitened residual below 3 k) counts as an inlier."""
 GRAVITY_KEY = gtsam.symbol("g", 0)
 """Key of the gravity frame ``G`` (never a submap id: those are small integers)."""
+MAP_FRAME = -1
+"""``LoopEdge.i`` of a map prior: the anchor ``j`` is measured in a stored map's fixed frame."""
 _UNCONSTRAINED_INFORMATION = 1e-8
 """Information given to what a gravity factor does not measure (heading, position), so that its
 noise model stays positive definite."""
@@ -61,7 +63,8 @@ noise model stays positive definite."""
 
 @dataclass
 class LoopEdge:
-    """A loop edge: anchor ``j`` seen from anchor ``i`` (``T_Ai_Aj``).
+    """A loop edge: anchor ``j`` seen from anchor ``i`` (``T_Ai_Aj``), or, with ``i`` =
+    :data:`MAP_FRAME`, a map prior: anchor ``j`` in a stored map's fixed frame.
 
     Attributes:
         weight: GNC weight (or Cauchy weight without GNC) at the latest solve; 1 = trusted.
@@ -136,6 +139,7 @@ class PoseGraph:
         self._odometry_anchor: dict[int, np.ndarray] = {}
         self._estimate = gtsam.Values()
         self.loops: list[LoopEdge] = []
+        self.map_priors: list[LoopEdge] = []  # each anchor in a stored map's frame (--map)
         self.num_solves = 0
 
     def _new_isam(self) -> gtsam.ISAM2:
@@ -222,12 +226,18 @@ class PoseGraph:
             edge.sigma_scale * _sigmas(c.loop_rotation_sigma_rad, c.loop_translation_sigma_m)
         )
 
-    def _loop_factor(self, edge: LoopEdge, robust: bool) -> gtsam.BetweenFactorPose3:
+    def _loop_factor(self, edge: LoopEdge, robust: bool) -> gtsam.NonlinearFactor:
         noise = self._loop_gaussian_noise(edge)
         if robust and self.cfg.loop_kernel == "cauchy":
             kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.cauchy_k)
             noise = gtsam.noiseModel.Robust.Create(kernel, noise)
+        if edge.i == MAP_FRAME:
+            return gtsam.PriorFactorPose3(edge.j, _pose3(edge.T_Ai_Aj), noise)
         return gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_Ai_Aj), noise)
+
+    def _edges(self) -> list[LoopEdge]:
+        """Every edge GNC may reject: the loops, then the map priors."""
+        return [*self.loops, *self.map_priors]
 
     def add_loop(
         self,
@@ -243,17 +253,44 @@ class PoseGraph:
         None for the configured sigmas. Returns the edge; its ``inlier`` flag says whether the
         graph kept it.
         """
-        for node in (i, j):
-            if node not in self._odometry_anchor:
-                raise KeyError(f"anchor {node} is not in the pose graph")
-        if covariance is not None:
-            covariance = np.asarray(covariance, dtype=np.float64)
-            if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
-                raise ValueError(f"loop {i}-{j}: covariance must be a finite 6x6 matrix")
+        covariance = self._checked(f"loop {i}-{j}", (i, j), covariance)
         edge = LoopEdge(
             i, j, np.asarray(T_Ai_Aj, dtype=np.float64).copy(), sigma_scale, covariance=covariance
         )
         self.loops.append(edge)
+        self._add_edge(edge)
+        return edge
+
+    def add_map_prior(
+        self, j: int, T_M_Aj: np.ndarray, covariance: np.ndarray | None = None
+    ) -> LoopEdge:
+        """Add a registration of anchor ``j`` to a stored map (its pose ``T_M_Aj`` in the map's
+        frame, which must be the graph's world frame: :meth:`reframe` first) and re-solve.
+
+        The stored map is fixed, so this is a prior on the anchor, judged by GNC like a loop
+        (``covariance`` as for :meth:`add_loop`). Returns the edge (``i`` is
+        :data:`MAP_FRAME`); its ``inlier`` flag says whether the graph kept it."""
+        covariance = self._checked(f"map prior {j}", (j,), covariance)
+        edge = LoopEdge(MAP_FRAME, j, orthonormalize(np.asarray(T_M_Aj)), covariance=covariance)
+        self.map_priors.append(edge)
+        self._add_edge(edge)
+        return edge
+
+    def _checked(
+        self, name: str, nodes: tuple[int, ...], covariance: np.ndarray | None
+    ) -> np.ndarray | None:
+        """An edge's covariance as a float array, after checking it and its anchors."""
+        for node in nodes:
+            if node not in self._odometry_anchor:
+                raise KeyError(f"anchor {node} is not in the pose graph")
+        if covariance is None:
+            return None
+        covariance = np.asarray(covariance, dtype=np.float64)
+        if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+            raise ValueError(f"{name}: covariance must be a finite 6x6 matrix")
+        return covariance
+
+    def _add_edge(self, edge: LoopEdge) -> None:
         if self.cfg.online_gnc:
             self._solve_gnc()
         else:
@@ -264,7 +301,6 @@ class PoseGraph:
                 self._isam.update()
             self._estimate = self._isam.calculateEstimate()
             self._update_cauchy_weights()
-        return edge
 
     def up_in(self, node_id: int) -> np.ndarray:
         """(3,) the up direction in an anchor's frame at the current estimate: the gravity
@@ -297,13 +333,15 @@ class PoseGraph:
         self._isam.update(new_factors, new_values)
         self._estimate = self._isam.calculateEstimate()
 
-    def reframe(self, T_New_W: np.ndarray) -> None:
+    def reframe(self, T_New_W: np.ndarray, prior_sigmas: tuple[float, float] | None = None) -> None:
         """Express the whole graph in another world frame: every anchor becomes
         ``T_New_W @ T_W_A`` and the first anchor's prior moves with it.
 
         A rigid change of frame leaves every relative measurement, hence every odometry and
         loop factor and the GNC inlier decisions, as they are; only the prior and the estimate
         change. Used when a session is relocalised in a stored map (``slam.run --map``).
+        ``prior_sigmas`` (rad, m): loosen the first anchor's prior to these, when priors on the
+        anchors in the new frame (:meth:`add_map_prior`) are to place the graph instead.
         """
         if not self._node_ids:
             raise ValueError("reframe() before the first anchor")
@@ -311,7 +349,10 @@ class PoseGraph:
         first = self._node_ids[0]
         prior = self._chain[0]
         T_W_A0 = prior.prior().matrix()
-        self._chain[0] = gtsam.PriorFactorPose3(first, _pose3(T_New_W @ T_W_A0), prior.noiseModel())
+        noise = prior.noiseModel()
+        if prior_sigmas is not None:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(*prior_sigmas))
+        self._chain[0] = gtsam.PriorFactorPose3(first, _pose3(T_New_W @ T_W_A0), noise)
         moved = gtsam.Values()
         for node in self._node_ids:
             moved.insert(node, _pose3(T_New_W @ self.pose(node)))
@@ -335,14 +376,14 @@ class PoseGraph:
 
     def _gaussian_graph(self) -> gtsam.NonlinearFactorGraph:
         graph = self._known_inliers()
-        for edge in self.loops:
+        for edge in self._edges():
             graph.add(self._loop_factor(edge, robust=False))
         return graph
 
     def _solve_gnc(self) -> None:
-        """GNC over the whole graph, then re-seed iSAM2 with the inlier loops."""
+        """GNC over the whole graph, then re-seed iSAM2 with the inlier loops and map priors."""
         self.num_solves += 1
-        if not self.loops:
+        if not self._edges():
             return
         params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
         params.setLossType(gtsam.GncLossType.TLS)
@@ -352,7 +393,7 @@ class PoseGraph:
         optimizer.setInlierCostThresholdsAtProbability(self.cfg.gnc_inlier_probability)
         result = optimizer.optimize()
         weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
-        for edge, weight in zip(self.loops, weights[known:], strict=True):
+        for edge, weight in zip(self._edges(), weights[known:], strict=True):
             edge.weight = float(weight)
             edge.inlier = bool(weight > INLIER_WEIGHT)
         self._reseed(result)
@@ -361,7 +402,7 @@ class PoseGraph:
         """The known inliers and the GNC-inlier loops with Gaussian noise: the problem GNC
         solved."""
         graph = self._known_inliers()
-        for edge in self.loops:
+        for edge in self._edges():
             if edge.inlier:
                 graph.add(self._loop_factor(edge, robust=False))
         return graph
@@ -372,7 +413,7 @@ class PoseGraph:
         if self.cfg.online_gnc:
             return self._inlier_graph()
         graph = self._known_inliers()
-        for edge in self.loops:
+        for edge in self._edges():
             graph.add(self._loop_factor(edge, robust=True))
         return graph
 
@@ -384,7 +425,7 @@ class PoseGraph:
         self._estimate = values
 
     def _update_cauchy_weights(self) -> None:
-        for edge in self.loops:
+        for edge in self._edges():
             factor = self._loop_factor(edge, robust=False)
             whitened = float(np.linalg.norm(factor.whitenedError(self._estimate)))
             if self.cfg.loop_kernel == "cauchy":
@@ -401,7 +442,7 @@ class PoseGraph:
         (Gaussian; rejected loops stay out), otherwise every loop under the Cauchy kernel.
         ``none``: keep the current estimate.
         """
-        if not self._node_ids or not self.loops or self.cfg.final_optimizer == "none":
+        if not self._node_ids or not self._edges() or self.cfg.final_optimizer == "none":
             return self.poses()
         if self.cfg.final_optimizer == "gnc":
             self._solve_gnc()
@@ -426,6 +467,12 @@ class PoseGraph:
         marginals = gtsam.Marginals(self._inlier_graph(), self._estimate)
         joint = marginals.jointMarginalCovariance(gtsam.KeyVector([i, j])).fullMatrix()
         return relative_pose_covariance(joint, self.pose(i), self.pose(j))
+
+    def anchor_covariance(self, j: int) -> np.ndarray:
+        """6x6 marginal covariance (``[rot, trans]``) of anchor ``j`` in the world frame at the
+        current estimate, from the chain and the inlier edges."""
+        marginals = gtsam.Marginals(self._inlier_graph(), self._estimate)
+        return np.asarray(marginals.marginalCovariance(j), dtype=np.float64)
 
     def pose(self, node_id: int) -> np.ndarray:
         """Current estimate of ``T_W_A`` of one anchor."""

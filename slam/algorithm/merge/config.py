@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from common.config import Strict
+
 
 class MergeConfig(BaseModel):
     """Inter-session loop search, verification on decoded surfaces, and the joint graph."""
@@ -89,4 +91,95 @@ class MergeConfig(BaseModel):
     )
     remap_rotation_deg: float = Field(
         0.05, ge=0, description="a submap whose merged anchor turned less stays where it was"
+    )
+
+
+class LocaliseConfig(Strict):
+    """Continuous localisation in a stored map (``slam.run --map``,
+    :mod:`slam.algorithm.merge.map_constraints`): after the first placement, every closed live
+    submap is registered to the stored submaps near its estimate and constrains its anchor in
+    the map's frame. Registration and its gates are the merge's (:class:`MergeConfig`)."""
+
+    continuous: bool = Field(
+        True,
+        description="register every closed submap after the first placement to the stored map "
+        "and add each verified registration to the pose graph as a prior on that anchor in the "
+        "map's frame; false: only the first placement (and the run's own loops) hold the run",
+    )
+    placement_prior_sigma_m: float = Field(
+        10.0,
+        gt=0,
+        le=1e6,
+        description="with continuous: the first anchor's prior once the session is placed, "
+        "loose, so that the registrations to the map place the session together rather than "
+        "the first one alone (translation sigma, m; at most 1e6)",
+    )
+    placement_prior_sigma_rad: float = Field(
+        0.5, gt=0, le=3.2, description="... and its rotation sigma (rad; at most 3.2)"
+    )
+    max_map_submaps: int = Field(
+        3,
+        ge=1,
+        le=100,
+        description="stored submaps nearest the live submap (surface centres in the map's "
+        "frame) whose decoded surfaces form the reference of one registration; at most 100",
+    )
+    near_factor: float = Field(
+        1.0,
+        gt=0,
+        le=100,
+        description="a stored submap is near when its surface centre lies within this factor "
+        "times the sum of the two submaps' RMS radii of the live submap's estimated centre; at "
+        "most 100",
+    )
+    max_query_points: int = Field(
+        5000,
+        ge=100,
+        le=10_000_000,
+        description="live submap points registered per submap (a random subset beyond it; the "
+        "registration's cost grows with it); at most 10,000,000",
+    )
+    graph_consistency_probability: float = Field(
+        0.9999,
+        ge=0,
+        lt=1,
+        description="reject a registration outside this chi-square quantile (6 dof) of the "
+        "graph's marginal covariance of the anchor plus the registration's own, as for a LiDAR "
+        "loop; 0: off",
+    )
+    ambiguity_check: bool = Field(
+        True,
+        description="re-register from the best other peaks of the inlier score along the "
+        "reference's main axis and the weakest Hessian direction, and reject when one converges "
+        "elsewhere and scores about as well (slam/algorithm/loops/ambiguity.py)",
+    )
+    ambiguity_step_vu: float = Field(
+        1.0, gt=0, le=100, description="grid step of the score profile, voxel units; at most 100"
+    )
+    ambiguity_max_offset_vu: float = Field(
+        20.0,
+        gt=0,
+        le=1000,
+        description="the profile reaches this far (or the reference's RMS radius when smaller), "
+        "voxel units; at most 1000",
+    )
+    ambiguity_min_separation_vu: float = Field(
+        2.0,
+        gt=0,
+        le=1000,
+        description="an alternative lies at least this far from the chosen one, voxel units; at "
+        "most 1000",
+    )
+    ambiguity_min_separation_deg: float = Field(
+        2.0, gt=0, le=180, description="... or is rotated at least this much from it (deg)"
+    )
+    ambiguity_max_realignments: int = Field(
+        2, ge=1, le=100, description="profile peaks re-registered per registration; at most 100"
+    )
+    ambiguity_score_ratio: float = Field(
+        0.9,
+        gt=0,
+        le=1,
+        description="ambiguous when an alternative scores at least this fraction of the chosen "
+        "solution's inlier score (at most 1)",
     )

@@ -11,7 +11,9 @@ frame. The pipeline then re-expresses its pose graph in the map's frame
 encoded, so every later pose and submap is in the map's frame.
 
 A run that starts outside the stored map is tried again at each submap it closes: it joins the
-map when it enters it.
+map when it enters it. After that, with ``LocaliseConfig.continuous``, every closed submap is
+registered to the stored map near its estimate (:mod:`slam.algorithm.merge.map_constraints`) and
+becomes a prior on its anchor in the map's frame.
 """
 
 from __future__ import annotations
@@ -25,8 +27,15 @@ import numpy as np
 from common.geometry import orthonormalize
 from mapping.neural_map import NeuralMap
 from slam.algorithm.loops.place import PlaceDescriptor
-from slam.algorithm.merge.config import MergeConfig
-from slam.algorithm.merge.merge import SessionInput, SurfaceDecoder, rank_matches, verify
+from slam.algorithm.merge.config import LocaliseConfig, MergeConfig
+from slam.algorithm.merge.map_constraints import MapConstraints, subsample
+from slam.algorithm.merge.merge import (
+    SessionInput,
+    SurfaceDecoder,
+    icp_covariance,
+    rank_matches,
+    verify,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +52,8 @@ class Relocalisation:
         T_Am_A: the live submap's anchor seen from the stored submap's anchor.
         attempts: live submaps tried, this one included.
         scores: the verification's scores (inlier fraction, residual, correction, ...).
+        covariance: 6x6 covariance (``[rot, trans]``) of the registration, hence of the placed
+            anchor's pose in the map's frame.
     """
 
     submap_id: int
@@ -52,15 +63,21 @@ class Relocalisation:
     T_Am_A: np.ndarray
     attempts: int
     scores: dict[str, float] = field(default_factory=dict)
+    covariance: np.ndarray | None = None
 
 
 class Relocaliser:
     """Places the submaps of a live session in a stored map (see the module docstring)."""
 
     def __init__(
-        self, stored: SessionInput, stored_map: NeuralMap, cfg: MergeConfig | None = None
+        self,
+        stored: SessionInput,
+        stored_map: NeuralMap,
+        cfg: MergeConfig | None = None,
+        localise: LocaliseConfig | None = None,
     ) -> None:
         self.cfg = cfg or MergeConfig()
+        self.localise = localise or LocaliseConfig()
         self._voxel_size_m = stored_map.voxel_size_m
         self._decoder = SurfaceDecoder(
             stored_map, self.cfg.surface_max_points, self.cfg.surface_subdivisions
@@ -72,8 +89,24 @@ class Relocaliser:
             for i, descriptor in stored.session.descriptors.items()
             if i in self._submaps and i in self._T_M_A
         ]
+        self.constraints = MapConstraints(  # the registrations after the placement
+            self._submaps,
+            self._T_M_A,
+            self._decoder,
+            self._voxel_size_m,
+            self.cfg,
+            self.localise,
+        )
         self.attempts = 0
         self.seconds = 0.0
+        self.decode_seconds = 0.0  # decoding every stored surface ahead (decode_map)
+
+    def decode_map(self) -> float:
+        """Decode every stored submap's surface ahead (a localisation run); returns seconds."""
+        start = time.perf_counter()
+        self.constraints.decode_all()
+        self.decode_seconds = time.perf_counter() - start
+        return self.decode_seconds
 
     def locate(
         self,
@@ -103,16 +136,12 @@ class Relocaliser:
         T_W_A: np.ndarray,
     ) -> Relocalisation | None:
         cfg = self.cfg
-        if len(points_A) > cfg.surface_max_points:
-            pick = np.random.default_rng(0).choice(
-                len(points_A), cfg.surface_max_points, replace=False
-            )
-            points_A = points_A[np.sort(pick)]
+        points_A = subsample(points_A, cfg.surface_max_points)
         query = (np.asarray(points_A, dtype=np.float64), np.zeros((0, 3)))
         matches = rank_matches(descriptor, self._references, self._voxel_size_m, cfg)
         for _, map_id, guess in matches:
             reference = self._decoder(("map", map_id), self._submaps[map_id])
-            accepted, reason, T_Am_A, scores, _ = verify(
+            accepted, reason, T_Am_A, scores, result = verify(
                 reference, query, guess, self._voxel_size_m, cfg
             )
             logger.info(
@@ -121,6 +150,13 @@ class Relocaliser:
             if accepted:
                 T_M_W = orthonormalize(self._T_M_A[map_id] @ T_Am_A @ np.linalg.inv(T_W_A))
                 return Relocalisation(
-                    submap_id, frames, map_id, T_M_W, T_Am_A, self.attempts, scores
+                    submap_id,
+                    frames,
+                    map_id,
+                    T_M_W,
+                    T_Am_A,
+                    self.attempts,
+                    scores,
+                    icp_covariance(result, cfg),
                 )
         return None

@@ -1,0 +1,292 @@
+"""Localisation in a stored map: a sequence split in two, the second part localised in the map of
+the first (``slam.run --map A --localise``) and continuing it (``slam.run --map A``).
+
+    python -m benchmarks.bench_localise [--quick | --full] [--scenario street room] [--work DIR]
+
+Scenarios: ``street``, the generated 64-beam street along the real KITTI 00 trajectory (the
+generator of bench_variants: seed 0, standard street, configs/kitti.yaml; needs the KITTI 00 poses
+under ``../shared/data``): ``--quick`` takes every 3rd pose of 360-3870 at 1024 firings (generated
+once, 1171 scans) and maps poses 360-957 (200 scans), then localises poses 3420-3870 (151 scans),
+which drive the same road again; the full version (the default, ``--full``; not run here: hours
+on two cores) splits the whole window (4541 scans, 2048 firings) into halves. ``room``, the
+generated RGB-D room lap (120 frames): the first half is the map, the second half is localised
+(it starts where the map ends and revisits the map's start at its end).
+
+Per scenario: the map run (its own ATE); the second part with ``--map A --localise`` with the
+continuous map constraints and without them (``relocalise.continuous=false``: only the first
+placement holds it): its pose error against the truth carried into the map's frame by the
+alignment of the map's own truth onto the map's poses (mean and worst frame after the placement),
+the fraction of frames map-anchored, its frames/s and peak RSS; the odometry alone on the same
+frames (frames/s: the localisation must keep up with it); and ``--map A`` (continuing the map)
+with and without the continuous constraints: the merged run's combined ATE. Writes
+``benchmarks/results/localise.md`` and ``.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.harness.child import in_child_measured, run_command
+from benchmarks.harness.kitti import FULL, KITTI_CALIB, KITTI_POSES, have_kitti
+from benchmarks.harness.machine import section_header
+from benchmarks.harness.paths import REPO, RESULTS_DIR
+from common.atomic_io import write_text_atomic
+
+NO_VIZ = ["--no-viz", "--no-progress", "--set", "output.mesh_samples=0"]
+STREET = ["kitti", "00", "--set", "source.kitti.correct_vertical_angle=false"]
+ROOM = ["demo", "--set", "generated.num_frames=120"]
+
+
+@dataclass(frozen=True)
+class Split:
+    """A scenario: its ``slam.run`` arguments, the map's and the localised run's frames."""
+
+    run_args: list[str]
+    map_frames: str
+    localised_frames: str
+    note: str
+
+
+def _street_window(full: bool) -> dict[str, Any]:
+    """The generated KITTI 00 window (the generator's settings) of the street scenario."""
+    if full:
+        return {
+            "start": 0,
+            **{k: getattr(FULL, k) for k in ("step", "num_frames", "azimuth_steps")},
+        }
+    return {"start": 360, "step": 3, "num_frames": 1171, "azimuth_steps": 1024}
+
+
+def street_root(full: bool) -> Path:
+    """The KITTI-layout root of the street scenario's generated window (generated on first
+    use)."""
+    from frontends.sources import make_source
+
+    source = make_source(
+        "generated", kind="lidar", trajectory="kitti", kitti_poses=KITTI_POSES,
+        kitti_calib=KITTI_CALIB, **_street_window(full),
+    )  # fmt: skip
+    return Path(source.sequence_dir).parents[1]
+
+
+def split(name: str, full: bool) -> Split:
+    if name == "room":
+        return Split(ROOM, "0:60", "60:120", "generated RGB-D room lap, 120 frames: 0-59 / 60-119")
+    if not have_kitti():
+        raise FileNotFoundError("no KITTI 00 poses/calibration under ../shared/data/kitti")
+    root = ["--root", str(street_root(full))]
+    if full:
+        half = FULL.num_frames // 2
+        note = f"KITTI 00 poses 0-{half - 1} / {half}-{FULL.num_frames - 1}, 2048 firings"
+        return Split([*STREET, *root], f"0:{half}", f"{half}:{FULL.num_frames}", note)
+    note = "KITTI 00 every 3rd pose, 1024 firings: map poses 360-957, localised poses 3420-3870"
+    return Split([*STREET, *root], "0:200", "1020:1171", note)
+
+
+def _run(args: list[str], log: Path) -> tuple[float, float]:
+    """``python -m slam.run ARGS``: (wall s, peak RSS MB); raises on failure."""
+    done = run_command(
+        [sys.executable, "-m", "slam.run", *args],
+        cwd=REPO,
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        log_file=log,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"slam.run {' '.join(args)} failed; see {log}")
+    return done.usage.wall_s, done.usage.peak_rss_mb
+
+
+def error_in_map_frame(map_run: Path, run: Path, first_frame: int) -> dict[str, float]:
+    """Position error of ``run``'s poses (frames from ``first_frame`` on) against its truth
+    carried into the map's frame by the rigid alignment of the map's truth onto its poses."""
+    from slam.algorithm.loops.place import _rigid_fit
+    from slam.run_folder.trajectory_io import read_kitti
+
+    T = _rigid_fit(
+        read_kitti(map_run / "poses_gt.kitti.txt")[:, :3, 3],
+        read_kitti(map_run / "poses_slam.kitti.txt")[:, :3, 3],
+        False,
+    )
+    poses = read_kitti(run / "poses_slam.kitti.txt")[first_frame:, :3, 3]
+    truth = read_kitti(run / "poses_gt.kitti.txt")[first_frame:, :3, 3]
+    error = np.linalg.norm(truth @ T[:3, :3].T + T[:3, 3] - poses, axis=1)
+    return {"mean_m": float(error.mean()), "worst_m": float(error.max()), "frames": len(error)}
+
+
+def odometry_alone(config_path: str) -> dict[str, float]:
+    """The run's odometry alone on the run's frames (its resolved ``config.yaml``): frames/s."""
+    import torch
+
+    from slam.assembly.builders import build_odometry, build_source
+    from slam.assembly.config import load_run_config
+
+    torch.set_num_threads(1)
+    cfg = load_run_config(Path(config_path))
+    source = build_source(cfg)
+    odometry = build_odometry(cfg, source.sensor)
+    count, start = 0, time.perf_counter()
+    for frame in source.read_ahead():
+        odometry.register(frame)
+        count += 1
+    wall = time.perf_counter() - start
+    odometry.close()
+    return {"frames": count, "wall_s": wall, "frames_per_s": count / wall}
+
+
+def _localised(spec: Split, work: Path, name: str, continuous: bool) -> dict[str, Any]:
+    out = work / name
+    sets = [] if continuous else ["--set", "relocalise.continuous=false"]
+    args = [*spec.run_args, "--frames", spec.localised_frames, *NO_VIZ, *sets]
+    args += ["--map", str(work / "map"), "--localise", "--out", str(out)]
+    wall, rss = _run(args, work / f"{name}.log")
+    metrics = json.loads((out / "metrics.json").read_text())
+    placed = metrics["relocalisation"]
+    first = metrics["localisation"]["frames_before_placement"]
+    return {
+        "wall_s": wall,
+        "peak_rss_mb": rss,
+        "frames_per_s": metrics["timing"]["frames_per_s"],
+        "map_decode_s": placed["map_decode_seconds"],
+        "placed_by_frames": placed.get("submap_frames"),
+        "localisation": metrics["localisation"],
+        "error_after_placement": error_in_map_frame(work / "map", out, first),
+        "config": str(out / "config.yaml"),
+    }
+
+
+def _continued(spec: Split, work: Path, name: str, continuous: bool) -> dict[str, Any]:
+    out = work / name
+    sets = [] if continuous else ["--set", "relocalise.continuous=false"]
+    args = [*spec.run_args, "--frames", spec.localised_frames, *NO_VIZ, *sets]
+    wall, rss = _run([*args, "--map", str(work / "map"), "--out", str(out)], work / f"{name}.log")
+    merged = json.loads((out / "metrics.json").read_text())
+    return {"wall_s": wall, "peak_rss_mb": rss, "combined_ate_m": merged.get("combined_ate_rmse_m")}
+
+
+def scenario(name: str, full: bool, work: Path) -> dict[str, Any]:
+    spec = split(name, full)
+    args = [*spec.run_args, "--frames", spec.map_frames, *NO_VIZ, "--out", str(work / "map")]
+    wall, rss = _run(args, work / "map.log")
+    own = json.loads((work / "map" / "metrics.json").read_text())
+    result: dict[str, Any] = {
+        "note": spec.note,
+        "map": {
+            "wall_s": wall,
+            "peak_rss_mb": rss,
+            "ate_m": own["trajectory"]["slam"]["ate_rmse_m"],
+        },
+        "localise": _localised(spec, work, "localise", True),
+        "localise_placement_only": _localised(spec, work, "localise-placement-only", False),
+    }
+    alone, usage = in_child_measured(odometry_alone, result["localise"]["config"])
+    result["odometry_alone"] = {**alone, "peak_rss_mb": usage.peak_rss_mb}
+    result["continue"] = _continued(spec, work, "continue", True)
+    result["continue_placement_only"] = _continued(spec, work, "continue-placement-only", False)
+    return result
+
+
+def _cm(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.1f}"
+
+
+def _rows(r: dict[str, Any]) -> list[str]:
+    rows = []
+    labels = {
+        "localise": "continuous (default)",
+        "localise_placement_only": "placement only (`relocalise.continuous=false`)",
+    }
+    for key, label in labels.items():
+        run = r[key]
+        e, loc = run["error_after_placement"], run["localisation"]
+        gaps = ", ".join(f"{a}-{b}" for a, b in loc["coverage_gaps"][:4]) or "none"
+        rows.append(
+            f"| `--localise`, {label} | {_cm(e['mean_m'])} / {_cm(e['worst_m'])} "
+            f"({e['frames']} frames) | {100 * loc['fraction_anchored']:.0f} % "
+            f"({loc['frames_before_placement']} before placement; gaps {gaps}) | "
+            f"{run['frames_per_s']:.1f} | {run['map_decode_s']:.1f} | {run['peak_rss_mb']:.0f} |"
+        )
+    return rows
+
+
+def report(results: dict[str, Any], command: str) -> str:
+    lines = [
+        *section_header("Localisation in a stored map", command),
+        "- The map: the first part run on its own; then the second part with `--map map "
+        "--localise` (poses only) and `--map map` (continuing the map, merged at the end), each "
+        "with the continuous map constraints (default) and with the first placement only. Error: "
+        "position error against the truth carried into the map's frame by the alignment of the "
+        "map's own truth onto its poses (the map's ATE is its own, aligned on itself), frames "
+        "from the placing submap on. frames/s: the pipeline's rate of the run (the stored "
+        "surfaces are decoded before the first frame: `decode` column); odometry alone: the "
+        "same config's odometry on the same frames, in its own process.",
+        "",
+    ]
+    for name, r in results.items():
+        if "skipped" in r:
+            lines += [f"### {name}", "", f"Skipped: {r['skipped']}.", ""]
+            continue
+        odo = r["odometry_alone"]
+        lines += [
+            f"### {name} ({r['note']})", "",
+            f"Map: ATE {_cm(r['map']['ate_m'])} cm (on itself), peak RSS "
+            f"{r['map']['peak_rss_mb']:.0f} MB. Odometry alone on the localised frames: "
+            f"{odo['frames_per_s']:.1f} frames/s ({odo['frames']} frames).", "",
+            "| run | error in the map's frame, mean / worst frame [cm] | map-anchored frames | "
+            "frames/s | decode [s] | peak RSS [MB] |",
+            "|---|---|---|---:|---:|---:|",
+            *_rows(r), "",
+            "| `--map map` (continue mapping) | merged combined ATE [cm] | peak RSS [MB] |",
+            "|---|---:|---:|",
+            f"| placement only (before) | {_cm(r['continue_placement_only']['combined_ate_m'])} "
+            f"| {r['continue_placement_only']['peak_rss_mb']:.0f} |",
+            f"| continuous (after) | {_cm(r['continue']['combined_ate_m'])} "
+            f"| {r['continue']['peak_rss_mb']:.0f} |", "",
+        ]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+SCENARIOS = ("street", "room")
+QUICK_SCENARIOS = ("street",)
+"""The quick mode's default (about 2 minutes on two cores); ``--scenario room`` adds the room."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true", help="the short street split (default)")
+    mode.add_argument(
+        "--full", action="store_true", help="the whole KITTI 00 street in halves (hours)"
+    )
+    parser.add_argument(
+        "--scenario", nargs="+", choices=SCENARIOS, help="default: street (--full: both)"
+    )
+    parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    results = {}
+    for name in args.scenario or (SCENARIOS if args.full else QUICK_SCENARIOS):
+        work = Path(tempfile.mkdtemp(prefix=f"localise-{name}-", dir=args.work))
+        try:
+            results[name] = scenario(name, args.full, work)
+        except FileNotFoundError as exc:
+            results[name] = {"skipped": str(exc)}
+    command = "python -m benchmarks.bench_localise " + " ".join(argv or sys.argv[1:])
+    write_text_atomic(RESULTS_DIR / "localise.json", json.dumps(results, indent=2) + "\n")
+    write_text_atomic(RESULTS_DIR / "localise.md", report(results, command.strip()))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+"""``slam.run --map RUN_DIR --localise``: a run localised in a stored map, frame by frame.
+
+The room runs come from the session fixture ``room_sessions`` (tests/conftest.py): ``a`` is the
+first half of a lap of a generated room, ``localised`` the second half localised in ``a``'s map
+(it starts where ``a`` ended, so inside the map). The pose graph's side (map priors hold a
+drifting chain on the truth, a wrong one is rejected) is in tests/test_pose_graph.py."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from slam.algorithm.loops.place import _rigid_fit
+from slam.app.cli import main as run_main
+from slam.run_folder.trajectory_io import read_kitti
+from tests.helpers import LIDAR_ARGS, ROOM_SESSION_ARGS, assert_error_line, call_main
+
+# measured: 1.1 cm mean, 1.5 cm worst frame (the map's own poses are ~0.5 cm off the truth)
+MAP_FRAME_MEAN_BOUND_M = 0.015
+MAP_FRAME_WORST_BOUND_M = 0.02
+
+
+def _error_in_map_alignment(map_run: Path, run: Path) -> np.ndarray:
+    """Per-frame position error of ``run``'s poses against its truth carried into the map's
+    frame by the alignment of the map's own truth onto the map's poses."""
+    truth = _rigid_fit(
+        read_kitti(map_run / "poses_gt.kitti.txt")[:, :3, 3],
+        read_kitti(map_run / "poses_slam.kitti.txt")[:, :3, 3],
+        False,
+    )
+    poses = read_kitti(run / "poses_slam.kitti.txt")[:, :3, 3]
+    gt = read_kitti(run / "poses_gt.kitti.txt")[:, :3, 3]
+    return np.linalg.norm(gt @ truth[:3, :3].T + truth[:3, 3] - poses, axis=1)
+
+
+def test_localised_poses_are_in_the_maps_frame_with_a_status_per_frame(room_sessions):
+    run, stored = room_sessions["localised"], room_sessions["a"]
+    error = _error_in_map_alignment(stored, run)
+    assert len(error) == 60 and error.mean() < MAP_FRAME_MEAN_BOUND_M, error.mean()
+    assert error.max() < MAP_FRAME_WORST_BOUND_M, error.max()
+    rows = (run / "localisation.csv").read_text().splitlines()
+    assert rows[0] == "frame,timestamp,submap,status" and len(rows) == 61
+    statuses = [row.split(",")[3] for row in rows[1:]]
+    assert set(statuses) <= {"anchored", "odometry"}
+    metrics = json.loads((run / "metrics.json").read_text())
+    summary = metrics["localisation"]
+    assert summary["frames"] == 60
+    assert summary["frames_anchored"] == statuses.count("anchored") >= 20
+    assert summary["fraction_anchored"] == summary["frames_anchored"] / 60
+    # the gaps are exactly the odometry-only frames after the placement
+    odometry = [int(row.split(",")[0]) for row in rows[1:] if row.endswith(",odometry")]
+    in_gaps = [f for first, last in summary["coverage_gaps"] for f in range(first, last + 1)]
+    assert in_gaps == odometry[summary["frames_before_placement"] :]
+    # localisation only: no map, mesh or merge, no session folder
+    for name in ("map.npz", "mesh.ply", "sessions.csv", "session"):
+        assert not (run / name).exists(), name
+    assert json.loads((run / "run_status.json").read_text())["state"] == "finished"
+
+
+def test_a_run_starting_inside_the_map_is_placed_by_its_first_submap(room_sessions):
+    for name in ("localised", "b"):  # --localise and the continuation alike
+        placed = json.loads((room_sessions[name] / "metrics.json").read_text())["relocalisation"]
+        assert placed["relocalised"] and placed["submaps_tried"] == 1, placed
+        assert placed["submap"] == 0 and placed["submap_frames"][0] == 0
+    summary = json.loads((room_sessions["localised"] / "metrics.json").read_text())
+    assert summary["localisation"]["frames_before_placement"] == 0
+
+
+def test_every_later_submap_is_registered_to_the_map(room_sessions):
+    """After the placement each closed submap is registered to the stored map: a submap the
+    map covers is anchored, one it does not is reported once as a gap."""
+    run = room_sessions["localised"]
+    summary = json.loads((run / "metrics.json").read_text())["localisation"]
+    submaps = {int(row.split(",")[2]) for row in (run / "localisation.csv").read_text().split()[1:]}
+    not_registered = sum(summary["submaps_not_registered"].values())
+    # the placing submap's own registration counts; every other submap was tried
+    assert summary["submaps_registered"] + not_registered == len(submaps)
+    assert summary["submaps_registered"] >= 2
+    left = (run / "run.log").read_text().count("left the map at frames")
+    assert left == len(summary["coverage_gaps"])
+
+
+def test_localise_needs_a_usable_map(room_sessions, tmp_path: Path):
+    data, out = tmp_path / "data", tmp_path / "out"
+    common = ("demo", "--root", str(data), "--no-viz", "--no-progress", "--out", str(out))
+    result = call_main(run_main, [*common, "--localise", *ROOM_SESSION_ARGS])
+    assert result.returncode == 2
+    assert_error_line(result, "--localise needs --map")
+    coarse = room_sessions["coarse"]
+    result = call_main(run_main, [*common, "--map", str(coarse), "--localise"])
+    assert_error_line(result, "voxel size", str(coarse), "mapping.voxel_size_m=0.15")
+    corrupt = tmp_path / "corrupt"
+    corrupt.mkdir()
+    (corrupt / "map.npz").write_bytes(b"PK\x03\x04 not a map")
+    result = call_main(run_main, [*common, "--map", str(corrupt), "--localise"])
+    assert_error_line(result, "map.npz")
+    assert not out.exists() and not data.exists()
+
+
+def test_localise_in_a_map_sharing_no_place_ends_with_one_line(lidar_run, tmp_path: Path):
+    """A stretch of the generated street that the map never saw: the run goes on with
+    odometry, then ends with one line (its poses are not in the map's frame)."""
+    out = tmp_path / "out"
+    args = [a if a != "0:30" else "70:85" for a in LIDAR_ARGS]
+    result = call_main(
+        run_main, [*args, "--map", str(lidar_run.folder), "--localise", "--out", str(out)]
+    )
+    assert result.returncode == 1
+    assert_error_line(result, "never placed", str(lidar_run.folder), str(out))
+    rows = (out / "localisation.csv").read_text().splitlines()[1:]
+    assert len(rows) == 15 and all(row.endswith(",odometry") for row in rows)
