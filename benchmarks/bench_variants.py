@@ -49,7 +49,12 @@ from benchmarks.harness.kitti import KITTI_POSES, kitti_source
 from benchmarks.harness.kitti import window as kitti_window
 from benchmarks.harness.machine import machine_line
 from benchmarks.harness.paths import RESULTS_DIR
-from benchmarks.harness.pipeline import load_config, run_pipeline, trajectory_summary
+from benchmarks.harness.pipeline import (
+    add_override_arguments,
+    load_config,
+    run_pipeline,
+    trajectory_summary,
+)
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line
 from common.atomic_io import write_text_atomic
 
@@ -315,16 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"550 scans (every 3rd), 1024 firings; variants {', '.join(QUICK_VARIANTS)}",
     )
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS))
-    parser.add_argument(
-        "--set", dest="sets", action="append", default=[], help="run config override KEY=VALUE"
-    )
-    parser.add_argument(
-        "--before-set",
-        dest="before_sets",
-        action="append",
-        default=[],
-        help="also run every variant with this override (KEY=VALUE), as its 'before' row",
-    )
+    add_override_arguments(parser, "'before' row of every variant")
     parser.add_argument(
         "--no-kiss-slam", action="store_true", help="do not run KISS-SLAM on the variants"
     )

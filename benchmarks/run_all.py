@@ -59,6 +59,7 @@ BENCHMARKS = (
     "throughput",
     "map_size",
     "variants",
+    "lidar_map",
     "real",
     "merge",
     "localise",

@@ -10,9 +10,11 @@ from common.voxel_keys import KEY_LIMIT
 from common.voxel_keys import point_voxel_keys as voxel_keys
 from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.submaps import (
-    DENSE_GROUPING_CELLS_PER_POINT,
     Keyframer,
     SubmapConfig,
+)
+from slam.algorithm.voxel_grid import (
+    DENSE_GROUPING_CELLS_PER_POINT,
     voxel_downsample,
     voxel_groups,
 )
@@ -146,7 +148,7 @@ def test_keyframer_keeps_points_within_the_range_limits_inclusive() -> None:
     )
     keyframer = Keyframer(cfg)
     keyframer.add(Frame(index=0, timestamp=0.0, points=points), np.eye(4))
-    kept = np.concatenate([chunk[0] for chunk in keyframer.points._chunks])
+    kept = np.concatenate([chunk[0] for chunk in keyframer.points._near._parts])
     expected = points[1:4]
     order = np.argsort(voxel_keys(expected, cfg.map_voxel_m))
     np.testing.assert_allclose(kept, expected[order], atol=1e-12)
@@ -163,7 +165,7 @@ def test_a_scan_is_averaged_over_the_voxels_of_the_anchor_frame() -> None:
     keyframer.add(Frame(index=0, timestamp=0.0, points=scans[0]), np.eye(4))
     keyframer.add(Frame(index=1, timestamp=0.1, points=scans[1]), T_A_S)
     for (points_A, _, viewpoint_A), scan, T in zip(
-        keyframer.points._chunks, scans, [np.eye(4), T_A_S], strict=True
+        keyframer.points._near._parts, scans, [np.eye(4), T_A_S], strict=True
     ):
         ranges = np.linalg.norm(scan, axis=1)
         in_range = scan[(ranges >= 1.0) & (ranges <= 20.0)]
@@ -208,3 +210,34 @@ def test_points_absorbed_after_every_decision_give_the_same_submaps() -> None:
         for name in ("points_A", "normals_A", "loop_points_A"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert not Keyframer(_cfg(max_surface_views=2.0)).decides_from_poses
+
+
+def test_points_beyond_the_loop_range_are_mapped_but_left_out_of_the_loop_cloud() -> None:
+    """``loop_max_range_m`` keeps the loop cloud of a longer map range as it was: the same as a
+    keyframer whose range ends there, while the map points hold the farther points too."""
+    rng = np.random.default_rng(5)
+    # the ground 2 m below the sensor, to 60 m on either side
+    scans = [
+        np.c_[rng.uniform(-60.0, 60.0, size=(20_000, 2)), np.full(20_000, -2.0)] for _ in range(6)
+    ]
+    frames = [
+        (Frame(index=i, timestamp=0.1 * i, points=scan), _pose(0.5 * i))
+        for i, scan in enumerate(scans)
+    ]
+    common = {"max_distance_m": 100.0, "map_voxel_m": 0.5, "loop_voxel_m": 1.0}
+    near_only = Keyframer(_cfg(max_range_m=30.0, **common))
+    split = Keyframer(_cfg(max_range_m=80.0, loop_max_range_m=30.0, **common))
+    coarse = Keyframer(_cfg(max_range_m=80.0, loop_max_range_m=30.0, far_map_voxel_m=2.0, **common))
+    for frame, T in frames:
+        for keyframer in (near_only, split, coarse):
+            keyframer.add(frame, T)
+    expected, got, coarse_far = near_only.finish(), split.finish(), coarse.finish()
+    np.testing.assert_array_equal(got.loop_points_A, expected.loop_points_A)
+    np.testing.assert_array_equal(coarse_far.loop_points_A, expected.loop_points_A)
+    assert len(got.points_A) > 1.5 * len(expected.points_A)
+    assert np.linalg.norm(got.points_A, axis=1).max() > 50.0
+    assert np.linalg.norm(expected.points_A, axis=1).max() < 35.0
+    # far points on a 2 m grid instead of 0.5 m: about 1/16 as many on a surface, far fewer here
+    far = np.linalg.norm(got.points_A, axis=1) > 31.0
+    coarse_far_rows = np.linalg.norm(coarse_far.points_A, axis=1) > 31.0
+    assert 0 < coarse_far_rows.sum() < 0.5 * far.sum()

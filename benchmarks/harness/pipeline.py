@@ -22,6 +22,21 @@ QUIET = {
 """Overrides of every benchmark run: no viewer, no periodic meshes, the map on the CPU."""
 
 
+def add_override_arguments(parser, rows: str) -> None:
+    """``--set KEY=VALUE`` (run config overrides, into ``sets``) and ``--before-set KEY=VALUE``
+    (into ``before_sets``: the same runs again with these too, shown as the "before" ``rows``)."""
+    parser.add_argument(
+        "--set", dest="sets", action="append", default=[], help="run config override KEY=VALUE"
+    )
+    parser.add_argument(
+        "--before-set",
+        dest="before_sets",
+        action="append",
+        default=[],
+        help=f"also run with this override (KEY=VALUE) on top, as the {rows}",
+    )
+
+
 def load_config(config_name: str, overrides: dict[str, Any] | None = None):
     """``configs/<config_name>.yaml`` with :data:`QUIET` and ``overrides`` on top."""
     from slam.assembly.config import default_config_path, load_run_config, merge_overrides

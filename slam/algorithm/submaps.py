@@ -25,17 +25,12 @@ from pydantic import Field
 from common.config import Strict
 from common.geometry import rotation_angle_rad, transform_points
 from common.normals import estimate_normals
-from common.voxel_keys import KEY_LIMIT, point_voxel_keys
+from common.voxel_keys import point_voxel_keys
 from frontends.frame import Frame, point_ranges_m
+from slam.algorithm.voxel_grid import column_voxel_groups, voxel_downsample
 
 SURFACE_CELL_FACTOR = 4
 """Surface coverage (``max_surface_views``) is counted in cells of this many ``map_voxel_m``."""
-
-
-DENSE_GROUPING_CELLS_PER_POINT = 8
-""":func:`voxel_groups` counts the points into the cells of their bounding box when it holds at
-most this many cells per point (one KITTI scan within 30 m at 0.35 m: ~2), and sorts their keys
-otherwise (counting costs about as much per cell as sorting per point)."""
 
 
 class SubmapConfig(Strict):
@@ -63,6 +58,19 @@ class SubmapConfig(Strict):
     )
     min_range_m: float = Field(0.1, ge=0, description="points nearer to the sensor are dropped")
     max_range_m: float = Field(8.0, gt=0, description="points farther from the sensor are dropped")
+    loop_max_range_m: float | None = Field(
+        None,
+        gt=0,
+        description="points farther from the sensor than this are left out of the loop-closure "
+        "cloud but still mapped (None: max_range_m), so that the map can reach farther than "
+        "what loop closure was tuned on",
+    )
+    far_map_voxel_m: float | None = Field(
+        None,
+        ge=0.001,
+        description="points beyond loop_max_range_m are averaged on a grid of this size (None: "
+        "map_voxel_m): far returns are sparse, and fewer of them cost less to encode",
+    )
     map_voxel_m: float = Field(
         0.02,
         ge=0.001,
@@ -104,74 +112,6 @@ class SubmapConfig(Strict):
     keep_keyframe_images: bool = Field(
         True, description="keep the anchor frame's RGB-D images (needed by RGB-D loop closure)"
     )
-
-
-def voxel_groups(points: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The voxel of every point: ``(inverse, counts)``.
-
-    Voxels are numbered in increasing :func:`~common.voxel_keys.point_voxel_keys` order, so
-    this equals ``np.unique(point_voxel_keys(points, voxel_size_m), return_inverse=True,
-    return_counts=True)[1:]``, and like it raises a ``ValueError`` for points beyond the range
-    of voxel keys.
-    Where the bounding box of the points holds few enough cells (one LiDAR scan, one submap) the
-    points are counted into those cells in linear time instead of sorting their keys, which was
-    the largest cost of keyframing a 126k-point scan.
-    """
-    return _column_voxel_groups(np.asarray(points, dtype=np.float64).T, voxel_size_m)
-
-
-def _column_voxel_groups(columns: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`voxel_groups` of points given as (3, N) coordinate rows."""
-    grid = [np.floor(column / voxel_size_m).astype(np.int64) for column in columns]
-    low = [int(g.min()) for g in grid]
-    high = [int(g.max()) for g in grid]
-    dims = [h - lo + 1 for lo, h in zip(low, high, strict=True)]
-    cells = dims[0] * dims[1] * dims[2]
-    inside = min(low) > -KEY_LIMIT and max(high) < KEY_LIMIT
-    if not inside or cells > DENSE_GROUPING_CELLS_PER_POINT * columns.shape[1]:
-        _, inverse, counts = np.unique(
-            point_voxel_keys(columns.T, voxel_size_m), return_inverse=True, return_counts=True
-        )
-        return inverse.ravel(), counts
-    cell = grid[0] - low[0]
-    cell *= dims[1]
-    cell += grid[1] - low[1]
-    cell *= dims[2]
-    cell += grid[2] - low[2]
-    cell_counts = np.bincount(cell, minlength=cells)
-    occupied = np.flatnonzero(cell_counts)
-    voxel_of_cell = np.empty(cells, dtype=np.intp)
-    voxel_of_cell[occupied] = np.arange(len(occupied))
-    return voxel_of_cell[cell], cell_counts[occupied]
-
-
-def voxel_downsample(
-    voxel_size_m: float, points: np.ndarray, *attributes: np.ndarray
-) -> tuple[np.ndarray, ...]:
-    """Average points (and per-point float attributes) over the voxels of a grid.
-
-    Differs from ``kiss_icp.voxelization.voxel_down_sample`` on purpose: the mean of each voxel
-    (less noise for the map and the normals), not its first point, and in key order.
-
-    Returns ``(points, *attributes)`` with one row per occupied voxel, in increasing
-    :func:`~common.voxel_keys.point_voxel_keys` order. An attribute that is the same for every
-    row (a broadcast array, e.g. one viewpoint per frame) or all zero (LiDAR frames carry no
-    normals) is not averaged: its mean is that row.
-    """
-    if len(points) == 0:
-        return (points, *attributes)
-    inverse, counts = voxel_groups(points, voxel_size_m)
-    out = []
-    for array in (points, *attributes):
-        if array is not points and (array.strides[0] == 0 or not array.any()):
-            out.append(np.repeat(np.asarray(array[:1], dtype=np.float64), len(counts), axis=0))
-            continue
-        columns = [
-            np.bincount(inverse, weights=array[:, k], minlength=len(counts))
-            for k in range(array.shape[1])
-        ]
-        out.append(np.stack(columns, axis=1) / counts[:, None])
-    return tuple(out)
 
 
 @dataclass
@@ -311,6 +251,31 @@ class KeyframeDecisions:
         self._next_id += 1
 
 
+class PointChunks:
+    """Points in the anchor frame with their normals and viewpoints, as frames add them (each
+    averaged on the map grid), averaged together once more than ``compact_every`` are held."""
+
+    def __init__(self, voxel_m: float, compact_every: int) -> None:
+        self.voxel_m = voxel_m
+        self.compact_every = compact_every
+        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._count = 0
+
+    def add(self, part: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        self._parts.append(part)
+        self._count += len(part[0])
+        if len(self._parts) > 1 and self._count > self.compact_every:
+            self.compacted()
+
+    def compacted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Everything held, averaged on the grid (None when empty)."""
+        if len(self._parts) > 1:
+            stacked = [np.concatenate(rows) for rows in zip(*self._parts, strict=True)]
+            self._parts = [voxel_downsample(self.voxel_m, *stacked)]
+            self._count = len(self._parts[0][0])
+        return self._parts[0] if self._parts else None
+
+
 class SubmapPoints:
     """The open submap's points in its anchor frame, and the closing of a submap (normals, loop
     cloud): the half of keyframing that the pipeline's submap worker runs, in the order the
@@ -318,11 +283,7 @@ class SubmapPoints:
 
     def __init__(self, cfg: SubmapConfig) -> None:
         self.cfg = cfg
-        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self._has_normals = True
-        self._accumulated = 0
-        self._surface_keys = np.zeros(0, dtype=np.int64)
-        self._view_surface = 0
+        self._reset_points()
 
     @property
     def surface_full(self) -> bool:
@@ -348,8 +309,9 @@ class SubmapPoints:
 
     def _reset_points(self) -> None:
         """Empty the point buffers for a new submap."""
-        self._chunks = []
-        self._accumulated = 0
+        far_voxel_m = self.cfg.far_map_voxel_m or self.cfg.map_voxel_m
+        self._near = PointChunks(self.cfg.map_voxel_m, self.cfg.compact_every_points)
+        self._far = PointChunks(far_voxel_m, self.cfg.compact_every_points)
         self._has_normals = True
         self._surface_keys = np.zeros(0, dtype=np.int64)
         self._view_surface = 0
@@ -366,31 +328,43 @@ class SubmapPoints:
 
     def _accumulate(self, frame: Frame, T_A_S: np.ndarray) -> None:
         points_S, normals_S = self._frame_points(frame)
+        split_m = self.cfg.loop_max_range_m
+        if split_m is None or split_m >= self.cfg.max_range_m:
+            self._add(self._near, points_S, normals_S, T_A_S)
+            return
+        near = point_ranges_m(points_S) <= split_m
+        for chunks, rows in ((self._near, near), (self._far, ~near)):
+            normals = None if normals_S is None else normals_S[rows]
+            self._add(chunks, points_S[rows], normals, T_A_S)
+
+    def _add(
+        self, chunks: PointChunks, points_S: np.ndarray, normals_S: np.ndarray | None, T_A_S
+    ) -> None:
+        """Average a frame's points on the map grid in the anchor frame, into ``chunks``."""
         if len(points_S) == 0:
             return
         if normals_S is None:
             self._has_normals = False
-            points_A = self._scan_voxel_means(points_S, T_A_S)
+            points_A = self._scan_voxel_means(points_S, T_A_S, chunks.voxel_m)
             normals_A = np.zeros_like(points_A)
         else:
             points_A = transform_points(T_A_S, points_S)
             normals_A = normals_S @ T_A_S[:3, :3].T
-            points_A, normals_A = voxel_downsample(self.cfg.map_voxel_m, points_A, normals_A)
+            points_A, normals_A = voxel_downsample(chunks.voxel_m, points_A, normals_A)
         viewpoint_A = np.repeat(T_A_S[None, :3, 3], len(points_A), axis=0)
         if self.cfg.max_surface_views is not None:
             self._track_surface(points_A)
-        self._chunks.append((points_A, normals_A, viewpoint_A))
-        self._accumulated += len(points_A)
-        if len(self._chunks) > 1 and self._accumulated > self.cfg.compact_every_points:
-            self._compact()
+        chunks.add((points_A, normals_A, viewpoint_A))
 
-    def _scan_voxel_means(self, points_S: np.ndarray, T_A_S: np.ndarray) -> np.ndarray:
-        """``voxel_downsample(transform_points(T_A_S, points_S))`` computed on (3, N) coordinate
+    def _scan_voxel_means(
+        self, points_S: np.ndarray, T_A_S: np.ndarray, voxel_m: float
+    ) -> np.ndarray:
+        """``voxel_downsample(voxel_m, transform_points(T_A_S, points_S))`` on (3, N) coordinate
         rows, where every step runs over contiguous memory: about 2 ms less per 126k-point scan.
         The values agree to rounding (bit for bit with single-threaded OpenBLAS)."""
         columns_A = T_A_S[:3, :3] @ points_S.T
         columns_A += T_A_S[:3, 3:]
-        inverse, counts = _column_voxel_groups(columns_A, self.cfg.map_voxel_m)
+        inverse, counts = column_voxel_groups(columns_A, voxel_m)
         sums = [np.bincount(inverse, weights=row, minlength=len(counts)) for row in columns_A]
         return np.stack(sums, axis=1) / counts[:, None]
 
@@ -400,18 +374,19 @@ class SubmapPoints:
         self._surface_keys = np.union1d(self._surface_keys, cells)
         self._view_surface = max(self._view_surface, len(cells))
 
-    def _compact(self) -> None:
-        if not self._chunks:
-            return
-        stacked = [np.concatenate(parts) for parts in zip(*self._chunks, strict=True)]
-        merged = voxel_downsample(self.cfg.map_voxel_m, *stacked)
-        self._chunks = [merged]
-        self._accumulated = len(merged[0])
-
     def _close(self, sub: SubmapRecord) -> SubmapRecord:
-        self._compact()
-        if self._chunks:
-            points_A, normals_A, viewpoint_A = self._chunks[0]
+        near, far = self._near.compacted(), self._far.compacted()
+        if near is not None or far is not None:
+            if near is not None:
+                sub.loop_points_A = voxel_down_sample(near[0], self.cfg.loop_voxel_m).astype(
+                    np.float32
+                )
+            if far is None:
+                points_A, normals_A, viewpoint_A = near
+            else:
+                parts = [part for part in (near, far) if part is not None]
+                stacked = [np.concatenate(rows) for rows in zip(*parts, strict=True)]
+                points_A, normals_A, viewpoint_A = voxel_downsample(self.cfg.map_voxel_m, *stacked)
             if self._has_normals:
                 length = np.linalg.norm(normals_A, axis=1)
                 valid = length > 0.5
@@ -423,9 +398,6 @@ class SubmapPoints:
                     num_neighbours=self.cfg.normal_neighbours,
                     max_radius_m=self.cfg.normal_radius_m,
                 )
-            sub.loop_points_A = voxel_down_sample(points_A, self.cfg.loop_voxel_m).astype(
-                np.float32
-            )
             points_A, normals_A = points_A[valid], normals_A[valid]
             cap = self.cfg.max_map_points
             if cap is not None and len(points_A) > cap:
@@ -434,7 +406,7 @@ class SubmapPoints:
                 points_A, normals_A = points_A[keep], normals_A[keep]
             sub.points_A = points_A
             sub.normals_A = normals_A
-        self._chunks = []
+        self._reset_points()
         return sub
 
 

@@ -11,7 +11,8 @@ percentile of its point ranges). The factors reproduce the hand-tuned KITTI sett
 field                                                  value
 =====================================================  =======================
 odometry.kiss_icp.data.max_range                       max point range (>= 2 R)
-submaps.max_range_m, submaps.max_distance_m            R
+submaps.max_range_m (the map's points)                 8 R / 3
+submaps.loop_max_range_m, submaps.max_distance_m       R
 mapping.voxel_size_m                                   R / 30
 submaps.map_voxel_m                                    voxel / 3
 submaps.loop_voxel_m, overlap and inlier distances     voxel / 2
@@ -36,6 +37,9 @@ from slam.assembly.config import RunConfig
 logger = logging.getLogger(__name__)
 
 EXTENT_PERCENTILE = 90.0
+MAP_RANGE_FACTOR = 8.0 / 3.0
+"""The map takes points to this multiple of the extent (80 m for an HDL-64E's 30 m), loop
+closure to the extent itself (configs/kitti.yaml; benchmarks/bench_lidar_map.py)."""
 
 
 def scan_extent_m(points: np.ndarray) -> tuple[float, float]:
@@ -64,7 +68,8 @@ def scale_config(cfg: RunConfig, first_scan: np.ndarray) -> dict[str, float]:
     )
     submaps = cfg.submaps
     for field, value in (
-        ("max_range_m", extent),
+        ("max_range_m", MAP_RANGE_FACTOR * extent),
+        ("loop_max_range_m", extent),
         ("max_distance_m", extent),
         ("map_voxel_m", voxel / 3.0),
         ("loop_voxel_m", voxel / 2.0),

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from common.geometry import relative_motion
 from common.point_to_plane import IcpResult
-from slam.algorithm.submaps import voxel_downsample
+from slam.algorithm.voxel_grid import voxel_downsample
 
 
 @dataclass
