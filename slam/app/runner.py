@@ -48,9 +48,9 @@ def _linger(seconds: float | None, announce) -> None:
     if seconds is not None and seconds <= 0:
         return
     until = "Ctrl-C" if seconds is None else f"{seconds:g} s or Ctrl-C"
-    announce(f"run finished; still serving the viewer until {until}")
     deadline = None if seconds is None else time.monotonic() + seconds
-    try:
+    try:  # the announcement too: a Ctrl-C as soon as it is seen must not look like an interrupt
+        announce(f"run finished; still serving the viewer until {until}")
         while deadline is None or time.monotonic() < deadline:
             time.sleep(0.2 if deadline is None else min(0.2, max(0.0, deadline - time.monotonic())))
     except KeyboardInterrupt:
