@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import signal
 import stat
@@ -377,13 +378,22 @@ def run_cases(code: Path, cases: list[Case], work: Path) -> list[Outcome]:
     return outcomes
 
 
+CELL_MAX_CHARS = 220
+"""A table cell's message is cut here (the whole line is in the JSON results)."""
+_WORK_PATH = re.compile(r"/\S*/bench-reliability-[^/\s]+/work-(?:before|after)/case\d+/")
+"""The temporary case folder in a message: the same in every row, so it is left out."""
+
+
 def cell(o: Outcome | None) -> str:
     if o is None:
         return "-"
-    text = f"**{o.status}** {o.message}" + (f" [{o.probe}]" if o.probe else "")
+    message = _WORK_PATH.sub("", o.message)
+    if len(message) > CELL_MAX_CHARS:
+        message = message[: CELL_MAX_CHARS - 3] + "..."
+    text = f"**{o.status}** {message}" + (f" [{o.probe}]" if o.probe else "")
     if o.peak_rss_mb is not None:
         text += f" ({o.peak_rss_mb:.0f} MB)"
-    return text.replace("|", "\\|").replace("\n", " ")[:400]
+    return text.replace("|", "\\|").replace("\n", " ")
 
 
 def class_summary(outcomes: list[Outcome | None]) -> str:
@@ -439,7 +449,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{f' --before {args.before}' if args.before else ''}` at {head} (plus uncommitted "
         "changes, if any). Each cell: **exit code**, then the line that tells the user what "
         "happened (`error:` line, else the first warning, else the traceback's last line) and "
-        "[what a probe saw]. Commands run on generated data in a temporary folder.",
+        f"[what a probe saw], cut at {CELL_MAX_CHARS} characters. Commands run on generated "
+        "data in a temporary folder, whose path is left out of the messages.",
         "",
         f"| # | case | command | before ({args.before or '-'}) | after |",
         "|---|---|---|---|---|",
