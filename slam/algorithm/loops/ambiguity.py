@@ -172,3 +172,27 @@ def mahalanobis_distance2(
     if covariance_registered is not None:
         covariance = covariance + covariance_registered
     return float(error @ np.linalg.solve(covariance, error))
+
+
+def graph_gate(
+    T_graph: np.ndarray,
+    covariance_graph: np.ndarray,
+    T_registered: np.ndarray,
+    covariance_registered: np.ndarray | None,
+    probability: float,
+) -> tuple[float, str | None]:
+    """The chi-square gate (6 dof) of a registration against the graph's estimate: its squared
+    Mahalanobis distance (:func:`mahalanobis_distance2`) and the rejection reason, None when it
+    lies within the ``probability`` quantile."""
+    from scipy.stats import chi2
+
+    distance2 = mahalanobis_distance2(
+        T_graph, covariance_graph, T_registered, covariance_registered
+    )
+    limit = float(chi2.ppf(probability, 6))
+    if distance2 > limit:
+        return (
+            distance2,
+            f"inconsistent with the graph: mahalanobis^2 {distance2:.1f} > {limit:.1f}",
+        )
+    return distance2, None

@@ -21,9 +21,8 @@ import logging
 from functools import partial
 
 import numpy as np
-from scipy.stats import chi2
 
-from slam.algorithm.loops.ambiguity import mahalanobis_distance2
+from slam.algorithm.loops.ambiguity import graph_gate
 from slam.algorithm.loops.base import LoopCandidate, LoopDetector, RelativeCovariance, Verification
 from slam.algorithm.loops.config import LoopClosureConfig
 from slam.algorithm.loops.lidar_verify import IcpVerifier
@@ -110,13 +109,15 @@ class LidarLoopDetector(LoopDetector):
         ):
             return verification
         T_graph = np.linalg.inv(T_W_A[i]) @ T_W_A[j]
-        distance2 = mahalanobis_distance2(
-            T_graph, covariance(i, j), verification.T_ref_query, verification.covariance
+        distance2, reason = graph_gate(
+            T_graph,
+            covariance(i, j),
+            verification.T_ref_query,
+            verification.covariance,
+            probability,
         )
         scores = dict(verification.scores, graph_mahalanobis2=distance2)
-        limit = float(chi2.ppf(probability, 6))
-        if distance2 > limit:
-            reason = f"inconsistent with the graph: mahalanobis^2 {distance2:.1f} > {limit:.1f}"
+        if reason is not None:
             return Verification(False, reason, verification.T_ref_query, scores)
         return verification._replace(scores=scores)
 

@@ -23,13 +23,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
 
 from common.geometry import transform_points
 from common.point_to_plane import point_to_plane_icp
 from common.voxel_keys import unpack_keys
 from mapping.neural_map import Submap
-from slam.algorithm.loops.ambiguity import find_ambiguity, mahalanobis_distance2
+from slam.algorithm.loops.ambiguity import find_ambiguity, graph_gate
 from slam.algorithm.merge.config import LocaliseConfig, MergeConfig
 from slam.algorithm.merge.merge import SurfaceDecoder, icp_covariance, verify
 
@@ -216,13 +215,10 @@ class MapConstraints:
         probability = self.cfg.graph_consistency_probability
         if probability <= 0:
             return
-        distance2 = mahalanobis_distance2(
-            T_M_A_graph, covariance, constraint.T_M_A, constraint.covariance
+        distance2, reason = graph_gate(
+            T_M_A_graph, covariance, constraint.T_M_A, constraint.covariance, probability
         )
         constraint.scores["graph_mahalanobis2"] = distance2
-        limit = float(chi2.ppf(probability, 6))
-        if distance2 > limit:
+        if reason is not None:
             constraint.accepted = False
-            constraint.reason = (
-                f"inconsistent with the graph: mahalanobis^2 {distance2:.1f} > {limit:.1f}"
-            )
+            constraint.reason = reason
