@@ -29,7 +29,8 @@ Robust back-ends (``online_gnc``), each consistent from the first loop to the fi
 Gravity (``gravity.enabled``): a node ``G`` holds the gravity frame (its z axis is up; its heading
 and position are fixed by a prior, its tilt is free), and each submap whose walls give an up
 direction (:mod:`slam.algorithm.graph.gravity`) gets a factor between ``G`` and its anchor that only
-constrains the anchor's tilt. Like the prior and the odometry, these are known inliers for GNC.
+constrains the anchor's tilt (:mod:`slam.algorithm.graph.gravity_factors`). Like the prior and the
+odometry, these are known inliers for GNC.
 
 GTSAM orders the Pose3 tangent space as ``[rx, ry, rz, tx, ty, tz]``.
 """
@@ -42,9 +43,15 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from common.geometry import orthonormalize, rotation_angle_rad, so3_exp
+from common.geometry import orthonormalize, rotation_angle_rad
 from slam.algorithm.graph.config import PoseGraphConfig
 from slam.algorithm.graph.gravity import UpMeasurement
+from slam.algorithm.graph.gravity_factors import (
+    GRAVITY_KEY,
+    gravity_factor,
+    gravity_frame_prior,
+    pose3,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -52,13 +59,8 @@ INLIER_WEIGHT = 0.5
 """A GNC weight above this keeps a loop edge."""
 CAUCHY_INLIER_WEIGHT = 0.1
 """A Cauchy weight above this (whitened residual below 3 k) counts as an inlier."""
-GRAVITY_KEY = gtsam.symbol("g", 0)
-"""Key of the gravity frame ``G`` (never a submap id: those are small integers)."""
 MAP_FRAME = -1
 """``LoopEdge.i`` of a map prior: the anchor ``j`` is measured in a stored map's fixed frame."""
-_UNCONSTRAINED_INFORMATION = 1e-8
-"""Information given to what a gravity factor does not measure (heading, position), so that its
-noise model stays positive definite."""
 
 
 @dataclass
@@ -79,47 +81,6 @@ class LoopEdge:
     weight: float = 1.0
     inlier: bool = True
     covariance: np.ndarray | None = None
-
-
-def _pose3(T: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(orthonormalize(T))
-
-
-def _rotation_onto_z(v: np.ndarray) -> np.ndarray:
-    """The smallest rotation that turns the unit vector ``v`` onto ``[0, 0, 1]``."""
-    v = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
-    axis = np.cross(v, [0.0, 0.0, 1.0])
-    sin = float(np.linalg.norm(axis))
-    if sin < 1e-12:
-        return np.eye(3) if v[2] > 0 else np.diag([1.0, -1.0, -1.0])
-    angle = float(np.arctan2(sin, v[2]))
-    return so3_exp(axis / sin * angle)
-
-
-def gravity_frame_prior(
-    key: int, T_W_A: np.ndarray, measurement: UpMeasurement
-) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
-    """The gravity frame ``G`` at the world origin with its z axis on a first measured up
-    direction, and its prior: heading and position fixed (they mean nothing), tilt free."""
-    T_W_G = np.eye(4)
-    T_W_G[:3, :3] = _rotation_onto_z(T_W_A[:3, :3] @ measurement.up_A).T
-    free_tilt = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1e-6, 1e-6, 1e-6, 1e-6]))
-    return gtsam.PriorFactorPose3(key, _pose3(T_W_G), free_tilt), T_W_G
-
-
-def gravity_factor(
-    key_G: int, key_A: int, T_W_G: np.ndarray, T_W_A: np.ndarray, measurement: UpMeasurement
-) -> gtsam.BetweenFactorPose3:
-    """A between-factor ``G -> A`` on an anchor's tilt: its measurement turns the current
-    ``T_G_A`` minimally so that ``up_A`` maps onto G's z axis, and its noise informs only the
-    anchor's tilt (``measurement.information_A``), nothing about its heading or position."""
-    T_G_A = np.linalg.inv(T_W_G) @ T_W_A
-    measured = T_G_A.copy()
-    measured[:3, :3] = _rotation_onto_z(T_G_A[:3, :3] @ measurement.up_A) @ T_G_A[:3, :3]
-    information = np.eye(6) * _UNCONSTRAINED_INFORMATION
-    information[:3, :3] += measurement.information_A
-    noise = gtsam.noiseModel.Gaussian.Information(information)
-    return gtsam.BetweenFactorPose3(key_G, key_A, _pose3(measured), noise)
 
 
 def _sigmas(rotation_rad: float, translation_m: float) -> np.ndarray:
@@ -186,16 +147,16 @@ class PoseGraph:
         new_values = gtsam.Values()
         if not self._node_ids:
             noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(1e-6, 1e-6))
-            factor = gtsam.PriorFactorPose3(node_id, _pose3(T_W_A_odometry), noise)
-            new_values.insert(node_id, _pose3(T_W_A_odometry))
+            factor = gtsam.PriorFactorPose3(node_id, pose3(T_W_A_odometry), noise)
+            new_values.insert(node_id, pose3(T_W_A_odometry))
         else:
             prev = self._node_ids[-1]
             T_prev_cur = np.linalg.inv(self._odometry_anchor[prev]) @ T_W_A_odometry
             distance = float(np.linalg.norm(T_prev_cur[:3, 3]))
             angle = rotation_angle_rad(T_prev_cur[:3, :3])
             noise = self._odometry_noise(distance, angle, covariance)
-            factor = gtsam.BetweenFactorPose3(prev, node_id, _pose3(T_prev_cur), noise)
-            new_values.insert(node_id, _pose3(self.pose(prev) @ T_prev_cur))
+            factor = gtsam.BetweenFactorPose3(prev, node_id, pose3(T_prev_cur), noise)
+            new_values.insert(node_id, pose3(self.pose(prev) @ T_prev_cur))
         self._chain.append(factor)
         self._node_ids.append(node_id)
         self._odometry_anchor[node_id] = T_W_A_odometry
@@ -232,8 +193,8 @@ class PoseGraph:
             kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.cauchy_k)
             noise = gtsam.noiseModel.Robust.Create(kernel, noise)
         if edge.i == MAP_FRAME:
-            return gtsam.PriorFactorPose3(edge.j, _pose3(edge.T_Ai_Aj), noise)
-        return gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_Ai_Aj), noise)
+            return gtsam.PriorFactorPose3(edge.j, pose3(edge.T_Ai_Aj), noise)
+        return gtsam.BetweenFactorPose3(edge.i, edge.j, pose3(edge.T_Ai_Aj), noise)
 
     def _edges(self) -> list[LoopEdge]:
         """Every edge GNC may reject: the loops, then the map priors."""
@@ -323,7 +284,7 @@ class PoseGraph:
             prior, T_W_G = gravity_frame_prior(GRAVITY_KEY, T_W_A, measurement)
             self._gravity.append(prior)
             new_factors.add(prior)
-            new_values.insert(GRAVITY_KEY, _pose3(T_W_G))
+            new_values.insert(GRAVITY_KEY, pose3(T_W_G))
         else:
             T_W_G = self._estimate.atPose3(GRAVITY_KEY).matrix()
         factor = gravity_factor(GRAVITY_KEY, node_id, T_W_G, T_W_A, measurement)
@@ -352,17 +313,17 @@ class PoseGraph:
         noise = prior.noiseModel()
         if prior_sigmas is not None:
             noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(*prior_sigmas))
-        self._chain[0] = gtsam.PriorFactorPose3(first, _pose3(T_New_W @ T_W_A0), noise)
+        self._chain[0] = gtsam.PriorFactorPose3(first, pose3(T_New_W @ T_W_A0), noise)
         moved = gtsam.Values()
         for node in self._node_ids:
-            moved.insert(node, _pose3(T_New_W @ self.pose(node)))
+            moved.insert(node, pose3(T_New_W @ self.pose(node)))
         if self._gravity:
             g_prior = self._gravity[0]
             self._gravity[0] = gtsam.PriorFactorPose3(
-                GRAVITY_KEY, _pose3(T_New_W @ g_prior.prior().matrix()), g_prior.noiseModel()
+                GRAVITY_KEY, pose3(T_New_W @ g_prior.prior().matrix()), g_prior.noiseModel()
             )
             T_W_G = self._estimate.atPose3(GRAVITY_KEY).matrix()
-            moved.insert(GRAVITY_KEY, _pose3(T_New_W @ T_W_G))
+            moved.insert(GRAVITY_KEY, pose3(T_New_W @ T_W_G))
         self._reseed(moved)
 
     # --- solving ------------------------------------------------------------------------------

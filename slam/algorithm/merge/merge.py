@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from common.geometry import orthonormalize, relative_motion, transform_points
 from common.point_to_plane import point_to_plane_hessian, point_to_plane_icp
 from mapping.neural_map import NeuralMap, Submap
-from slam.algorithm.graph.pose_graph import GRAVITY_KEY, gravity_factor, gravity_frame_prior
+from slam.algorithm.graph.gravity_factors import GRAVITY_KEY, gravity_factor, gravity_frame_prior
 from slam.algorithm.loops.place import PlaceDescriptor, fit_matches, ratio_matches
 from slam.algorithm.merge.config import MergeConfig
 from slam.algorithm.merge.inputs import (

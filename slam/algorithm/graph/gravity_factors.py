@@ -1,0 +1,61 @@
+"""The gravity frame in the pose graph: a node ``G`` whose z axis is up (its heading and position
+fixed by a prior, its tilt free), and factors between ``G`` and an anchor that constrain only the
+anchor's tilt, from an up direction measured in the anchor's frame
+(:mod:`slam.algorithm.graph.gravity`). Used by the live graph
+(:meth:`slam.algorithm.graph.pose_graph.PoseGraph.add_gravity`) and by the merge."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from common.geometry import orthonormalize, so3_exp
+from slam.algorithm.graph.gravity import UpMeasurement
+
+GRAVITY_KEY = gtsam.symbol("g", 0)
+"""Key of the gravity frame ``G`` (never a submap id: those are small integers)."""
+_UNCONSTRAINED_INFORMATION = 1e-8
+"""Information given to what a gravity factor does not measure (heading, position), so that its
+noise model stays positive definite."""
+
+
+def pose3(T: np.ndarray) -> gtsam.Pose3:
+    """A 4x4 pose as a ``gtsam.Pose3`` (its rotation re-orthonormalised first)."""
+    return gtsam.Pose3(orthonormalize(T))
+
+
+def rotation_onto_z(v: np.ndarray) -> np.ndarray:
+    """The smallest rotation that turns the unit vector ``v`` onto ``[0, 0, 1]``."""
+    v = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+    axis = np.cross(v, [0.0, 0.0, 1.0])
+    sin = float(np.linalg.norm(axis))
+    if sin < 1e-12:
+        return np.eye(3) if v[2] > 0 else np.diag([1.0, -1.0, -1.0])
+    angle = float(np.arctan2(sin, v[2]))
+    return so3_exp(axis / sin * angle)
+
+
+def gravity_frame_prior(
+    key: int, T_W_A: np.ndarray, measurement: UpMeasurement
+) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
+    """The gravity frame ``G`` at the world origin with its z axis on a first measured up
+    direction, and its prior: heading and position fixed (they mean nothing), tilt free."""
+    T_W_G = np.eye(4)
+    T_W_G[:3, :3] = rotation_onto_z(T_W_A[:3, :3] @ measurement.up_A).T
+    free_tilt = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1e-6, 1e-6, 1e-6, 1e-6]))
+    return gtsam.PriorFactorPose3(key, pose3(T_W_G), free_tilt), T_W_G
+
+
+def gravity_factor(
+    key_G: int, key_A: int, T_W_G: np.ndarray, T_W_A: np.ndarray, measurement: UpMeasurement
+) -> gtsam.BetweenFactorPose3:
+    """A between-factor ``G -> A`` on an anchor's tilt: its measurement turns the current
+    ``T_G_A`` minimally so that ``up_A`` maps onto G's z axis, and its noise informs only the
+    anchor's tilt (``measurement.information_A``), nothing about its heading or position."""
+    T_G_A = np.linalg.inv(T_W_G) @ T_W_A
+    measured = T_G_A.copy()
+    measured[:3, :3] = rotation_onto_z(T_G_A[:3, :3] @ measurement.up_A) @ T_G_A[:3, :3]
+    information = np.eye(6) * _UNCONSTRAINED_INFORMATION
+    information[:3, :3] += measurement.information_A
+    noise = gtsam.noiseModel.Gaussian.Information(information)
+    return gtsam.BetweenFactorPose3(key_G, key_A, pose3(measured), noise)
