@@ -24,7 +24,7 @@ from slam.evaluation import cli as eval_cli
 from slam.evaluation.run_metrics import CullDistanceTooSmall, check_cull_distance
 from slam.run_folder.outputs import KittiRows, RunOutputs, kitti_rows_filled
 from slam.run_folder.trajectory_io import read_kitti, read_tum
-from tests.helpers import mount_tmpfs, one_line, umount
+from tests.helpers import call_main, mount_tmpfs, one_line, umount
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHORT = ["demo", "--frames", "0:3", "--no-progress", "--set", "output.mesh_samples=1000"]
@@ -47,11 +47,9 @@ def run_eval(argv: list[str], capsys) -> tuple[int, str]:
 def finished_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A finished 12-frame demo run with a mesh (made once for this file)."""
     folder = tmp_path_factory.mktemp("eval") / "run"
-    result = subprocess.run(
-        [sys.executable, "-m", "slam.run", "demo", "--frames", "0:12", "--no-viz",
-         "--no-progress", "--set", "output.mesh_samples=1000", "--out", str(folder)],
-        capture_output=True, text=True, cwd=REPO_ROOT, timeout=600,
-    )  # fmt: skip
+    argv = ["demo", "--frames", "0:12", "--no-viz", "--no-progress",
+            "--set", "output.mesh_samples=1000", "--out", str(folder)]  # fmt: skip
+    result = call_main(cli.main, argv)
     assert result.returncode == 0, result.stderr[-2000:]
     return folder
 

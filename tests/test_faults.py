@@ -24,6 +24,7 @@ import trimesh
 from mapping.map_io import load_map
 from slam.assembly.config import load_run_config
 from slam.run_folder.trajectory_io import read_kitti, read_tum
+from tests.helpers import call_main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RUN_FRAMES = 120
@@ -73,7 +74,6 @@ def assert_complete(folder: Path, allow_temporaries: bool = False) -> set[str]:
         elif name == "mesh.ply":
             assert len(trimesh.load(path, force="mesh", process=False).faces) > 0
         elif name == "map.npz":
-
             load_map(path)
         elif name == "recording.rrd" and not allow_temporaries:
             assert _rrd_verifies(path), "recording.rrd has no valid footer"
@@ -100,10 +100,10 @@ def run_until(folder: Path, trigger: str, sig: int) -> subprocess.CompletedProce
 
 
 def eval_refuses(folder: Path, needle: str) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "slam.eval", str(folder), "--no-plots"],
-        capture_output=True, text=True, cwd=REPO_ROOT, timeout=300,
-    )  # fmt: skip
+    """``slam.eval`` (in this process: its command line is not under test) refuses the run."""
+    from slam.evaluation.cli import main as eval_main
+
+    result = call_main(eval_main, [str(folder), "--no-plots"])
     assert result.returncode == 1, result.stderr
     assert needle in result.stderr
     assert not (folder / "metrics.json").exists()

@@ -1,9 +1,9 @@
 """``python -m slam.fleet`` on a real local Ray with 2 CPUs (started once for this module).
 
 One module fixture does everything the tests read: the serial path (three short windows of the
-generated room run one after the other, then ``slam.merge``; every run reads the same cached
-sequence), then a fleet of the same three windows and a
-recording whose root is missing, run as a subprocess that joins this module's Ray with
+generated room run one after the other in this process, then ``slam.merge``; every run reads the
+same cached sequence), then a fleet of the same three windows and a recording whose root is
+missing, run as a subprocess that joins this module's Ray with
 ``--address``, interrupted with SIGINT once one run finished, and continued in this process.
 """
 
@@ -27,6 +27,7 @@ from slam.app.fleet_manifest import FleetRun, Sweep, load_manifest
 from slam.app.fleet_plan import merge_levels, run_argv, run_memory_mb, thread_share
 from slam.app.fleet_sweep import metric_row, sweep_csv
 from slam.run_folder.outputs import read_run_status
+from tests.helpers import call_main
 
 ray = pytest.importorskip("ray")
 
@@ -51,19 +52,18 @@ def _set_args() -> list[str]:
     return [arg for key, value in SETTINGS.items() for arg in ("--set", f"{key}={value}")]
 
 
-_SERIAL = """
-import sys
-from slam.app.cli import main
-from slam.app.merge_cli import main as merge
-base, *windows = sys.argv[1:]
-extra = {extra!r}
-for window in windows:
-    name, frames = window.split("=")
-    args = ["demo", "--odometry", "gt", "--frames", frames, "--no-viz", "--no-progress"]
-    assert main(args + ["--out", f"{{base}}/{{name}}", *extra]) == 0
-names = [window.split("=")[0] for window in windows]
-assert merge([f"{{base}}/{{n}}" for n in names] + ["--out", f"{{base}}/merged", "--no-viz"]) == 0
-"""
+def _serial(base: Path) -> None:
+    """The serial path in this process: each window's ``slam.run``, then ``slam.merge``."""
+    from slam.app.cli import main
+    from slam.app.merge_cli import main as merge
+
+    for name, frames in WINDOWS.items():
+        argv = ["demo", "--odometry", "gt", "--frames", frames, "--no-viz", "--no-progress"]
+        result = call_main(main, [*argv, "--out", str(base / name), *_set_args()])
+        assert result.returncode == 0, result.stderr[-2000:]
+    runs = [str(base / name) for name in WINDOWS]
+    result = call_main(merge, [*runs, "--out", str(base / "merged"), "--no-viz"])
+    assert result.returncode == 0, result.stderr[-2000:]
 
 
 def _python(*args: str, **kwargs) -> subprocess.Popen:
@@ -89,10 +89,7 @@ def ray_address():
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory, ray_address) -> dict:
     base = tmp_path_factory.mktemp("fleet")
-    serial = _python("-c", _SERIAL.format(extra=_set_args()), str(base / "serial"),
-                     *(f"{name}={frames}" for name, frames in WINDOWS.items()))
-    _, err = serial.communicate(timeout=600)
-    assert serial.returncode == 0, err
+    _serial(base / "serial")
 
     entries = [
         {"name": name, "dataset": "demo", "odometry": "gt", "frames": frames, "set": SETTINGS}
@@ -117,9 +114,7 @@ def fleet(tmp_path_factory, ray_address) -> dict:
     }
     first.send_signal(signal.SIGINT)
     _, first_err = first.communicate(timeout=120)
-    after_interrupt = {
-        name: read_run_status(out / "runs" / name) for name in [*WINDOWS, "broken"]
-    }
+    after_interrupt = {name: read_run_status(out / "runs" / name) for name in [*WINDOWS, "broken"]}
 
     stdout, stderr = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):

@@ -5,8 +5,6 @@ reference poses. Skipped when the data is absent (a user's machine does not have
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +14,7 @@ from frontends.sources import make_source
 from frontends.sources.pcd_folder import pcd_scan_files, read_pcd_points
 from slam.assembly.config import default_config_path, load_run_config
 from slam.assembly.lidar_scale import scale_config, scan_extent_m
+from tests.helpers import call_main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA = REPO_ROOT.parent / "shared" / "data"
@@ -107,11 +106,10 @@ def test_mulran_mapping_with_reference_poses(tmp_path: Path) -> None:
     import trimesh
     from scipy.spatial import cKDTree
 
+    from slam.app.cli import main
+
     out = tmp_path / "run"
     command = [
-        sys.executable,
-        "-m",
-        "slam.run",
         "lidar",
         str(MULRAN / "scans"),
         "--odometry",
@@ -125,7 +123,7 @@ def test_mulran_mapping_with_reference_poses(tmp_path: Path) -> None:
         "--out",
         str(out),
     ]
-    done = subprocess.run(command, cwd=REPO_ROOT, capture_output=True, text=True, timeout=600)
+    done = call_main(main, command)  # in this process: the command line is not under test
     assert done.returncode == 0, done.stderr[-2000:]
     for name in ("config.yaml", "metrics.json", "mesh.ply", "map.npz", "poses_slam.kitti.txt"):
         assert (out / name).is_file(), name
