@@ -31,6 +31,7 @@ LIDAR_ARGS = [
 # do not score their meshes (no test reads the scores).
 ROOM_SESSION_ARGS = ["--set", "generated.num_frames=120", "--set", "output.mesh_samples=0"]
 ROOM_SESSION_FRAMES = 60
+ROOM_INSIDE_FRAMES = "20:50"  # a stretch in the middle of the first session
 
 
 @dataclass(frozen=True)
