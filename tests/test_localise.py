@@ -61,12 +61,22 @@ def test_localised_poses_are_in_the_maps_frame_with_a_status_per_frame(room_sess
 
 
 def test_a_run_starting_inside_the_map_is_placed_by_its_first_submap(room_sessions):
-    for name in ("localised", "b"):  # --localise and the continuation alike
+    """Where the map ends (``localised``, ``b``) and in its middle (``inside``)."""
+    for name in ("localised", "b", "inside"):  # --localise and the continuation alike
         placed = json.loads((room_sessions[name] / "metrics.json").read_text())["relocalisation"]
         assert placed["relocalised"] and placed["submaps_tried"] == 1, placed
         assert placed["submap"] == 0 and placed["submap_frames"][0] == 0
-    summary = json.loads((room_sessions["localised"] / "metrics.json").read_text())
-    assert summary["localisation"]["frames_before_placement"] == 0
+    for name in ("localised", "inside"):
+        summary = json.loads((room_sessions[name] / "metrics.json").read_text())["localisation"]
+        rows = [row.split(",") for row in _rows(room_sessions[name])]
+        first_submap_frames = [row for row in rows if row[2] == rows[0][2]]
+        # at most the first submap's frames come before the placing one: here none
+        assert summary["frames_before_placement"] == 0 < len(first_submap_frames), summary
+        # known when the second submap closes, at the third's first frame (the worker's result
+        # reaches the run one submap late)
+        ids = list(dict.fromkeys(row[2] for row in rows))
+        third = next(row for row in rows if row[2] == ids[2])
+        assert summary["placed_at_frame"] == int(third[0]), summary
 
 
 def _rows(run: Path) -> list[str]:
