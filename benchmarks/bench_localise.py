@@ -1,7 +1,8 @@
 """Localisation in a stored map: a sequence split in two, the second part localised in the map of
 the first (``slam.run --map A --localise``) and continuing it (``slam.run --map A``).
 
-    python -m benchmarks.bench_localise [--quick | --full] [--scenario street room] [--work DIR]
+    python -m benchmarks.bench_localise [--quick | --full] [--scenario street room kitchen]
+        [--work DIR]
 
 Scenarios: ``street``, the generated 64-beam street along the real KITTI 00 trajectory (the
 generator of bench_variants: seed 0, standard street, configs/kitti.yaml; needs the KITTI 00 poses
@@ -10,7 +11,11 @@ once, 1171 scans) and maps poses 360-957 (200 scans), then localises poses 3420-
 which drive the same road again; the full version (the default, ``--full``; not run here: hours
 on two cores) splits the whole window (4541 scans, 2048 firings) into halves. ``room``, the
 generated RGB-D room lap (120 frames): the first half is the map, the second half is localised
-(it starts where the map ends and revisits the map's start at its end).
+(it starts where the map ends and revisits the map's start at its end). ``kitchen``, the real
+7-Scenes redkitchen seq-01 (400 Kinect frames, KinectFusion poses as the truth,
+configs/7scenes.yaml; needs ``../shared/data/7scenes_redkitchen``): frames 0-199 are the map,
+200-399 are localised (they start where the map ends, then pan along the same counter, up to about
+a metre to the side of where the map's camera stood); the same split in quick and full mode.
 
 Per scenario: the map run (its own ATE); the second part with ``--map A --localise`` with the
 continuous map constraints and without them (``relocalise.continuous=false``: only the first
@@ -39,12 +44,14 @@ import numpy as np
 from benchmarks.harness.child import in_child_measured, run_command
 from benchmarks.harness.kitti import FULL, KITTI_CALIB, KITTI_POSES, have_kitti
 from benchmarks.harness.machine import section_header
-from benchmarks.harness.paths import REPO, RESULTS_DIR
+from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
 from common.atomic_io import write_text_atomic
 
 NO_VIZ = ["--no-viz", "--no-progress", "--set", "output.mesh_samples=0"]
 STREET = ["kitti", "00", "--set", "source.kitti.correct_vertical_angle=false"]
 ROOM = ["demo", "--set", "generated.num_frames=120"]
+KITCHEN_ROOT = DATA / "7scenes_redkitchen"
+KITCHEN = ["7scenes", "seq-01", "--root", str(KITCHEN_ROOT)]
 
 
 @dataclass(frozen=True)
@@ -82,6 +89,11 @@ def street_root(full: bool) -> Path:
 def split(name: str, full: bool) -> Split:
     if name == "room":
         return Split(ROOM, "0:60", "60:120", "generated RGB-D room lap, 120 frames: 0-59 / 60-119")
+    if name == "kitchen":
+        if not (KITCHEN_ROOT / "seq-01").is_dir():
+            raise FileNotFoundError(f"no 7-Scenes redkitchen seq-01 under {KITCHEN_ROOT}")
+        note = "real 7-Scenes redkitchen seq-01, KinectFusion poses: frames 0-199 / 200-399"
+        return Split(KITCHEN, "0:200", "200:400", note)
     if not have_kitti():
         raise FileNotFoundError("no KITTI 00 poses/calibration under ../shared/data/kitti")
     root = ["--root", str(street_root(full))]
@@ -255,20 +267,26 @@ def report(results: dict[str, Any], command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-SCENARIOS = ("street", "room")
-QUICK_SCENARIOS = ("street",)
-"""The quick mode's default (about 2 minutes on two cores); ``--scenario room`` adds the room."""
+SCENARIOS = ("street", "room", "kitchen")
+QUICK_SCENARIOS = ("street", "kitchen")
+"""The quick mode's default (about 2 + 4 minutes on two cores); ``--scenario room`` adds the
+room."""
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     mode = parser.add_mutually_exclusive_group()
-    mode.add_argument("--quick", action="store_true", help="the short street split (default)")
+    mode.add_argument(
+        "--quick", action="store_true", help="the short street split and the kitchen (default)"
+    )
     mode.add_argument(
         "--full", action="store_true", help="the whole KITTI 00 street in halves (hours)"
     )
     parser.add_argument(
-        "--scenario", nargs="+", choices=SCENARIOS, help="default: street (--full: both)"
+        "--scenario",
+        nargs="+",
+        choices=SCENARIOS,
+        help="default: street kitchen (--full: all three)",
     )
     parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
     return parser

@@ -23,6 +23,7 @@ import torch
 from tests.helpers import (
     DEMO_ARGS,
     LIDAR_ARGS,
+    ROOM_INSIDE_FRAMES,
     ROOM_SESSION_ARGS,
     ROOM_SESSION_FRAMES,
     CommandResult,
@@ -133,10 +134,13 @@ def _drop_first_frames(data: Path, count: int) -> None:
         (room / name).write_text("\n".join(header + body[count:]) + "\n")
 
 
-def _room_session(folder: Path, data: Path, frames: str | None, *extra: str) -> Path:
+def _room_session(
+    folder: Path, data: Path, frames: str | None, *extra: str, record: bool = False
+) -> Path:
     frame_args = ("--frames", frames) if frames else ()
+    viz = ("--rrd", str(folder / "recording.rrd")) if record else ("--no-viz",)
     run_slam(
-        "demo", "--root", str(data), *frame_args, "--no-viz", "--no-progress",
+        "demo", "--root", str(data), *frame_args, *viz, "--no-progress",
         "--out", str(folder), *ROOM_SESSION_ARGS, *extra,
     )  # fmt: skip
     return folder
@@ -150,9 +154,11 @@ def room_sessions(shared_dir: Path) -> dict[str, Path]:
     (``--map``) after the first half's images were deleted, its run alone in ``b``
     (``continued/session``); ``merged``: ``python -m slam.merge a b`` afterwards, with the
     merge's stdout and stderr beside it (``merged.stdout``, ``merged.stderr``); ``localised``:
-    the second half localised in ``a``'s map (``--map a --localise``). Also ``coarse``
-    (another voxel size) and ``other`` (a stretch ``a`` never saw). Every image is deleted
-    before the merge: a merge must never need the scans."""
+    the second half localised in ``a``'s map (``--map a --localise``); ``inside``: frames
+    20-49, which start in the middle of ``a``, localised in ``a``'s map with a recording
+    (``inside/recording.rrd``). Also ``coarse`` (another voxel size) and ``other`` (a stretch
+    ``a`` never saw). Every image is deleted before the merge: a merge must never need the
+    scans."""
 
     def build(base: Path) -> None:
         from slam.app.merge_cli import main as merge_main
@@ -162,9 +168,11 @@ def room_sessions(shared_dir: Path) -> dict[str, Path]:
         a = _room_session(base / "a", data, f"0:{half}")
         _room_session(base / "coarse", data, "0:10", "--set", "mapping.voxel_size_m=0.15")
         _room_session(base / "other", data, "80:90")
+        localise_in_a = ("--map", str(a), "--localise")
+        _room_session(base / "inside", data, ROOM_INSIDE_FRAMES, *localise_in_a, record=True)
         _drop_first_frames(data, half)  # the continuation cannot read the first run's scans
         continued = _room_session(base / "continued", data, None, "--map", str(a))
-        _room_session(base / "localised", data, None, "--map", str(a), "--localise")
+        _room_session(base / "localised", data, None, *localise_in_a)
         shutil.rmtree(data)
         merged = base / "merged"
         result = call_main(merge_main, [str(a), str(continued / "session"), "--out", str(merged)])
@@ -173,7 +181,7 @@ def room_sessions(shared_dir: Path) -> dict[str, Path]:
         (base / "merged.stderr").write_text(result.stderr)
 
     base = built_once(shared_dir, "room-sessions", build)
-    names = ("a", "coarse", "other", "continued", "merged", "localised")
+    names = ("a", "coarse", "other", "continued", "merged", "localised", "inside")
     return {name: base / name for name in names} | {"b": base / "continued" / "session"}
 
 

@@ -37,6 +37,7 @@ ROOM_SESSION_ARGS = [
     "--set", "mapping.mesh_subdivisions=2",
 ]  # fmt: skip
 ROOM_SESSION_FRAMES = 60
+ROOM_INSIDE_FRAMES = "20:50"  # a stretch in the middle of the first session
 
 
 @dataclass(frozen=True)

@@ -317,3 +317,18 @@ def test_slam_section_shows_every_timing_with_its_range():
     assert "| 2 / 1 |" in text  # two loops beyond 1 m, one of them kept
     assert "| 2.00 (1.00-4.00) | 2.0 (1.0-4.0) | 275 (138-550) |" in text
     assert "| 4.5 (4.0-5.0) (1000 points) |" in text
+
+
+def test_localise_kitchen_without_the_data_is_skipped_with_its_reason(tmp_path, monkeypatch):
+    """The real 7-Scenes split runs in quick mode; without its frames it is a skipped section
+    that says where they belong, not a failed benchmark."""
+    from benchmarks import bench_localise
+
+    assert "kitchen" in bench_localise.QUICK_SCENARIOS
+    absent = tmp_path / "7scenes_redkitchen"
+    monkeypatch.setattr(bench_localise, "KITCHEN_ROOT", absent)
+    with pytest.raises(FileNotFoundError) as missing:
+        bench_localise.split("kitchen", full=False)
+    assert str(absent) in str(missing.value)
+    text = bench_localise.report({"kitchen": {"skipped": str(missing.value)}}, "command")
+    assert f"### kitchen\n\nSkipped: {missing.value}." in text

@@ -2,7 +2,8 @@
 
 The room runs come from the session fixture ``room_sessions`` (tests/conftest.py): ``a`` is the
 first half of a lap of a generated room, ``localised`` the second half localised in ``a``'s map
-(it starts where ``a`` ended, so inside the map). The pose graph's side (map priors hold a
+(it starts where ``a`` ended, so inside the map), ``inside`` a stretch in the middle of ``a``
+localised in its map with a recording. The pose graph's side (map priors hold a
 drifting chain on the truth, a wrong one is rejected) is in tests/test_pose_graph.py."""
 
 from __future__ import annotations
@@ -60,12 +61,77 @@ def test_localised_poses_are_in_the_maps_frame_with_a_status_per_frame(room_sess
 
 
 def test_a_run_starting_inside_the_map_is_placed_by_its_first_submap(room_sessions):
-    for name in ("localised", "b"):  # --localise and the continuation alike
+    """Where the map ends (``localised``, ``b``) and in its middle (``inside``)."""
+    for name in ("localised", "b", "inside"):  # --localise and the continuation alike
         placed = json.loads((room_sessions[name] / "metrics.json").read_text())["relocalisation"]
         assert placed["relocalised"] and placed["submaps_tried"] == 1, placed
         assert placed["submap"] == 0 and placed["submap_frames"][0] == 0
-    summary = json.loads((room_sessions["localised"] / "metrics.json").read_text())
-    assert summary["localisation"]["frames_before_placement"] == 0
+    for name in ("localised", "inside"):
+        summary = json.loads((room_sessions[name] / "metrics.json").read_text())["localisation"]
+        rows = [row.split(",") for row in _rows(room_sessions[name])]
+        first_submap_frames = [row for row in rows if row[2] == rows[0][2]]
+        # at most the first submap's frames come before the placing one: here none
+        assert summary["frames_before_placement"] == 0 < len(first_submap_frames), summary
+        # known when the second submap closes, at the third's first frame (the worker's result
+        # reaches the run one submap late)
+        ids = list(dict.fromkeys(row[2] for row in rows))
+        third = next(row for row in rows if row[2] == ids[2])
+        assert summary["placed_at_frame"] == int(third[0]), summary
+
+
+def _rows(run: Path) -> list[str]:
+    return (run / "localisation.csv").read_text().splitlines()[1:]
+
+
+def _logged(recording: Path, entity: str, component: str) -> list[tuple[int, list]]:
+    """``(frame, value)`` of every temporal row of ``entity``'s ``component`` in a recording."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(recording)
+    rows = []
+    for chunk in reader.stream(store=reader.recordings()[0]):
+        if chunk.entity_path.lstrip("/") != entity or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        columns = dict(zip(batch.schema.names, batch.columns, strict=True))
+        rows += zip(columns["frame"].to_pylist(), columns[component].to_pylist(), strict=True)
+    return sorted(rows, key=lambda row: row[0])
+
+
+def test_the_recording_shows_which_stored_submaps_hold_the_run(room_sessions):
+    """The stored mesh, the sensor at every frame, segments from each map-anchored live anchor
+    to the stored anchors it was registered to (growing as they are added), and each frame's
+    status."""
+    from slam.app.merge_cli import load_run
+    from slam.app.recording_summary import summarize_recording
+
+    run, stored = room_sessions["inside"], room_sessions["a"]
+    recording = run / "recording.rrd"
+    summary = summarize_recording(recording)
+    assert summary.entities["world/stored_map/mesh"].static_rows == 1
+    assert summary.rows("world/sensor") == 30
+    anchors = load_run(stored)[0].session.anchor_poses()
+    stored_anchors = np.array([T[:3, 3] for T in anchors.values()])
+    frames = _logged(recording, "world/stored_map/anchoring", "LineStrips3D:strips")
+    counts = [len(strips) for _, strips in frames]
+    assert counts == sorted(counts) and counts[0] < counts[-1], counts  # added as they come
+    final = np.array(frames[-1][1])  # (segments, 2, 3): after the final optimisation
+    to_stored = np.linalg.norm(final[:, 1, None] - stored_anchors[None], axis=2).min(axis=1)
+    assert to_stored.max() < 1e-5, to_stored
+    # each segment starts at an anchored live submap's anchor: the pose of its first frame
+    poses = read_kitti(run / "poses_slam.kitti.txt")[:, :3, 3]
+    rows = [row.split(",") for row in _rows(run)]
+    first_frames: dict[str, int] = {}
+    for k, (_, _, submap, status) in enumerate(rows):
+        if status == "anchored":
+            first_frames.setdefault(submap, k)
+    distance = np.linalg.norm(final[:, 0, None] - poses[list(first_frames.values())], axis=2)
+    assert distance.min(axis=1).max() < 1e-4  # every segment starts at an anchored live anchor
+    assert distance.min(axis=0).max() < 1e-4  # every anchored live submap has its segments
+    status = _logged(recording, "metrics/counts/map_anchored", "Scalars:scalars")
+    assert len(status) == 30 and {value[0] for _, value in status} == {0.0, 1.0}
+    placed_at = json.loads((run / "metrics.json").read_text())["localisation"]["placed_at_frame"]
+    assert all(value[0] == float(frame >= placed_at) for frame, value in status), status
 
 
 def test_every_later_submap_is_registered_to_the_map(room_sessions):

@@ -36,7 +36,8 @@ class GraphSnapshot:
         loop_added: the job added a loop edge or relocalised the session (the anchors moved).
         remap: the remapping pass the job ran when it moved a submap (inline map worker only).
         relocalised: the session's placement in a stored map, when this job found it.
-        map_anchored: the submaps anchored in a stored map by a prior the graph keeps.
+        map_anchored: the submaps anchored in a stored map by a prior the graph keeps, each with
+            the stored submaps its registration was made to.
     """
 
     anchors: dict[int, np.ndarray]
@@ -46,7 +47,7 @@ class GraphSnapshot:
     loop_added: bool
     remap: RemapEvent | None = None
     relocalised: Relocalisation | None = None
-    map_anchored: frozenset[int] = frozenset()
+    map_anchored: dict[int, tuple[int, ...]] = field(default_factory=dict)
 
 
 @dataclass
@@ -58,7 +59,7 @@ class GraphView:
     loop_candidates: list[LoopCandidate] = field(default_factory=list)
     num_accepted: int = 0
     relocalisation: Relocalisation | None = None
-    map_anchored: frozenset[int] = frozenset()
+    map_anchored: dict[int, tuple[int, ...]] = field(default_factory=dict)
     _last_known: int | None = None
     _accepted: dict[tuple[int, int], list[LoopCandidate]] = field(default_factory=dict)
     _new_loops: list[LoopCandidate] = field(default_factory=list)

@@ -117,9 +117,15 @@ class MapLocalisation:
             )
         self._in_map = constraint.accepted
 
-    def anchored(self, graph: PoseGraph) -> frozenset[int]:
+    def anchored(self, graph: PoseGraph) -> dict[int, tuple[int, ...]]:
         """Live submaps whose anchor holds a map prior the graph keeps (without
-        ``continuous``: the placing submap, which the placement alone ties to the map)."""
-        if not self.continuous and self.placement is not None:
-            return frozenset([self.placement.submap_id])
-        return frozenset(edge.j for edge in graph.map_priors if edge.inlier)
+        ``continuous``: the placing submap, which the placement alone ties to the map), each
+        with the stored submaps its registration was made to (nearest first)."""
+        if self.placement is None:
+            return {}
+        if not self.continuous:
+            return {self.placement.submap_id: (self.placement.map_submap_id,)}
+        kept = {edge.j for edge in graph.map_priors if edge.inlier}
+        return {
+            c.submap_id: tuple(c.map_submap_ids) for c in self.constraints if c.submap_id in kept
+        }

@@ -441,9 +441,10 @@ class SlamPipeline:
         return self.view.relocalisation
 
     @property
-    def map_anchored(self) -> frozenset[int]:
-        """Submaps anchored in the stored map by a registration the graph keeps, as far as the
-        main thread knows (:mod:`slam.algorithm.localisation`)."""
+    def map_anchored(self) -> dict[int, tuple[int, ...]]:
+        """Submaps anchored in the stored map by a registration the graph keeps, each with the
+        stored submaps it was registered to, as far as the main thread knows
+        (:mod:`slam.algorithm.localisation`)."""
         return self.view.map_anchored
 
     def request_map_snapshots(self, request: MapSnapshotRequest) -> None:

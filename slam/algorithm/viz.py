@@ -16,6 +16,9 @@ import trimesh
 
 from frontends.frame import Intrinsics
 
+Segments = Sequence[tuple[np.ndarray, np.ndarray]]
+"""Line segments as pairs of world positions."""
+
 
 class Logger(ABC):
     """What a run reports. All poses are 4x4 float64 ``T_W_*``, all points in the world frame."""
@@ -46,11 +49,7 @@ class Logger(ABC):
         """A whole trajectory polyline; ``name`` is ``odometry``, ``optimized`` or ``gt``."""
 
     @abstractmethod
-    def log_loop_closures(
-        self,
-        accepted: Sequence[tuple[np.ndarray, np.ndarray]],
-        rejected: Sequence[tuple[np.ndarray, np.ndarray]] = (),
-    ) -> None:
+    def log_loop_closures(self, accepted: Segments, rejected: Segments = ()) -> None:
         """Loop edges as pairs of world positions (accepted and rejected candidates)."""
 
     @abstractmethod
@@ -82,6 +81,11 @@ class Logger(ABC):
         """The mesh of the map a run continues (``slam.run --map``), in the map's frame: the
         run appears on it once it is relocalised. Read from ``mesh_path`` by a logger that
         shows it, so a logger recording nothing never pays for it."""
+
+    def log_map_anchoring(self, segments: Segments) -> None:  # noqa: B027 - optional hook
+        """Which stored submaps hold a run in a stored map (``slam.run --map``): a segment from
+        each map-anchored live submap's anchor to each stored submap its registration was made
+        to (anchor positions in the map's frame); the whole set, whenever it changes."""
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Flush and close the recording."""

@@ -66,9 +66,18 @@ class Recorder:
 
 
 class RunRecorder(Recorder):
-    """Trajectories, scans, loop edges, map snapshots and live metrics of a run."""
+    """Trajectories, scans, loop edges, map snapshots and live metrics of a run; in a stored
+    map also which stored submaps hold it and, per frame, ``map_anchored``: 1 when the latest
+    submap whose registration the main thread knows is map-anchored (the frame's pose is carried
+    from it by the odometry), else 0."""
 
-    def __init__(self, pipeline: SlamPipeline, viz: Logger, cfg: VizConfig) -> None:
+    def __init__(
+        self,
+        pipeline: SlamPipeline,
+        viz: Logger,
+        cfg: VizConfig,
+        map_anchor_poses: dict[int, np.ndarray] | None = None,
+    ) -> None:
         self.pipeline = pipeline
         self.viz = viz
         self.cfg = cfg
@@ -78,6 +87,9 @@ class RunRecorder(Recorder):
         self._num_frames = 0
         self._map_job = 0  # the latest map job whose snapshot was logged
         self._mesh_job = 0  # the latest map job whose mesh was logged
+        self._map_anchor_poses = map_anchor_poses  # the stored submaps' (a run in a stored map)
+        self._closed: int | None = None  # the latest submap closed
+        self._registered: int | None = None  # the latest closed submap whose result is known
         pipeline.request_map_snapshots(
             MapSnapshotRequest(cfg.mesh_every_submaps, cfg.mesh_after_remap, cfg.mesh_time_share)
         )
@@ -92,6 +104,9 @@ class RunRecorder(Recorder):
             if snapshot is not None and snapshot.job > self._map_job:
                 viz.log_map_from(lambda: self._published_map(snapshot))
             viz.log_metrics_from(self._errors_so_far)
+            self._registered, self._closed = self._closed, result.closed_submap_id
+            if self._map_anchor_poses is not None:
+                self._log_map_anchoring()
         self._track(frame, result)
         if frame.index % self.cfg.scan_every == 0:
             points = np.asarray(frame.points)
@@ -109,9 +124,13 @@ class RunRecorder(Recorder):
             loops_accepted=float(self.pipeline.num_accepted_loops),
             loop_candidates=float(len(self.pipeline.loop_candidates)),
         )
+        if self._map_anchor_poses is not None:
+            viz.log_metrics(map_anchored=float(self._registered in self.pipeline.map_anchored))
 
     def finish(self) -> None:
         self._log_loops()
+        if self._map_anchor_poses is not None:
+            self._log_map_anchoring()
         self._tracks["optimized"].replace(self.pipeline.slam_poses()[:, :3, 3])
         self._log_trajectories()
         self.viz.log_map_from(lambda: self.pipeline.map_snapshot(with_mesh=True))
@@ -159,6 +178,19 @@ class RunRecorder(Recorder):
             (accepted if c.accepted and c.graph_inlier else rejected).append(segment)
         self.viz.log_loop_closures(accepted, rejected)
 
+    def _log_map_anchoring(self) -> None:
+        """A segment from each map-anchored live submap's anchor to each stored submap it was
+        registered to (the graph is in the map's frame from the placement on)."""
+        assert self._map_anchor_poses is not None
+        anchors = self.pipeline.anchor_poses()
+        segments = [
+            (anchors[live][:3, 3], self._map_anchor_poses[stored][:3, 3])
+            for live, stored_ids in self.pipeline.map_anchored.items()
+            if live in anchors
+            for stored in stored_ids
+        ]
+        self.viz.log_map_anchoring(segments)
+
     def _published_map(self, snapshot: MapSnapshot):
         """The map the map worker published: voxel centres, weights and its mesh when that is
         newer than the last one logged (a mesh every ``mesh_every_submaps`` closed submaps and
@@ -190,11 +222,18 @@ class RunRecorder(Recorder):
         return scalars
 
 
-def make_recorder(pipeline: SlamPipeline, viz: Logger, cfg: VizConfig) -> Recorder:
-    """A :class:`RunRecorder`, or a recorder that does nothing for the :class:`NullLogger`."""
+def make_recorder(
+    pipeline: SlamPipeline,
+    viz: Logger,
+    cfg: VizConfig,
+    map_anchor_poses: dict[int, np.ndarray] | None = None,
+) -> Recorder:
+    """A :class:`RunRecorder`, or a recorder that does nothing for the :class:`NullLogger`;
+    ``map_anchor_poses``: the stored submaps' anchors of a run in a stored map (it then shows
+    which of them hold the run, and each frame's status)."""
     if isinstance(viz, NullLogger):
         return Recorder()
-    return RunRecorder(pipeline, viz, cfg)
+    return RunRecorder(pipeline, viz, cfg, map_anchor_poses)
 
 
 def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:

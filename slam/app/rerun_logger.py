@@ -15,6 +15,7 @@ Entities follow the frame tree (all in the world frame ``world``)::
     world/map/voxels               Points3D, voxel centres coloured by weight
     world/map/mesh                 Mesh3D
     world/stored_map/mesh          Mesh3D, static: the map a ``--map`` run continues
+    world/stored_map/anchoring     LineStrips3D, live anchor to the stored submaps holding it
     metrics/{timing,error,counts}/<name>   Scalars
 
 Timelines: ``frame`` (sequence) and ``sensor_time`` (a duration, or a timestamp when the source
@@ -34,14 +35,13 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from frontends.frame import Intrinsics
-from slam.algorithm.viz import Logger
+from slam.algorithm.viz import Logger, Segments
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
 from slam.app.mesh_decimation import decimate_mesh
 from slam.app.recording_summary import summarize_recording
@@ -59,6 +59,7 @@ TRAJECTORY_COLORS = {
 }
 ACCEPTED_LOOP_COLOR = (40, 220, 80)
 REJECTED_LOOP_COLOR = (230, 40, 40)
+MAP_ANCHORING_COLOR = (250, 190, 30)
 UP_AXES = {"+z": 2, "+y": 1, "-y": 1}
 EPOCH_THRESHOLD_S = 1e8
 TRAJECTORY_MIN_RELOG_FRAMES = 5
@@ -336,21 +337,22 @@ class RerunLogger(Logger):
         self._trajectory_logged[name] = positions
         self._trajectory_pending.pop(name, None)
 
-    def log_loop_closures(
-        self,
-        accepted: Sequence[tuple[np.ndarray, np.ndarray]],
-        rejected: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    def log_loop_closures(self, accepted: Segments, rejected: Segments = ()) -> None:
+        self._log_segments("world/loop_closures", accepted, ACCEPTED_LOOP_COLOR, 2.5)
+        self._log_segments("world/loop_closures_rejected", rejected, REJECTED_LOOP_COLOR, 2.5)
+
+    def log_map_anchoring(self, segments: Segments) -> None:
+        self._log_segments("world/stored_map/anchoring", segments, MAP_ANCHORING_COLOR, 1.5)
+
+    def _log_segments(
+        self, entity: str, segments: Segments, color: tuple[int, int, int], radius: float
     ) -> None:
         import rerun as rr
 
-        for entity, edges, color in (
-            ("world/loop_closures", accepted, ACCEPTED_LOOP_COLOR),
-            ("world/loop_closures_rejected", rejected, REJECTED_LOOP_COLOR),
-        ):
-            strips = [np.asarray([a, b], dtype=np.float32).reshape(2, 3) for a, b in edges]
-            self.rec.log(
-                entity, rr.LineStrips3D(strips, colors=[color], radii=rr.Radius.ui_points(2.5))
-            )
+        strips = [np.asarray([a, b], dtype=np.float32).reshape(2, 3) for a, b in segments]
+        self.rec.log(
+            entity, rr.LineStrips3D(strips, colors=[color], radii=rr.Radius.ui_points(radius))
+        )
 
     # -- map ----------------------------------------------------------------------------------
 

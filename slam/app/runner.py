@@ -164,7 +164,8 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         relocaliser=relocaliser,
         encode=not localise_only,
     )
-    recorder = make_recorder(pipeline, viz, cfg.viz)
+    stored_anchors = None if relocaliser is None else relocaliser.map_anchor_poses
+    recorder = make_recorder(pipeline, viz, cfg.viz, stored_anchors)
     logger.info("%s: %d frames, sensor %s", source.name, len(source), sensor)
 
     kitti_rows: list[int] = []  # position in the sequence of each processed frame

@@ -101,6 +101,11 @@ class Relocaliser:
         self.seconds = 0.0
         self.decode_seconds = 0.0  # decoding every stored surface ahead (decode_map)
 
+    @property
+    def map_anchor_poses(self) -> dict[int, np.ndarray]:
+        """Every stored submap's anchor pose in the map's frame, ``{submap_id: T_M_A}``."""
+        return self._T_M_A
+
     def decode_map(self) -> float:
         """Decode every stored submap's surface ahead (a localisation run); returns seconds."""
         start = time.perf_counter()
