@@ -34,7 +34,9 @@ The generated street along KITTI 00 (``benchmarks.harness.kitti``) with configs/
 (every 3rd KITTI 00 pose, 1,024 firings), stretches of :data:`QUICK_STRETCH_SCANS`, the first
 :data:`QUICK_MULRAN` MulRan keyframes. ``--full`` (the default when neither is given, as run_all's
 full mode runs it): all 4,541 scans (2,048 firings), stretches of 600 scans, every keyframe.
-Writes benchmarks/results/lidar_map.md (and .json).
+Writes benchmarks/results/lidar_map.md (and .json), and lidar_map_corner.png beside it: one street
+corner of the neural maps before and as configured, from both kinds of poses, and of the ground
+truth, linked from the section (``benchmarks.lidar_map_picture``).
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ from benchmarks.harness.kitti import window as kitti_window
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA, RESULTS_DIR
 from benchmarks.harness.pipeline import add_override_arguments
+from benchmarks.lidar_map_picture import PICTURED, corner_picture
 from benchmarks.lidar_map_report import report_lines
 from common.atomic_io import write_text_atomic
 
@@ -108,8 +111,8 @@ def _neural_map(cfg, source) -> dict[str, Any]:
     }
 
 
-def street_run(quick: bool, frames: int | None, odometry: str, sets: list[str]) -> dict:
-    """configs/kitti.yaml with ``odometry`` on the street (run in a child process)."""
+def street_config(odometry: str, sets: list[str]):
+    """configs/kitti.yaml with ``odometry`` and the overrides ``sets``."""
     from benchmarks.harness.pipeline import load_config
     from slam.assembly.config import merge_overrides, set_overrides
 
@@ -117,7 +120,12 @@ def street_run(quick: bool, frames: int | None, odometry: str, sets: list[str]) 
         {"source": {"dataset": "generated"}, "odometry": {"method": odometry}},
         set_overrides(sets),
     )
-    return _neural_map(load_config("kitti", overrides), kitti_source(quick, frames))
+    return load_config("kitti", overrides)
+
+
+def street_run(quick: bool, frames: int | None, odometry: str, sets: list[str]) -> dict:
+    """configs/kitti.yaml with ``odometry`` on the street (run in a child process)."""
+    return _neural_map(street_config(odometry, sets), kitti_source(quick, frames))
 
 
 def tsdf_map(scans, poses: np.ndarray) -> dict[str, Any]:
@@ -396,6 +404,11 @@ def main(argv: list[str] | None = None) -> int:
     results["observed_samples"] = {
         f"{a}-{b}@{limit:g}": len(v) for (a, b, limit), v in scorer.observed.items()
     }
+    picture = args.out.with_name(f"{args.out.stem}_corner.png")
+    pictured = [name for name in PICTURED if name in variants]
+    max_ranges_m = {n: street_config("gt", variants[n]).submaps.max_range_m for n in pictured}
+    caption = corner_picture(picture, runs, scorer, max_ranges_m)
+    log.info("wrote %s", picture)
     lines = section_header("LiDAR map quality (neural map vs TSDF)", command)
     lines += report_lines(
         results,
@@ -406,6 +419,7 @@ def main(argv: list[str] | None = None) -> int:
         sensor_range_m=SENSOR_RANGE_M,
         tsdf_voxel_m=TSDF_VOXEL_M,
     )
+    lines += [f"![The street corner]({picture.name})", "", caption, ""]
     write_text_atomic(args.out.with_suffix(".json"), json.dumps(results, indent=2, default=float))
     write_text_atomic(args.out, "\n".join(lines) + "\n")
     log.info("wrote %s in %.0f s", args.out, results["seconds"])

@@ -12,7 +12,8 @@ compare revisions (:data:`BEFORE_AFTER`): each checks out REV beside this tree a
 in the same invocation. ``--assemble`` rebuilds ``BENCHMARKS.md`` from ``results/run_all.json``
 and the sections without running anything. The report ends with a "History" section that links
 (never inlines) the archived runs of ``benchmarks/archive/``, and must stay under
-:data:`MAX_REPORT_BYTES`.
+:data:`MAX_REPORT_BYTES`. A section's relative links (pictures beside it in
+``benchmarks/results/``) are rewritten to hold from ``BENCHMARKS.md``.
 
 ``--quick`` passes ``--quick`` to every benchmark and holds the run to a wall-clock budget
 (30 minutes by default): each benchmark may use at most twice its fair share of the time that is
@@ -26,6 +27,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -48,6 +50,8 @@ OUTPUT_FILE = REPO / "BENCHMARKS.md"
 MAX_REPORT_BYTES = 60_000
 """The assembled report's size limit: over it, :func:`assemble` says so at the top of the
 report and :func:`main` fails."""
+RELATIVE_LINK = re.compile(r"\]\((?![a-z][a-z0-9+.-]*:|#|/)([^)\s]+)\)")
+"""A Markdown link or image target that is a relative path (no scheme, anchor or root)."""
 
 BENCHMARKS = (
     "odometry",
@@ -201,7 +205,7 @@ def assemble(record: dict, *, results_dir: Path = RESULTS_DIR, output: Path = OU
             lines += [f"## {name}: {state['status'].upper()}", "", f"Command: `{state['command']}`"]
             lines += ["", "```text", state["detail"].strip(), "```", ""]
         elif section.is_file():
-            lines += [section.read_text().rstrip(), ""]
+            lines += [rebased_links(section.read_text(), results_dir, output).rstrip(), ""]
     lines += history_lines()
     text = "\n".join(lines).rstrip() + "\n"
     too_large = check_size(text)
@@ -209,6 +213,13 @@ def assemble(record: dict, *, results_dir: Path = RESULTS_DIR, output: Path = OU
         text = text.replace("\n", f"\n\n**Warning: {too_large}.**\n", 1)
     write_text_atomic(output, text)
     return output
+
+
+def rebased_links(text: str, results_dir: Path, output: Path) -> str:
+    """``text`` of a section in ``results_dir`` with its relative links made relative to the
+    folder of ``output``."""
+    prefix = Path(os.path.relpath(results_dir, output.parent)).as_posix()
+    return RELATIVE_LINK.sub(lambda link: f"]({prefix}/{link[1]})", text)
 
 
 def check_size(text: str, limit: int = MAX_REPORT_BYTES) -> str | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import itertools
 import logging
 import os
 import subprocess
@@ -162,3 +163,15 @@ def mount_tmpfs(folder: Path, size: str, read_only: bool = False) -> bool:
 def umount(folder: Path) -> None:
     """Undo :func:`mount_tmpfs`."""
     subprocess.run(["umount", str(folder)], capture_output=True)
+
+
+def positions_along(points, step_m: float, height_m: float) -> np.ndarray:
+    """(N, 3) positions every ``step_m`` or less along the polyline through the x-y ``points``
+    (its ends included), at height ``height_m``."""
+    corners = np.asarray(points, dtype=float)
+    parts = []
+    for a, b in itertools.pairwise(corners):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step_m)))
+        parts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
+    xy = np.concatenate([*parts, corners[-1:]])
+    return np.column_stack([xy, np.full(len(xy), height_m)])

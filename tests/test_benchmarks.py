@@ -107,6 +107,21 @@ def test_report_links_the_archive_and_inlines_none_of_it(tmp_path):
     assert "\n- [" not in history  # the list of runs lives in the archive's index
 
 
+def test_section_pictures_are_linked_from_the_report_folder(tmp_path):
+    results = tmp_path / "benchmarks" / "results"
+    results.mkdir(parents=True)
+    (results / "corner.png").write_bytes(b"png")
+    (results / "odometry.md").write_text(
+        "## Odometry\n\n![corner](corner.png) [web](https://x.org/a) [up](#odometry)\n"
+    )
+    record = _record("python -m benchmarks.run_all --quick")
+    output = run_all.assemble(record, results_dir=results, output=tmp_path / "B.md")
+    text = output.read_text()
+    assert "![corner](benchmarks/results/corner.png)" in text
+    assert (output.parent / "benchmarks/results/corner.png").is_file()
+    assert "[web](https://x.org/a) [up](#odometry)" in text
+
+
 def test_archive_index_lists_exactly_the_archived_reports():
     listed = indexed_files()
     assert sorted(listed) == archived_files() and len(set(listed)) == len(listed)

@@ -1,6 +1,9 @@
-"""The LiDAR map benchmark's parts: the numpy TSDF, the observed surface and its scores."""
+"""The LiDAR map benchmark's parts: the numpy TSDF, the observed surface and its scores, the
+picture of a street corner from maps in other frames."""
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,6 +20,8 @@ from benchmarks.harness.lidar_surface import (
     scan_set,
 )
 from benchmarks.harness.lidar_tsdf import BLOCK, BYTES_PER_VOXEL, LidarTsdf
+from benchmarks.lidar_map_picture import corner_panels, corner_picture
+from tests.helpers import positions_along
 
 SENSOR_Z_M = 2.0
 WALL_X_M = 10.0
@@ -128,3 +133,49 @@ def test_quick_and_full_are_exclusive() -> None:
     assert build_parser().parse_args(["--full"]).quick is False
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--quick", "--full"])
+
+
+def _poses_along(*points: tuple[float, float]) -> np.ndarray:
+    """Sensor poses every metre along the polyline through ``points``, 2 m up."""
+    positions = positions_along(points, 1.0, SENSOR_Z_M)
+    poses = np.tile(np.eye(4), (len(positions), 1, 1))
+    poses[:, :3, 3] = positions
+    return poses
+
+
+def test_corner_picture_aligns_the_slam_map_onto_the_ground_truth(tmp_path) -> None:
+    # an L-shaped drive along a floor with a block at its corner; the SLAM run's map and poses
+    # are the same in a frame turned by 30 deg and moved by about 40 m
+    gt_poses = _poses_along((-40.0, 0.0), (0.0, 0.0), (0.0, 40.0))
+    block = trimesh.creation.box([6.0, 6.0, 4.0])
+    block.apply_translation([6.0, -6.0, 2.0])
+    world = trimesh.util.concatenate([_scene_mesh(), block])
+    T_S_W = trimesh.transformations.rotation_matrix(np.radians(30), [0, 0, 1])
+    T_S_W[:3, 3] = [40.0, -10.0, 1.0]
+    slam_map = world.copy().apply_transform(T_S_W)
+    run = {"vertices": world.vertices, "faces": world.faces, "poses": gt_poses}
+    slam = {"vertices": slam_map.vertices, "faces": slam_map.faces, "poses": T_S_W @ gt_poses}
+    runs = {"gt": {"neural map": run}, "kiss-icp": {"neural map": slam}}
+    scorer = SimpleNamespace(gt_poses=gt_poses, gt_region=world)
+
+    corner, (gt_row, slam_row) = corner_panels(runs, scorer, {"neural map": 80.0})
+    np.testing.assert_allclose(corner.centre_W[:2], [0.0, 0.0], atol=1.0)
+    assert [p.title for p in gt_row] == [
+        "ground-truth poses, map to 80 m (as configured)",
+        "ground-truth mesh",
+    ]
+    (from_gt, truth), (from_slam,) = gt_row, slam_row
+    np.testing.assert_allclose(from_slam.trajectory_W, gt_poses[:, :3, 3], atol=1e-6)
+    both = np.isfinite(from_gt.heights) & np.isfinite(from_slam.heights)
+    assert both.sum() > 0.99 * np.isfinite(from_gt.heights).sum() > 0
+    same = np.abs(from_slam.heights[both] - from_gt.heights[both]) < 0.05
+    assert same.mean() > 0.98  # pixels on an edge may take the wall's or the floor's height
+    raised_gt, raised_slam = from_gt.heights > 0, from_slam.heights > 0  # the block and the wall
+    assert (raised_gt & raised_slam).sum() > 0.9 * (raised_gt | raised_slam).sum() > 0
+    assert np.mean(np.isfinite(truth.heights) == np.isfinite(from_gt.heights)) > 0.995
+    top = from_gt.heights[np.isfinite(from_gt.heights)].max()
+    assert top == pytest.approx(10.0 - SENSOR_Z_M, abs=0.01)  # the wall's top, not the floor
+
+    caption = corner_picture(tmp_path / "corner.png", runs, scorer, {"neural map": 80.0})
+    assert (tmp_path / "corner.png").stat().st_size < 400_000
+    assert "columns: map to 80 m (as configured), the ground-truth mesh" in caption
