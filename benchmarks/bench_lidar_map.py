@@ -22,8 +22,9 @@ The generated street along KITTI 00 (``benchmarks.harness.kitti``) with configs/
   run's own process (the run, its mesh and its map file); the TSDF's memory as a block-hashed
   TSDF allocates it.
 - ``--before-set KEY=VALUE`` runs the neural map a second time with those overrides, as the
-  "before" rows of the same tables (e.g. ``submaps.max_range_m=30``); ``--variant NAME
-  KEY=VALUE ...`` (repeatable) adds the rows of another configuration.
+  "before" rows of the same tables and the picture's "before" column (default
+  :data:`BEFORE_SETS`: the map cut at 30 m); ``--variant NAME KEY=VALUE ...`` (repeatable) adds
+  the rows of another configuration.
 - Real scans: the MulRan Riverside02 keyframes (``../shared/data``, skipped without them) with
   configs/lidar.yaml and the reference poses (``--odometry gt``), mesh and TSDF against the scan
   points placed by those poses. Without a ground-truth surface only precision (mesh sample to the
@@ -75,6 +76,9 @@ QUICK_MULRAN = 40
 RANGE_LIMITS_M = (30.0, 80.0)
 SENSOR_RANGE_M = 80.0
 """The range the maps are scored to, and the TSDF's integration range."""
+BEFORE_SETS = ["submaps.max_range_m=30"]
+"""The 'before' rows without ``--before-set``: the map cut at 30 m, as it was before it reached
+the sensor's range."""
 TSDF_VOXEL_M = 0.2
 OBSERVED_CHUNK_SCANS = 50
 """Scans whose points are held at once to find the observed surface (memory, full mode)."""
@@ -337,9 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _variants(args) -> dict[str, list[str]]:
     """Each neural-map row's name and its overrides: before, as configured, named variants."""
-    variants = {"neural map": args.sets}
-    if args.before_sets:
-        variants = {"neural map, before": args.sets + args.before_sets, **variants}
+    before = args.before_sets or BEFORE_SETS
+    variants = {"neural map, before": args.sets + before, "neural map": args.sets}
     for name, *sets in args.variants:
         variants[f"neural map, {name}"] = args.sets + sets
     return variants
