@@ -94,7 +94,6 @@ class RgbdOdometry(Odometry):
     Attributes:
         num_failures: frames whose pose was extrapolated because registration failed.
         num_fallbacks: frames registered to the previous frame after the keyframe failed.
-        num_keyframes: keyframes used so far.
     """
 
     def __init__(self, config: RgbdOdometryConfig | None = None, **options) -> None:
@@ -118,7 +117,6 @@ class RgbdOdometry(Odometry):
         self._T_prev_prev2 = np.eye(4)  # last relative motion, for the constant-velocity guess
         self.num_failures = 0
         self.num_fallbacks = 0
-        self.num_keyframes = 0
         self._key_cloud = None  # (points, normals, tree) of the keyframe for the covariance
         self._prev_cloud = None
         self._cov_chain = np.zeros((6, 6))  # since restart_covariance(), at the current keyframe
@@ -234,7 +232,6 @@ class RgbdOdometry(Odometry):
             self._T_W_key = self._T_W_prev = np.eye(4)
             self._key_cloud = self._prev_cloud = self._cloud(frame)
             self._cov_key_prev = np.zeros((6, 6))
-            self.num_keyframes = 1
             return OdometryResult(np.eye(4), covariance=self._covariance_since_restart())
 
         new_keyframe = False
@@ -277,7 +274,6 @@ class RgbdOdometry(Odometry):
             cov_key_cur = np.zeros((6, 6))
             self._keyframe, self._T_W_key = current, T_W_cur
             self._key_cloud = cloud
-            self.num_keyframes += 1
         self._cov_key_cur = self._cov_key_prev = cov_key_cur
         self._prev_cloud = cloud
         self._T_prev_prev2 = np.linalg.inv(self._T_W_prev) @ T_W_cur

@@ -101,7 +101,6 @@ class PoseGraph:
         self._estimate = gtsam.Values()
         self.loops: list[LoopEdge] = []
         self.map_priors: list[LoopEdge] = []  # each anchor in a stored map's frame (--map)
-        self.num_solves = 0
 
     def _new_isam(self) -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()
@@ -343,7 +342,6 @@ class PoseGraph:
 
     def _solve_gnc(self) -> None:
         """GNC over the whole graph, then re-seed iSAM2 with the inlier loops and map priors."""
-        self.num_solves += 1
         if not self._edges():
             return
         params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
@@ -414,7 +412,6 @@ class PoseGraph:
         self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate, params).optimize()
         if not self.cfg.online_gnc:
             self._update_cauchy_weights()
-        self.num_solves += 1
         return self.poses()
 
     # --- reading the estimate -----------------------------------------------------------------
