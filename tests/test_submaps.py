@@ -10,8 +10,10 @@ from common.voxel_keys import KEY_LIMIT
 from common.voxel_keys import point_voxel_keys as voxel_keys
 from frontends.frame import Frame, point_ranges_m
 from slam.algorithm.submaps import (
+    KeyframeDecisions,
     Keyframer,
     SubmapConfig,
+    SubmapPoints,
 )
 from slam.algorithm.voxel_grid import (
     DENSE_GROUPING_CELLS_PER_POINT,
@@ -241,3 +243,25 @@ def test_points_beyond_the_loop_range_are_mapped_but_left_out_of_the_loop_cloud(
     far = np.linalg.norm(got.points_A, axis=1) > 31.0
     coarse_far_rows = np.linalg.norm(coarse_far.points_A, axis=1) > 31.0
     assert 0 < coarse_far_rows.sum() < 0.5 * far.sum()
+
+
+def test_a_localisation_only_submap_keeps_its_points_without_normals() -> None:
+    """A localisation-only run registers a LiDAR submap's points alone: without normal
+    estimation the closed submap has the same loop cloud and every point the estimation keeps,
+    none with a normal."""
+    cfg = _cfg(max_distance_m=1.0, map_voxel_m=0.05, loop_voxel_m=0.1)
+    views = [Frame(index=i, timestamp=0.1 * i, points=_wall_view(i).points) for i in range(4)]
+    closed = []
+    for estimate_normals in (True, False):
+        decisions, points = KeyframeDecisions(cfg), SubmapPoints(cfg, estimate_normals)
+        for view in views:
+            points.absorb(decisions.decide(view, _pose(0.05 * view.index)), view)
+        final = decisions.decide_finish()
+        assert final is not None
+        closed.append(points.absorb(final, None))
+    mapped, located = closed
+    assert len(mapped.points_A) > 400
+    np.testing.assert_allclose(np.linalg.norm(mapped.normals_A, axis=1), 1.0)
+    assert not np.any(located.normals_A)
+    np.testing.assert_array_equal(located.loop_points_A, mapped.loop_points_A)
+    assert {tuple(p) for p in mapped.points_A} <= {tuple(p) for p in located.points_A}

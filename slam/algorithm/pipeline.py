@@ -82,7 +82,7 @@ class SlamPipeline:
         self.odometry = odometry
         self.map = neural_map
         self.keyframer = KeyframeDecisions(cfg.submaps)  # the main thread's
-        self.submap_points = SubmapPoints(cfg.submaps)  # the submap worker's
+        self.submap_points = SubmapPoints(cfg.submaps, encode)  # the submap worker's
         self._surface_full = False  # the last submap job's SubmapPoints.surface_full
         self.graph = PoseGraph(cfg.pose_graph)
         self.loop_detector = (

@@ -281,8 +281,12 @@ class SubmapPoints:
     cloud): the half of keyframing that the pipeline's submap worker runs, in the order the
     :class:`KeyframeDecisions` were taken."""
 
-    def __init__(self, cfg: SubmapConfig) -> None:
+    def __init__(self, cfg: SubmapConfig, estimate_normals: bool = True) -> None:
+        """``estimate_normals``: give points without normals of their own (LiDAR) normals when
+        a submap closes; the map encodes them, a localisation-only run registers the points
+        alone (their normals are then zero)."""
         self.cfg = cfg
+        self.estimate_normals = estimate_normals
         self._reset_points()
 
     @property
@@ -391,6 +395,8 @@ class SubmapPoints:
                 length = np.linalg.norm(normals_A, axis=1)
                 valid = length > 0.5
                 normals_A = normals_A / np.maximum(length, 1e-12)[:, None]
+            elif not self.estimate_normals:
+                valid = np.ones(len(points_A), dtype=bool)
             else:
                 normals_A, valid = estimate_normals(
                     points_A,

@@ -147,8 +147,9 @@ class MapConstraints:
         merge = self._merge
         query = np.asarray(subsample(points_A, self.cfg.max_query_points), dtype=np.float64)
         reference = self._reference(ids)
+        tree = cKDTree(reference[0])
         accepted, reason, T, scores, result = verify(
-            reference, (query, np.zeros((0, 3))), T_M_A, self._V, merge
+            reference, (query, np.zeros((0, 3))), T_M_A, self._V, merge, tree
         )
         constraint = MapConstraint(submap_id, ids, accepted, reason, T, scores=scores)
         if not accepted:
@@ -157,7 +158,7 @@ class MapConstraints:
         constraint.covariance = icp_covariance(result, merge)
         graph = None if anchor_covariance is None else anchor_covariance(submap_id)
         if graph is None or self._graph_may_be_fooled(graph):
-            self._check_ambiguity(constraint, reference, query)
+            self._check_ambiguity(constraint, reference, query, tree)
         if constraint.accepted and graph is not None:
             self._check_graph(constraint, T_M_A, graph)
         return constraint
@@ -172,17 +173,21 @@ class MapConstraints:
         return self.cfg.graph_consistency_probability <= 0 or 3.0 * sigma_m >= reach_m
 
     def _check_ambiguity(
-        self, constraint: MapConstraint, reference: tuple[np.ndarray, np.ndarray], query: np.ndarray
+        self,
+        constraint: MapConstraint,
+        reference: tuple[np.ndarray, np.ndarray],
+        query: np.ndarray,
+        tree: cKDTree,
     ) -> None:
         c, V = self.cfg, self._V
         if not c.ambiguity_check:
             return
-        tree = cKDTree(reference[0])
         gates = tuple(g * V for g in self._merge.icp_gates_vu)
+        tolerance = self._merge.icp_tolerance_vu * V
 
         def realign(guess: np.ndarray) -> np.ndarray:
             return point_to_plane_icp(
-                reference[0], reference[1], query, guess, gates, tree=tree
+                reference[0], reference[1], query, guess, gates, tolerance=tolerance, tree=tree
             ).T_ref_query
 
         radius = _centre_radius(reference[0])[1]

@@ -151,8 +151,10 @@ def verify(
     guess: np.ndarray,
     voxel_size_m: float,
     cfg: MergeConfig,
+    tree: cKDTree | None = None,
 ):
-    """ICP of decoded surfaces from a guess: ``(accepted, reason, T_ref_query, scores, result)``.
+    """ICP of decoded surfaces from a guess: ``(accepted, reason, T_ref_query, scores, result)``;
+    ``tree``: a KD-tree of the reference points already built (else one is).
 
     The ICP's gates narrow down to ``icp_gates_vu[-1]``: a wide last gate lets the parts of two
     partly overlapping surfaces that do not match pull the pose (measured on 7-Scenes redkitchen:
@@ -161,9 +163,17 @@ def verify(
     4.9 cm and 1.19 x). Overlap and residual are judged at ``overlap_gate_vu`` instead, so a
     finer pose does not change what is accepted."""
     V = voxel_size_m
-    tree = cKDTree(reference[0])
+    tree = tree if tree is not None else cKDTree(reference[0])
     gates = tuple(g * V for g in cfg.icp_gates_vu)
-    result = point_to_plane_icp(reference[0], reference[1], query[0], guess, gates, tree=tree)
+    result = point_to_plane_icp(
+        reference[0],
+        reference[1],
+        query[0],
+        guess,
+        gates,
+        tolerance=cfg.icp_tolerance_vu * V,
+        tree=tree,
+    )
     T = result.T_ref_query
     overlap, residual = _overlap(reference, query[0], T, cfg.overlap_gate_vu * V, tree)
     correction_m, correction_deg = relative_motion(guess, T)
