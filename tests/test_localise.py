@@ -177,3 +177,44 @@ def test_localise_in_a_map_sharing_no_place_ends_with_one_line(lidar_run, tmp_pa
     assert_error_line(result, "never placed", str(lidar_run.folder), str(out))
     rows = (out / "localisation.csv").read_text().splitlines()[1:]
     assert len(rows) == 15 and all(row.endswith(",odometry") for row in rows)
+
+
+def test_a_submap_seeing_the_stored_surface_only_in_part_constrains_nothing(room_sessions):
+    """After the placement, a live submap that lies on the stored surface only in part must not
+    become a prior: such a registration converges where the unmatched part pulls it. A stored
+    submap's own decoded surface, at its own pose, is accepted with a covariance no tighter than
+    its residual spread; the same surface with about 45 % of its points replaced by points
+    scattered through its bounding box (an overlap the merge's own gate still passes) is
+    rejected as a partial overlap."""
+    from slam.algorithm.merge.config import LocaliseConfig, MergeConfig
+    from slam.algorithm.merge.map_constraints import MapConstraints
+    from slam.algorithm.merge.merge import SurfaceDecoder
+    from slam.app.continue_map import load_map_folder
+    from slam.assembly.config import load_run_config
+
+    folder = room_sessions["a"]
+    stored, stored_map = load_map_folder(folder, load_run_config(folder / "config.yaml"))
+    poses = stored.session.anchor_poses()
+    submaps = {s.submap_id: s for s in stored.submaps if s.submap_id in poses}
+    merge, localise = MergeConfig(), LocaliseConfig(max_map_submaps=1, ambiguity_check=False)
+    decoder = SurfaceDecoder(stored_map, merge.surface_max_points, merge.surface_subdivisions)
+    constraints = MapConstraints(submaps, poses, decoder, stored_map.voxel_size_m, merge, localise)
+    submap = max(submaps.values(), key=lambda s: len(s.original.keys))
+    surface_A = decoder(("map", submap.submap_id), submap)[0]  # the reference's own surface
+    T_M_A = poses[submap.submap_id]
+
+    full = constraints.register(100, surface_A, T_M_A)
+    assert full is not None and full.accepted, full and full.reason
+    assert full.scores["inlier_fraction"] > 0.9
+    sigma_m = np.sqrt(np.linalg.eigvalsh(full.covariance[3:, 3:]).min())
+    assert sigma_m >= full.scores["residual_sigma_m"]
+
+    rng = np.random.default_rng(0)
+    kept = surface_A[rng.random(len(surface_A)) < 0.55]
+    low, high = surface_A.min(axis=0), surface_A.max(axis=0)
+    scattered = rng.uniform(low, high, size=(len(surface_A) - len(kept), 3))
+    partial = constraints.register(101, np.vstack([kept, scattered]), T_M_A)
+    assert partial is not None
+    assert merge.min_inlier_fraction <= partial.scores["inlier_fraction"]
+    assert partial.scores["inlier_fraction"] < localise.min_inlier_fraction
+    assert not partial.accepted and partial.reason.startswith("partial overlap")

@@ -7,13 +7,15 @@ frame) lie near the live submap's centre are the candidates, not the place descr
 submap is registered even where the descriptors would find nothing. The decoded surfaces of the
 ``max_map_submaps`` nearest (their own latents, as the merge decodes them) are put together in the
 map's frame, and the live submap's points are aligned to them by the merge's point-to-plane ICP
-and gates (:func:`slam.algorithm.merge.merge.verify`) from the current estimate ``T_M_A``. A
-registration that passes is checked like a LiDAR loop: for ambiguity along the street
-(:func:`slam.algorithm.loops.ambiguity.find_ambiguity`) and against the graph
-(:func:`slam.algorithm.loops.ambiguity.mahalanobis_distance2` of the registered anchor pose from
-the graph's, under the graph's marginal covariance of the anchor plus the registration's). The
-result is a prior on the anchor in the map's frame (the stored map is fixed: the live session
-never bends it), which the pose graph judges by GNC like a loop.
+and gates (:func:`slam.algorithm.merge.merge.verify`) from the current estimate ``T_M_A``, with
+a stricter overlap (``LocaliseConfig.min_inlier_fraction``: a submap that sees the stored surface
+only in part is pulled by the rest) and a covariance that carries the surfaces' systematic error
+(:func:`registration_covariance`). A registration that passes is checked like a LiDAR loop: for
+ambiguity along the street (:func:`slam.algorithm.loops.ambiguity.find_ambiguity`) and against
+the graph (:func:`slam.algorithm.loops.ambiguity.mahalanobis_distance2` of the registered anchor
+pose from the graph's, under the graph's marginal covariance of the anchor plus the
+registration's). The result is a prior on the anchor in the map's frame (the stored map is fixed:
+the live session never bends it), which the pose graph judges by GNC like a loop.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common.geometry import transform_points
-from common.point_to_plane import point_to_plane_icp
+from common.point_to_plane import IcpResult, point_to_plane_icp
 from common.voxel_keys import unpack_keys
 from mapping.neural_map import Submap
 from slam.algorithm.loops.ambiguity import find_ambiguity, graph_gate
@@ -69,6 +71,26 @@ def subsample(points: np.ndarray, count: int) -> np.ndarray:
 def _centre_radius(points: np.ndarray) -> tuple[np.ndarray, float]:
     centre = points.mean(axis=0)
     return centre, float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
+
+
+def registration_covariance(
+    result: IcpResult, scores: dict[str, float], query: np.ndarray, merge: MergeConfig
+) -> np.ndarray:
+    """6x6 covariance (``[rot, trans]``) of a registration to the stored map.
+
+    The ICP's (:func:`~slam.algorithm.merge.merge.icp_covariance`) treats the thousands of
+    point residuals as independent, so it claims about a millimetre, floored at the merge's
+    1 cm / 0.1 deg. A decoded surface and a live submap differ systematically by about their
+    residual spread, over the whole overlap at once: measured on 7-Scenes redkitchen, accepted
+    registrations were 1 to 8 cm off the truth and turned by a degree or more, so the first
+    ones' tight rotation made the graph reject a later correct one (and GNC the placement's).
+    The floor added here is that systematic error: translation sigma the robust residual
+    sigma over the inlier fraction (a surface seen in part pins the pose less), rotation sigma
+    that over the query's RMS radius (an offset of that size at its extent)."""
+    sigma_m = scores["residual_sigma_m"] / max(scores["inlier_fraction"], 1e-3)
+    radius_m = max(_centre_radius(query)[1], 1e-3)
+    floor = np.array([sigma_m / radius_m] * 3 + [sigma_m] * 3) ** 2
+    return icp_covariance(result, merge) + np.diag(floor)
 
 
 class MapConstraints:
@@ -151,11 +173,17 @@ class MapConstraints:
         accepted, reason, T, scores, result = verify(
             reference, (query, np.zeros((0, 3))), T_M_A, self._V, merge, tree
         )
+        if accepted and scores["inlier_fraction"] < self.cfg.min_inlier_fraction:
+            accepted = False
+            reason = (
+                f"partial overlap: inlier fraction {scores['inlier_fraction']:.2f} < "
+                f"{self.cfg.min_inlier_fraction:.2f}"
+            )
         constraint = MapConstraint(submap_id, ids, accepted, reason, T, scores=scores)
         if not accepted:
             constraint.T_M_A = T_M_A
             return constraint
-        constraint.covariance = icp_covariance(result, merge)
+        constraint.covariance = registration_covariance(result, scores, query, merge)
         graph = None if anchor_covariance is None else anchor_covariance(submap_id)
         if graph is None or self._graph_may_be_fooled(graph):
             self._check_ambiguity(constraint, reference, query, tree)

@@ -28,11 +28,14 @@ from common.geometry import orthonormalize
 from mapping.neural_map import NeuralMap
 from slam.algorithm.loops.place import PlaceDescriptor
 from slam.algorithm.merge.config import LocaliseConfig, MergeConfig
-from slam.algorithm.merge.map_constraints import MapConstraints, subsample
+from slam.algorithm.merge.map_constraints import (
+    MapConstraints,
+    registration_covariance,
+    subsample,
+)
 from slam.algorithm.merge.merge import (
     SessionInput,
     SurfaceDecoder,
-    icp_covariance,
     rank_matches,
     verify,
 )
@@ -162,6 +165,6 @@ class Relocaliser:
                     T_Am_A,
                     self.attempts,
                     scores,
-                    icp_covariance(result, cfg),
+                    registration_covariance(result, scores, query[0], cfg),
                 )
         return None
