@@ -58,7 +58,7 @@ $(KISS_SLAM_VENV)/.installed:
 
 kiss-slam-env: $(KISS_SLAM_VENV)/.installed
 
-# Regenerate BENCHMARKS.md and benchmarks/results/ (quick: < 30 min on 2 cores, no KISS-SLAM).
+# Regenerate BENCHMARKS.md and benchmarks/results/ (quick: < 35 min on 2 cores, no KISS-SLAM).
 # A KISS-SLAM environment that cannot be created makes its rows say "skipped: <reason>".
 bench-quick: setup
 	BENCH_INVOKED_AS="make bench-quick$(BEFORE_LABEL)" $(PY) -m benchmarks.run_all --quick $(BENCH_ARGS)
