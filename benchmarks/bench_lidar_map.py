@@ -64,7 +64,7 @@ from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA, RESULTS_DIR
 from benchmarks.harness.pipeline import add_override_arguments
 from benchmarks.lidar_map_picture import PICTURED, corner_picture
-from benchmarks.lidar_map_report import report_lines
+from benchmarks.lidar_map_report import BEFORE_ROWS, report_lines
 from common.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.bench_lidar_map")
@@ -342,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _variants(args) -> dict[str, list[str]]:
     """Each neural-map row's name and its overrides: before, as configured, named variants."""
     before = args.before_sets or BEFORE_SETS
-    variants = {"neural map, before": args.sets + before, "neural map": args.sets}
+    variants = {BEFORE_ROWS: args.sets + before, "neural map": args.sets}
     for name, *sets in args.variants:
         variants[f"neural map, {name}"] = args.sets + sets
     return variants

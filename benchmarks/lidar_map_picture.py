@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-PICTURED = {"neural map, before": "before", "neural map": "as configured"}
+from benchmarks.lidar_map_report import BEFORE_ROWS
+
+PICTURED = {BEFORE_ROWS: "before", "neural map": "as configured"}
 """The neural-map rows pictured (columns), as the caption names them."""
 POSE_ROWS = {"gt": "ground-truth poses", "kiss-icp": "SLAM poses"}
 """The kinds of run pictured (rows)."""

@@ -25,6 +25,11 @@ def _cm(value: float) -> str:
     return f"{100 * value:.1f}"
 
 
+BEFORE_ROWS = "neural map, before"
+"""The rows of the 'before' configuration: shown over all scans only (per stretch, the sharpness
+in question is today's map's; the .json keeps every stretch)."""
+
+
 def _quality_table(by_name: dict[str, dict], points_only: bool) -> list[str]:
     metrics = [(f"precision_{t:g}", f"P@{100 * t:g}") for t in POINT_THRESHOLDS_M]
     if not points_only:
@@ -38,6 +43,8 @@ def _quality_table(by_name: dict[str, dict], points_only: bool) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for name, run in by_name.items():
         for row in run["scores"]:
+            if name == BEFORE_ROWS and row["region"] != "global":
+                continue
             cells = [name, row["region"], f"{row['range_m']:g} m"]
             cells += [f"{row[key]:.3f}" for key, _ in metrics]
             cells.append(_cm(row["accuracy_m"]))
@@ -90,7 +97,7 @@ def target_lines(by_name: dict[str, dict], range_m: float) -> list[str]:
             file_share <= TARGET_FILE_SHARE,
         ),
     ]
-    before = by_name.get("neural map, before")
+    before = by_name.get(BEFORE_ROWS)
     if before is not None:
         for key, label in (("wall_s", "wall time"), ("peak_rss_mb", "peak RSS")):
             ratio = ours["cost"][key] / before["cost"][key]

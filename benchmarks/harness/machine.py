@@ -73,9 +73,22 @@ def machine_description() -> dict[str, str]:
     }
 
 
+SECTION_KEYS = (
+    "cpu",
+    "cores",
+    "load average (1, 5, 15 min)",
+    "torch",
+    "revision",
+    "date",
+)
+"""What a section's machine line repeats of :func:`machine_description`; the report's header
+(``benchmarks.run_all``) holds the rest (the other versions, the platform) once."""
+
+
 def machine_line() -> str:
-    """:func:`machine_description` as one line for a section header."""
-    return "; ".join(f"{key} {value}" for key, value in machine_description().items())
+    """:func:`machine_description` as one line for a section header (:data:`SECTION_KEYS`)."""
+    described = machine_description()
+    return "; ".join(f"{key} {described[key]}" for key in SECTION_KEYS)
 
 
 def section_header(title: str, command: str) -> list[str]:
