@@ -35,8 +35,8 @@ import yaml
 
 from benchmarks.harness.child import run_command
 from benchmarks.harness.machine import section_header
-from benchmarks.harness.paths import REPO, RESULTS_DIR
-from common.atomic_io import write_text_atomic
+from benchmarks.harness.paths import REPO
+from benchmarks.harness.results import write_results
 from slam.app.fleet_plan import TASK_MEMORY_MB, merge_levels
 
 # quick: the 120-frame lap, coarse depth/map/mesh, 24-frame windows; full: `slam.run demo` as
@@ -305,9 +305,7 @@ def main(argv: list[str] | None = None) -> None:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     command = "python -m benchmarks.bench_fleet" + (" --quick" if args.quick else "")
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(RESULTS_DIR / "fleet.json", json.dumps(results, indent=2) + "\n")
-    write_text_atomic(RESULTS_DIR / "fleet.md", report(results, command))
+    write_results("fleet", results, report(results, command))
 
 
 if __name__ == "__main__":

@@ -33,7 +33,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,8 +43,8 @@ import numpy as np
 from benchmarks.harness.child import in_child_measured, run_command
 from benchmarks.harness.kitti import FULL, KITTI_CALIB, KITTI_POSES, have_kitti
 from benchmarks.harness.machine import section_header
-from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
-from common.atomic_io import write_text_atomic
+from benchmarks.harness.paths import DATA, REPO
+from benchmarks.harness.results import run_scenarios, write_results
 
 NO_VIZ = ["--no-viz", "--no-progress", "--set", "output.mesh_samples=0"]
 STREET = ["kitti", "00", "--set", "source.kitti.correct_vertical_angle=false"]
@@ -294,16 +293,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
-    results = {}
-    for name in args.scenario or (SCENARIOS if args.full else QUICK_SCENARIOS):
-        work = Path(tempfile.mkdtemp(prefix=f"localise-{name}-", dir=args.work))
-        try:
-            results[name] = scenario(name, args.full, work)
-        except FileNotFoundError as exc:
-            results[name] = {"skipped": str(exc)}
+    names = args.scenario or (SCENARIOS if args.full else QUICK_SCENARIOS)
+    results = run_scenarios(
+        names, lambda name, work: scenario(name, args.full, work), "localise", args.work
+    )
     command = "python -m benchmarks.bench_localise " + " ".join(argv or sys.argv[1:])
-    write_text_atomic(RESULTS_DIR / "localise.json", json.dumps(results, indent=2) + "\n")
-    write_text_atomic(RESULTS_DIR / "localise.md", report(results, command.strip()))
+    write_results("localise", results, report(results, command.strip()))
 
 
 if __name__ == "__main__":

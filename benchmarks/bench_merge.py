@@ -30,7 +30,6 @@ import json
 import os
 import shutil
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,9 +39,9 @@ import numpy as np
 from benchmarks.harness.child import run_command
 from benchmarks.harness.kitti import FULL, QUICK, have_kitti, kitti_root, kitti_source
 from benchmarks.harness.machine import section_header
-from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
+from benchmarks.harness.paths import DATA, REPO
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line
-from common.atomic_io import write_text_atomic
+from benchmarks.harness.results import run_scenarios, write_results
 
 SEVEN_SCENES = DATA / "7scenes_redkitchen"
 
@@ -337,17 +336,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
-    results = {}
-    scenarios = args.scenario or (QUICK_SCENARIOS if args.quick else FULL_SCENARIOS)
-    for name in scenarios:
-        work = Path(tempfile.mkdtemp(prefix=f"merge-{name}-", dir=args.work))
-        try:
-            results[name] = scenario(name, args.quick, work)
-        except FileNotFoundError as exc:
-            results[name] = {"skipped": str(exc)}
+    names = args.scenario or (QUICK_SCENARIOS if args.quick else FULL_SCENARIOS)
+    results = run_scenarios(
+        names, lambda name, work: scenario(name, args.quick, work), "merge", args.work
+    )
     command = "python -m benchmarks.bench_merge " + " ".join(argv or sys.argv[1:])
-    write_text_atomic(RESULTS_DIR / "merge.json", json.dumps(results, indent=2) + "\n")
-    write_text_atomic(RESULTS_DIR / "merge.md", report(results, command.strip()))
+    write_results("merge", results, report(results, command.strip()))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,38 @@
+"""A benchmark's scenarios, each in a work folder of its own, and its two result files."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+from benchmarks.harness.paths import RESULTS_DIR
+from common.atomic_io import write_text_atomic
+
+
+def run_scenarios(
+    names: Iterable[str],
+    run: Callable[[str, Path], dict[str, Any]],
+    prefix: str,
+    work_root: Path | None,
+) -> dict[str, dict[str, Any]]:
+    """``run(name, work)`` of each scenario, in a new folder ``work`` under ``work_root`` (the
+    system's temporary folder without one); a scenario whose data is absent (its
+    ``FileNotFoundError``) is recorded as ``{"skipped": reason}``."""
+    results = {}
+    for name in names:
+        work = Path(tempfile.mkdtemp(prefix=f"{prefix}-{name}-", dir=work_root))
+        try:
+            results[name] = run(name, work)
+        except FileNotFoundError as exc:
+            results[name] = {"skipped": str(exc)}
+    return results
+
+
+def write_results(stem: str, results: dict[str, Any], markdown: str) -> None:
+    """``benchmarks/results/<stem>.json`` (the numbers) and ``<stem>.md`` (the section)."""
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(RESULTS_DIR / f"{stem}.json", json.dumps(results, indent=2) + "\n")
+    write_text_atomic(RESULTS_DIR / f"{stem}.md", markdown)
