@@ -279,7 +279,13 @@ class StreetScorer:
         return rows
 
 
-def mulran_scores(result: dict, frames: int | None, limits: list[float]) -> list[dict]:
+def mulran_scores(
+    result: dict, run_poses: np.ndarray | None, frames: int | None, limits: list[float]
+) -> list[dict]:
+    """Precision of a MulRan map against the scan points placed by the reference poses. A run's
+    mesh is in the frame its files claim, the first scan's, so it is carried into the reference
+    poses' world by the first reference pose (no alignment); a TSDF built at the reference poses
+    (``run_poses`` None) is already there."""
     from benchmarks.harness.lidar_surface import point_precision
 
     _, source = _mulran_config(frames, [])
@@ -287,7 +293,7 @@ def mulran_scores(result: dict, frames: int | None, limits: list[float]) -> list
     points = np.concatenate(
         [frame.points @ T[:3, :3].T + T[:3, 3] for frame, T in zip(source, poses, strict=True)]
     )
-    mesh = _mesh(result)
+    mesh = _mesh(result, None if run_poses is None else poses[0] @ np.linalg.inv(run_poses[0]))
     return [
         {
             "region": "global",
@@ -307,7 +313,7 @@ def _scores(
 ) -> list[dict]:
     """The score rows of one map built at ``poses`` (run in a child process)."""
     if kind == "mulran":
-        return mulran_scores(result, *mulran)
+        return mulran_scores(result, poses, *mulran)
     return scorer.score(result, poses, per_stretch=kind == "kiss-icp")
 
 

@@ -20,9 +20,11 @@ from benchmarks.harness.lidar_surface import (
     scan_set,
 )
 from benchmarks.harness.lidar_tsdf import BLOCK, BYTES_PER_VOXEL, LidarTsdf
+from benchmarks.harness.paths import DATA
 from benchmarks.lidar_map_picture import corner_panels, corner_picture
 from tests.helpers import positions_along
 
+MULRAN_SCANS = DATA / "mulran_riverside02_keyframes" / "scans"
 SENSOR_Z_M = 2.0
 WALL_X_M = 10.0
 
@@ -179,3 +181,27 @@ def test_corner_picture_aligns_the_slam_map_onto_the_ground_truth(tmp_path) -> N
     caption = corner_picture(tmp_path / "corner.png", runs, scorer, {"neural map": 80.0})
     assert (tmp_path / "corner.png").stat().st_size < 400_000
     assert "columns: map to 80 m (as configured), the ground-truth mesh" in caption
+
+
+@pytest.mark.skipif(
+    not MULRAN_SCANS.is_dir(), reason=f"no MulRan keyframes under {MULRAN_SCANS.parent}"
+)
+def test_mulran_map_is_scored_in_the_frame_its_run_claims() -> None:
+    """A run's mesh is in its first scan's frame; the reference poses' first pose is not the
+    identity (about 1 deg off). A mesh lying on the first keyframe's points in that scan's frame
+    must score as precise, which only holds once carried by the first reference pose."""
+    from benchmarks.bench_lidar_map import _mulran_config, mulran_scores
+
+    _, source = _mulran_config(1, [])
+    points = source[0].points
+    offsets = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0]])
+    result = {
+        "vertices": (points[:, None, :] + offsets).reshape(-1, 3),
+        "faces": np.arange(3 * len(points)).reshape(-1, 3),
+    }
+    run_poses = np.eye(4)[None]
+    (scored,) = mulran_scores(result, run_poses, 1, [80.0])
+    assert scored["precision_0.1"] > 0.95
+    assert scored["accuracy_m"] < 0.03
+    unmoved = mulran_scores(result, None, 1, [80.0])[0]
+    assert unmoved["precision_0.1"] < 0.8
