@@ -3,43 +3,35 @@
     python -m benchmarks.bench_accuracy [--before REV] [--quick] [--out FILE.md]
     python -m benchmarks.bench_accuracy --report-only
 
-Runs, each in its own process (``NullLogger``, map on the CPU, one torch thread):
-
-* real 7-Scenes redkitchen seq-01 frames 0-399 with configs/7scenes.yaml (skipped when
-  ../shared/data is absent);
-* the generated RGB-D room with configs/demo.yaml.
-
-``--before REV`` runs the same scenarios with revision REV, checked out beside this tree, in the
-same invocation, so both end up in one before/after table. For every run the section lists each
-verified loop edge's error against the ground-truth relative pose of the two anchors, and
-whether the pose graph kept it. ``benchmarks/results/accuracy.json`` holds this invocation only.
+Runs, each in its own process (``NullLogger``, map on the CPU, one torch thread): 7-Scenes
+redkitchen seq-01 frames 0-399 with configs/7scenes.yaml (skipped without ../shared/data) and
+the generated RGB-D room with configs/demo.yaml. ``--before REV`` runs them also at REV, checked
+out beside this tree, into the same table. Every verified loop edge is listed with its error
+against the ground truth and whether the pose graph kept it.
 """
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import datetime as dt
 import json
 import logging
 import os
-import shlex
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from benchmarks.harness.checkout import checkout
+from benchmarks.harness.checkout import revisions
 from benchmarks.harness.child import UnsupportedRevision, in_child
+from benchmarks.harness.cli import bench_parser, command_line
 from benchmarks.harness.machine import git_revision, machine_line
 from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
 from benchmarks.harness.pipeline import anchor_frames, load_config, run_pipeline, trajectory_summary
-from benchmarks.harness.repeat import repeat_runs, repeats_line
+from benchmarks.harness.repeat import repeat_runs, repeats_line, restore_all
+from benchmarks.harness.results import cm, table
 from common.atomic_io import write_text_atomic
 from slam.assembly.config import merge_overrides
-
-RESULTS = RESULTS_DIR
 
 log = logging.getLogger("benchmarks.bench_accuracy")
 
@@ -60,12 +52,8 @@ def _depth_agreements(pipeline, source, a: int, b: int, T_a_b: np.ndarray, truth
 
 
 def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[str, float]:
-    """Median depth agreement of frame pairs ``(k, k + gap)`` under three sets of poses.
-
-    Needs no ground truth: a relative pose under which the two depth images agree better is
-    more consistent with the sensor. Reported for the ground truth, the odometry and the SLAM
-    poses, so that a trajectory error against the ground truth can be put into proportion.
-    """
+    """Median depth agreement of frame pairs ``(k, k + gap)`` under the ground-truth, odometry
+    and SLAM poses: how consistent each is with the sensor, with no ground truth needed."""
     from slam.algorithm.loops.keyframes import depth_agreement
     from slam.algorithm.loops.rgbd_verify import RgbdVerifier
 
@@ -117,10 +105,7 @@ SCENARIOS = {
     ),
     "room": ("generated room (demo config)", "demo", {}, "generated"),
 }
-
-
-def _cm(value: float) -> str:
-    return f"{100 * value:.1f}"
+"""Per scenario: its title, config, overrides and dataset."""
 
 
 def write_report(path: Path, saved: dict[str, Any]) -> None:
@@ -138,33 +123,46 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
         "within 3 cm; higher = more consistent with the sensor.",
         repeats_line(deterministic="Accuracy is the same in every run (deterministic)."),
         "",
-        "| run | label | revision | ATE odometry [cm] | ATE SLAM [cm] | SLAM per axis x / y / z "
-        "[cm] | loops verified / kept | loop error median [cm / deg] | loop error max "
-        "[cm / deg] | depth agreement, frames k / k+20: GT / odometry / SLAM | frames/s | "
-        "load avg |",
-        "|---|---|---|---:|---:|---|---|---|---|---|---:|---:|",
     ]
+    rows = []
     for key, (title, *_rest) in SCENARIOS.items():
         for label, runs in saved["runs"].items():
             r = runs.get(key)
             if r is None:
                 continue
             if "unsupported" in r:
-                lines.append(f"| {title} | {label} | {runs['_revision']} | {r['unsupported']} |")
+                rows.append([title, label, runs["_revision"], r["unsupported"]])
                 continue
             err = np.array([[e["error_m"], e["error_deg"]] for e in r["loops"]]).reshape(-1, 2)
-            median = (
-                f"{_cm(np.median(err[:, 0]))} / {np.median(err[:, 1]):.2f}" if len(err) else "-"
-            )
-            worst = f"{_cm(err[:, 0].max())} / {err[:, 1].max():.2f}" if len(err) else "-"
-            axes = " / ".join(_cm(v) for v in r["ate_xyz_slam_m"])
+            median = worst = "-"
+            if len(err):
+                median = f"{cm(np.median(err[:, 0]))} / {np.median(err[:, 1]):.2f}"
+                worst = f"{cm(err[:, 0].max())} / {err[:, 1].max():.2f}"
             pc = r.get("pose_consistency")
             consistency = f"{pc['gt']:.3f} / {pc['odometry']:.3f} / {pc['slam']:.3f}" if pc else "-"
-            lines.append(
-                f"| {title} | {label} | {runs['_revision']} | {_cm(r['ate_odometry_m'])} | "
-                f"{_cm(r['ate_slam_m'])} | {axes} | {r['verified']} / {r['kept']} | {median} | "
-                f"{worst} | {consistency} | {r['fps']:.1f} | {r['load_avg'][0]:.1f} |"
+            rows.append(
+                [
+                    title,
+                    label,
+                    runs["_revision"],
+                    cm(r["ate_odometry_m"]),
+                    cm(r["ate_slam_m"]),
+                    " / ".join(cm(v) for v in r["ate_xyz_slam_m"]),
+                    f"{r['verified']} / {r['kept']}",
+                    median,
+                    worst,
+                    consistency,
+                    f"{r['fps']:.1f}",
+                    f"{r['load_avg'][0]:.1f}",
+                ]
             )
+    header = (
+        "run | label | revision | ATE odometry [cm] | ATE SLAM [cm] | SLAM per axis "
+        "x / y / z [cm] | loops verified / kept | loop error median [cm / deg] | loop error "
+        "max [cm / deg] | depth agreement, frames k / k+20: GT / odometry / SLAM | "
+        "frames/s | load avg"
+    )
+    lines += table(header, rows, "lllrrlllllrr")
     lines += [
         "",
         "### Every loop edge against ground truth",
@@ -190,41 +188,38 @@ def write_report(path: Path, saved: dict[str, Any]) -> None:
             ]
             if not r["loops"]:
                 continue
-            lines += [
-                "| edge i-j (frames) | found by | error [cm] | error [deg] | kept by graph | "
-                "depth agreement: edge / ground truth |",
-                "|---|---|---:|---:|---|---|",
-            ]
+            rows = []
             for e in r["loops"]:
+                agreement = "-"
+                if e.get("depth_agreement_gt") is not None:
+                    agreement = f"{e['depth_agreement_edge']:.2f} / {e['depth_agreement_gt']:.2f}"
                 frames = "-".join(str(f) for f in e.get("frames", []))
-                agreement = (
-                    f"{e['depth_agreement_edge']:.2f} / {e['depth_agreement_gt']:.2f}"
-                    if e.get("depth_agreement_gt") is not None
-                    else "-"
+                rows.append(
+                    [
+                        f"{e['i']}-{e['j']} ({frames})",
+                        e.get("detector", ""),
+                        cm(e["error_m"]),
+                        f"{e['error_deg']:.2f}",
+                        "yes" if e["kept"] else "no",
+                        agreement,
+                    ]
                 )
-                lines.append(
-                    f"| {e['i']}-{e['j']} ({frames}) | {e.get('detector', '')} | "
-                    f"{_cm(e['error_m'])} | {e['error_deg']:.2f} | "
-                    f"{'yes' if e['kept'] else 'no'} | {agreement} |"
-                )
-            lines.append("")
+            header = (
+                "edge i-j (frames) | found by | error [cm] | error [deg] | kept by graph | "
+                "depth agreement: edge / ground truth"
+            )
+            lines += [*table(header, rows, "llrrll"), ""]
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before", metavar="REV", help="also run revision REV")
-    parser.add_argument("--out", type=Path, default=RESULTS / "accuracy.md")
+def build_parser():
+    parser = bench_parser(
+        __doc__, "the generated room only", before=True, out=RESULTS_DIR / "accuracy.md"
+    )
     parser.add_argument("--only", choices=sorted(SCENARIOS), action="append")
     parser.add_argument("--report-only", action="store_true")
     parser.add_argument(
-        "--quick", action="store_true", help="the generated room only (run_all --quick)"
-    )
-    parser.add_argument(
-        "--override",
-        type=json.loads,
-        default={},
-        help="config overrides for every run, as JSON (e.g. '{\"pose_graph\": {...}}')",
+        "--override", type=json.loads, default={}, help="config overrides for every run, as JSON"
     )
     return parser
 
@@ -235,19 +230,10 @@ def main(argv: list[str] | None = None) -> int:
     log.setLevel(logging.INFO)
     raw = args.out.with_suffix(".json")
     if args.report_only:
-        write_report(args.out, json.loads(raw.read_text()))
+        write_report(args.out, restore_all(json.loads(raw.read_text())))
         return 0
-    shown = sys.argv[1:] if argv is None else argv
-    saved: dict[str, Any] = {
-        "command": shlex.join(["python", "-m", "benchmarks.bench_accuracy", *shown]),
-        "machine": machine_line(),
-        "runs": {},
-    }
-    with contextlib.ExitStack() as stack:
-        codes: dict[str, Path | None] = {}
-        if args.before:
-            codes["before"] = stack.enter_context(checkout(args.before))
-        codes["after"] = None
+    saved = {"command": command_line("bench_accuracy", argv), "machine": machine_line(), "runs": {}}
+    with revisions(args.before, "before") as codes:
         for label, code in codes.items():
             runs = saved["runs"].setdefault(label, {})
             runs["_revision"] = git_revision(code or REPO)
@@ -270,8 +256,8 @@ def main(argv: list[str] | None = None) -> int:
                     "%s %s: ATE odometry %s cm, SLAM %s cm, loops verified/kept %d/%d, %.1f fps",
                     key,
                     label,
-                    _cm(r["ate_odometry_m"]),
-                    _cm(r["ate_slam_m"]),
+                    cm(r["ate_odometry_m"]),
+                    cm(r["ate_slam_m"]),
                     r["verified"],
                     r["kept"],
                     r["fps"],

@@ -3,25 +3,18 @@ and one global merge against pairwise merges in a tree.
 
     python -m benchmarks.bench_fleet [--quick]
 
-Sessions are overlapping windows of the generated RGB-D room (each shares places with the next).
-1. Four sessions: ``slam.run`` on each in turn (all cores each) then ``slam.merge``, against
-   ``slam.fleet`` on a local Ray with 2 CPUs (one thread each, two at a time). Wall time, and
-   the peak memory of the machine: the largest resident set of the serial processes, against
-   the sum over the fleet's whole process tree (driver, Ray's own processes, tasks), sampled
-   twice a second.
-2. The fleet again on the same folder with eight sessions: the four finished are reused.
-3. Merges of 2, 4 and 8 of these sessions: one ``slam.merge`` of all, against ``slam.merge`` of
-   neighbours in pairs and then of the pairs' results (the tree ``slam.fleet --merge tree``
-   runs; its merges run one after the other here, and the critical path is what a cluster that
-   runs each level's merges at once would wait).
-4. On paper: 100 drives on a 16-node cluster, from these per-task figures.
-
-Writes ``benchmarks/results/fleet.md`` and ``.json``.
+Sessions are overlapping windows of the generated RGB-D room. 1. Four sessions: ``slam.run`` on
+each in turn then ``slam.merge``, against ``slam.fleet`` on a local Ray with 2 CPUs: wall time
+and peak memory (the largest serial process against the fleet's whole process tree, sampled
+twice a second). 2. The fleet again with eight sessions, the four finished reused. 3. Merges of
+2, 4 and 8 sessions: one global ``slam.merge`` against the tree ``slam.fleet --merge tree`` runs
+(its critical path is what a cluster running each level at once would wait). 4. On paper: 100
+drives on a 16-node cluster, from these per-task figures. Writes ``benchmarks/results/fleet.md``
+and ``.json``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -34,7 +27,8 @@ import numpy as np
 import yaml
 
 from benchmarks.harness.child import run_command
-from benchmarks.harness.machine import section_header
+from benchmarks.harness.cli import bench_parser
+from benchmarks.harness.machine import proc_memory_kib, section_header
 from benchmarks.harness.paths import REPO
 from benchmarks.harness.results import write_results
 from slam.app.fleet_plan import TASK_MEMORY_MB, merge_levels
@@ -51,10 +45,8 @@ CLUSTER = {"drives": 100, "nodes": 16, "cores": 16, "memory_gb": 64, "drive_fram
 
 
 def _windows(mode: dict, count: int) -> list[str]:
-    return [
-        f"{k * mode['stride']}:{min(k * mode['stride'] + mode['window'], mode['frames'])}"
-        for k in range(count)
-    ]
+    starts = [k * mode["stride"] for k in range(count)]
+    return [f"{a}:{min(a + mode['window'], mode['frames'])}" for a in starts]
 
 
 def _set_args(mode: dict) -> list[str]:
@@ -69,15 +61,11 @@ def _tree_rss_mb(root_pid: int) -> float:
         if not entry.name.isdigit():
             continue
         try:
-            stat = (entry / "stat").read_text()
-            status = (entry / "status").read_text()
-        except OSError:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
             continue
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
         children.setdefault(ppid, []).append(int(entry.name))
-        rss[int(entry.name)] = next(
-            (int(line.split()[1]) for line in status.splitlines() if line.startswith("VmRSS:")), 0
-        )
+        rss[int(entry.name)] = proc_memory_kib(entry.name).get("VmRSS", 0)
     total, stack = 0, [root_pid]
     while stack:
         pid = stack.pop()
@@ -112,8 +100,17 @@ def serial(mode: dict, work: Path, windows: list[str]) -> dict[str, Any]:
         command = ["-m", "slam.run", "demo", "--frames", frames, "--no-viz", "--no-progress",
                    "--out", str(work / f"s{k}"), *_set_args(mode)]  # fmt: skip
         runs.append(_measure(command, work / f"s{k}.log"))
-    merged = _measure(["-m", "slam.merge", *(str(work / f"s{k}") for k in range(len(windows))),
-                       "--out", str(work / "s-merged"), "--no-viz"], work / "s-merge.log")
+    merged = _measure(
+        [
+            "-m",
+            "slam.merge",
+            *(str(work / f"s{k}") for k in range(len(windows))),
+            "--out",
+            str(work / "s-merged"),
+            "--no-viz",
+        ],
+        work / "s-merge.log",
+    )
     return {
         "wall_s": sum(r["wall_s"] for r in runs) + merged["wall_s"],
         "peak_mb": max(r["peak_rss_mb"] for r in [*runs, merged]),
@@ -273,16 +270,14 @@ def report(results: dict[str, Any], command: str) -> str:
 def _tree_verdict(row: dict[str, Any]) -> str:
     g, t = row["global"], row["tree"]
     return (
-        f"{row['sessions']} sessions: the tree's critical path {t['critical_s']:.1f} s against "
-        f"the global merge's {g['wall_s']:.1f} s, peak {t['peak_rss_mb']:.0f} against "
-        f"{g['peak_rss_mb']:.0f} MB"
+        f"{row['sessions']} sessions: the tree's critical path {t['critical_s']:.1f} s "
+        f"against the global merge's {g['wall_s']:.1f} s, peak {t['peak_rss_mb']:.0f} "
+        f"against {g['peak_rss_mb']:.0f} MB"
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="coarse settings, short windows")
-    return parser
+def build_parser():
+    return bench_parser(__doc__, "coarse settings, short windows")
 
 
 def main(argv: list[str] | None = None) -> None:

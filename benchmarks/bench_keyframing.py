@@ -2,39 +2,34 @@
 
     python -m benchmarks.bench_keyframing [--frames N] [--before REV] [--quick]
 
-Feeds the first N scans of benchmarks.harness.kitti's generated KITTI-00 sequence (the full
-window, ~127k points a scan; ``--quick``: the quick window) with their ground-truth poses to a
-:class:`slam.algorithm.submaps.Keyframer` with ``configs/kitti.yaml``'s submap settings, alone in
-a process with one BLAS thread, as the pipeline runs it. Reports the CPU time of the calling
-thread (``time.thread_time``, so other processes on the machine inflate it less than wall time)
-per frame, split into frames that only accumulate and frames that also close a submap
-(compaction, normals, loop cloud), and what was closed (submaps, map points), so that two
-revisions can be checked to produce the same map. Each revision runs ``REPEATS`` times (its
-own process each); the timings are their median (min-max). ``--before REV`` measures revision
-REV too, checked out beside this tree, in the same invocation.
+The first N scans of benchmarks.harness.kitti's sequence (``--quick``: of the quick window) with
+their ground-truth poses go to a :class:`slam.algorithm.submaps.Keyframer` with
+``configs/kitti.yaml``'s settings, alone in a process with one BLAS thread. Reported: the calling
+thread's CPU time per frame, for frames that only accumulate and frames that close a submap, and
+what was closed (two revisions must produce the same map). ``REPEATS`` processes per revision;
+``--before REV`` measures REV too, checked out beside this tree.
 """
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import datetime as dt
 import json
 import logging
 import os
-import shlex
 import sys
 import time
 
 import numpy as np
 
 from benchmarks.bench_throughput import _config
-from benchmarks.harness.checkout import checkout
+from benchmarks.harness.checkout import revisions
 from benchmarks.harness.child import UnsupportedRevision, in_child
+from benchmarks.harness.cli import bench_parser, command_line, start_logging
 from benchmarks.harness.kitti import kitti_source, window
 from benchmarks.harness.machine import machine_line
 from benchmarks.harness.paths import RESULTS_DIR
 from benchmarks.harness.repeat import repeat_runs, repeats_line
+from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 
 RESULTS = RESULTS_DIR / "keyframing.json"
@@ -97,28 +92,34 @@ def write_report(saved: dict) -> None:
         "thread. *close* includes compaction, normals and the loop cloud of the closed submap.",
         repeats_line(deterministic="Submaps and map points are the same in every run."),
         "",
-        "| code | date | load | points/scan | ms/frame | accumulate median ms | close mean ms "
-        "| submaps | map points |",
-        "|---|---|---|---|---|---|---|---|---|",
     ]
+    lines += table(
+        "code | date | load | points/scan | ms/frame | accumulate median ms | close "
+        "mean ms | submaps | map points",
+        [],
+    )
     for key, r in saved["runs"].items():
         if "unsupported" in r:
             lines.append(f"| {key} | {r['unsupported']} |||||||")
             continue
-        lines.append(
-            f"| {key} | {r['date']} | {r['load_start']:.1f}-{r['load_end']:.1f} "
-            f"| {r['points_per_frame']:.0f} | {r['cpu_ms_per_frame']:.1f} "
-            f"| {r['accumulate_cpu_ms_median']:.1f} | {r['close_cpu_ms_mean']:.0f} "
-            f"| {r['submaps']} | {r['map_points']} |"
-        )
+        cells = [
+            key,
+            r["date"],
+            f"{r['load_start']:.1f}-{r['load_end']:.1f}",
+            f"{r['points_per_frame']:.0f}",
+            f"{r['cpu_ms_per_frame']:.1f}",
+            f"{r['accumulate_cpu_ms_median']:.1f}",
+            f"{r['close_cpu_ms_mean']:.0f}",
+            r["submaps"],
+            r["map_points"],
+        ]
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
     write_text_atomic(REPORT, "\n".join(lines) + "\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser():
+    parser = bench_parser(__doc__, f"the first {QUICK_FRAMES} scans", before=True)
     parser.add_argument("--frames", type=int, default=500, help="first N scans")
-    parser.add_argument("--quick", action="store_true", help=f"the first {QUICK_FRAMES} scans")
-    parser.add_argument("--before", metavar="REV", help="also measure revision REV")
     return parser
 
 
@@ -126,20 +127,15 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.quick:
         args.frames = min(args.frames, QUICK_FRAMES)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    shown = sys.argv[1:] if argv is None else argv
+    start_logging("%(asctime)s %(name)s: %(message)s")
     saved = {
-        "command": shlex.join(["python", "-m", "benchmarks.bench_keyframing", *shown]),
+        "command": command_line("bench_keyframing", argv),
         "machine": machine_line(),
         "quick": args.quick,
         "frames": args.frames,
         "runs": {},
     }
-    with contextlib.ExitStack() as stack:
-        codes = {}
-        if args.before:
-            codes[f"before {args.before}"] = stack.enter_context(checkout(args.before))
-        codes["after"] = None
+    with revisions(args.before) as codes:
         for label, code in codes.items():
             try:
                 saved["runs"][label] = repeat_runs(

@@ -4,40 +4,24 @@
         [--before-set KEY=VALUE ...] [--variant NAME KEY=VALUE ...] [--no-mulran] [--jobs N]
         [--out FILE.md]
 
-The generated street along KITTI 00 (``benchmarks.harness.kitti``) with configs/kitti.yaml:
+The generated street along KITTI 00 (``benchmarks.harness.kitti``) with configs/kitti.yaml, run
+with ground-truth poses (mapping only) and as SLAM (KISS-ICP, loops, remapping). Each final mesh
+is scored against the street's ground-truth mesh after the SE(3) alignment ``slam.eval`` uses:
+globally and, for SLAM, per stretch of scans with the stretch's own alignment. Beside each: a
+LiDAR TSDF (``benchmarks.harness.lidar_tsdf``) of the same scans at the same poses. Scores
+(``benchmarks.harness.lidar_surface``): precision, recall and F-score at 10 and 20 cm, accuracy
+and completion, over the ground-truth surface observed within 30 m and within
+:data:`SENSOR_RANGE_M`. Cost: pipeline wall time, mesh extraction, ``map.npz`` bytes, map memory
+and the run's own peak RSS. ``--before-set`` runs the neural map again with those overrides as
+the "before" rows (default :data:`BEFORE_SETS`); ``--variant`` adds rows of another
+configuration. Real scans: the MulRan Riverside02 keyframes with configs/lidar.yaml and their
+reference poses, scored by precision against the placed scan points only (recall would score
+their sparsity).
 
-- Runs: (a) ground-truth poses (``odometry.method: gt``, mapping only), (b) SLAM (KISS-ICP, loop
-  closure, remapping). Each run's final mesh (``NeuralMap.extract_mesh``) is scored against the
-  street's ground-truth mesh (the generator's ``gt_mesh.ply``), after the SE(3) alignment of its
-  poses onto the ground truth that ``slam.eval`` uses: over the whole run ("global"), and, for
-  SLAM, per stretch of :data:`STRETCH_SCANS` scans with the stretch's own alignment.
-- Beside each: a LiDAR TSDF (``benchmarks.harness.lidar_tsdf``) at :data:`TSDF_VOXEL_M` of the
-  same scans (points within :data:`SENSOR_RANGE_M`) at the same poses, meshed by marching cubes.
-- Scores (``benchmarks.harness.lidar_surface``): precision, recall and F-score at 10 and 20 cm,
-  accuracy and completion (mean distances), over the ground-truth surface observed within 30 m
-  and within :data:`SENSOR_RANGE_M` (a ground-truth sample within 10 cm of a scan point of lower
-  range; the module docstring has the definition).
-- Cost: pipeline wall time (first frame to final optimisation), mesh extraction, ``map.npz``
-  bytes (the submaps, without the session section), the map's memory and the peak RSS of the
-  run's own process (the run, its mesh and its map file); the TSDF's memory as a block-hashed
-  TSDF allocates it.
-- ``--before-set KEY=VALUE`` runs the neural map a second time with those overrides, as the
-  "before" rows of the same tables and the picture's "before" column (default
-  :data:`BEFORE_SETS`: the map cut at 30 m); ``--variant NAME KEY=VALUE ...`` (repeatable) adds
-  the rows of another configuration.
-- Real scans: the MulRan Riverside02 keyframes (``../shared/data``, skipped without them) with
-  configs/lidar.yaml and the reference poses (``--odometry gt``), mesh and TSDF against the scan
-  points placed by those poses. Without a ground-truth surface only precision (mesh sample to the
-  nearest scan point) means something: the points are 5-15k per keyframe, so recall against them
-  would score their sparsity.
-
-``--quick`` (run_all's quick mode): the first :data:`QUICK_SCANS` scans of the quick window
-(every 3rd KITTI 00 pose, 1,024 firings), stretches of :data:`QUICK_STRETCH_SCANS`, the first
-:data:`QUICK_MULRAN` MulRan keyframes. ``--full`` (the default when neither is given, as run_all's
-full mode runs it): all 4,541 scans (2,048 firings), stretches of 600 scans, every keyframe.
-Writes benchmarks/results/lidar_map.md (and .json), and lidar_map_corner.png beside it: one street
-corner of the neural maps before and as configured, from both kinds of poses, and of the ground
-truth, linked from the section (``benchmarks.lidar_map_picture``).
+``--quick``: the first :data:`QUICK_SCANS` scans of the quick window, :data:`QUICK_MULRAN`
+MulRan keyframes; ``--full`` (the default): all 4,541 scans, every keyframe. Writes
+benchmarks/results/lidar_map.md (and .json) and lidar_map_corner.png (one street corner of the
+pictured maps and the ground truth, ``benchmarks.lidar_map_picture``).
 """
 
 from __future__ import annotations
@@ -48,7 +32,6 @@ import itertools
 import json
 import logging
 import multiprocessing
-import shlex
 import sys
 import tempfile
 import time
@@ -58,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.harness.child import in_child_measured
+from benchmarks.harness.cli import command_line, start_logging
 from benchmarks.harness.kitti import KITTI_POSES, kitti_source
 from benchmarks.harness.kitti import window as kitti_window
 from benchmarks.harness.machine import section_header
@@ -120,15 +104,11 @@ def street_config(odometry: str, sets: list[str]):
     from benchmarks.harness.pipeline import load_config
     from slam.assembly.config import merge_overrides, set_overrides
 
-    overrides = merge_overrides(
-        {"source": {"dataset": "generated"}, "odometry": {"method": odometry}},
-        set_overrides(sets),
-    )
-    return load_config("kitti", overrides)
+    street = {"source": {"dataset": "generated"}, "odometry": {"method": odometry}}
+    return load_config("kitti", merge_overrides(street, set_overrides(sets)))
 
 
 def street_run(quick: bool, frames: int | None, odometry: str, sets: list[str]) -> dict:
-    """configs/kitti.yaml with ``odometry`` on the street (run in a child process)."""
     return _neural_map(street_config(odometry, sets), kitti_source(quick, frames))
 
 
@@ -154,7 +134,6 @@ def tsdf_map(scans, poses: np.ndarray) -> dict[str, Any]:
 
 
 def street_tsdf(quick: bool, frames: int | None, poses: np.ndarray) -> dict:
-    """The TSDF of the street's scans at ``poses`` (run in a child process)."""
     source = kitti_source(quick, frames)
     return tsdf_map((frame.points for frame in source), poses)
 
@@ -181,13 +160,10 @@ def _mulran_config(frames: int | None, sets: list[str]):
 
 
 def mulran_run(frames: int | None, sets: list[str]) -> dict:
-    """configs/lidar.yaml on the MulRan keyframes with the reference poses (child process)."""
-    cfg, source = _mulran_config(frames, sets)
-    return _neural_map(cfg, source)
+    return _neural_map(*_mulran_config(frames, sets))
 
 
 def mulran_tsdf(frames: int | None) -> dict:
-    """The TSDF of the MulRan keyframes at the reference poses (child process)."""
     _, source = _mulran_config(frames, [])
     return tsdf_map((frame.points for frame in source), source.gt_poses)
 
@@ -294,12 +270,9 @@ def mulran_scores(
         [frame.points @ T[:3, :3].T + T[:3, 3] for frame, T in zip(source, poses, strict=True)]
     )
     mesh = _mesh(result, None if run_poses is None else poses[0] @ np.linalg.inv(run_poses[0]))
+    positions = poses[:, :3, 3]
     return [
-        {
-            "region": "global",
-            "range_m": limit,
-            **point_precision(mesh, points, poses[:, :3, 3], limit),
-        }
+        {"region": "global", "range_m": limit, **point_precision(mesh, points, positions, limit)}
         for limit in limits
     ]
 
@@ -326,9 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help=f"first {QUICK_SCANS} scans of the quick window, {QUICK_MULRAN} MulRan keyframes",
     )
-    mode.add_argument(
-        "--full", action="store_true", help="all 4,541 scans (the default without --quick)"
-    )
+    mode.add_argument("--full", action="store_true", help="all 4,541 scans (the default)")
     add_override_arguments(parser, "neural map's 'before' rows")
     parser.add_argument(
         "--variant",
@@ -356,7 +327,7 @@ def _variants(args) -> dict[str, list[str]]:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    start_logging("%(asctime)s %(name)s: %(message)s")
     if not KITTI_POSES.is_file():
         print(
             f"error: {KITTI_POSES}: missing; the street follows KITTI 00's poses", file=sys.stderr
@@ -367,8 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     stretch_scans = QUICK_STRETCH_SCANS if quick else FULL_STRETCH_SCANS
     mulran_frames = QUICK_MULRAN if quick else None
     do_mulran = not args.no_mulran and (MULRAN / "scans").is_dir()
-    shown = sys.argv[1:] if argv is None else argv
-    command = shlex.join(["python", "-m", "benchmarks.bench_lidar_map", *shown])
+    command = command_line("bench_lidar_map", argv)
     variants = _variants(args)
     started = time.perf_counter()
     context = multiprocessing.get_context("spawn")

@@ -4,34 +4,21 @@ the first (``slam.run --map A --localise``) and continuing it (``slam.run --map 
     python -m benchmarks.bench_localise [--quick | --full] [--scenario street room kitchen]
         [--work DIR]
 
-Scenarios: ``street``, the generated 64-beam street along the real KITTI 00 trajectory (the
-generator of bench_variants: seed 0, standard street, configs/kitti.yaml; needs the KITTI 00 poses
-under ``../shared/data``): ``--quick`` takes every 3rd pose of 360-3870 at 1024 firings (generated
-once, 1171 scans) and maps poses 360-957 (200 scans), then localises poses 3420-3870 (151 scans),
-which drive the same road again; the full version (the default, ``--full``; not run here: hours
-on two cores) splits the whole window (4541 scans, 2048 firings) into halves. ``room``, the
-generated RGB-D room lap (120 frames): the first half is the map, the second half is localised
-(it starts where the map ends and revisits the map's start at its end). ``kitchen``, the real
-7-Scenes redkitchen seq-01 (400 Kinect frames, KinectFusion poses as the truth,
-configs/7scenes.yaml; needs ``../shared/data/7scenes_redkitchen``): frames 0-199 are the map,
-200-399 are localised (they start where the map ends, then pan along the same counter, up to about
-a metre to the side of where the map's camera stood); the same split in quick and full mode.
-
-Per scenario: the map run (its own ATE); the second part with ``--map A --localise`` with the
-continuous map constraints and without them (``relocalise.continuous=false``: only the first
-placement holds it): its pose error against the truth carried into the map's frame by the
-alignment of the map's own truth onto the map's poses (mean and worst frame after the placement),
-the fraction of frames map-anchored, its frames/s and peak RSS; the odometry alone on the same
-frames (frames/s: the localisation must keep up with it); and ``--map A`` (continuing the map)
-with and without the continuous constraints: the merged run's combined ATE. Writes
-``benchmarks/results/localise.md`` and ``.json``.
+Scenarios (:func:`split`): ``street``, the generated street along KITTI 00 (``--quick``: every
+3rd pose of 360-3870, a map of 200 scans, then 151 scans driving the same road again; ``--full``:
+the whole window in halves, hours on two cores); ``room``, the generated RGB-D room lap in
+halves; ``kitchen``, the real 7-Scenes redkitchen seq-01 in halves (needs ``../shared/data``).
+Per scenario: the map run; the second part with ``--localise``, with and without the continuous
+map constraints, its error in the map's frame, anchored frames, frames/s and peak RSS; the
+odometry alone on the same frames; and ``--map A`` (continuing) with and without the continuous
+constraints, the merged run's combined ATE. Writes ``benchmarks/results/localise.md`` and
+``.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -40,11 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.harness.child import in_child_measured, run_command
+from benchmarks.harness.child import in_child_measured, run_module
 from benchmarks.harness.kitti import FULL, KITTI_CALIB, KITTI_POSES, have_kitti
 from benchmarks.harness.machine import section_header
-from benchmarks.harness.paths import DATA, REPO
-from benchmarks.harness.results import run_scenarios, write_results
+from benchmarks.harness.paths import DATA
+from benchmarks.harness.results import cm, run_scenarios, table, write_results
 
 NO_VIZ = ["--no-viz", "--no-progress", "--set", "output.mesh_samples=0"]
 STREET = ["kitti", "00", "--set", "source.kitti.correct_vertical_angle=false"]
@@ -66,16 +53,13 @@ class Split:
 def _street_window(full: bool) -> dict[str, Any]:
     """The generated KITTI 00 window (the generator's settings) of the street scenario."""
     if full:
-        return {
-            "start": 0,
-            **{k: getattr(FULL, k) for k in ("step", "num_frames", "azimuth_steps")},
-        }
+        keys = ("step", "num_frames", "azimuth_steps")
+        return {"start": 0, **{k: getattr(FULL, k) for k in keys}}
     return {"start": 360, "step": 3, "num_frames": 1171, "azimuth_steps": 1024}
 
 
 def street_root(full: bool) -> Path:
-    """The KITTI-layout root of the street scenario's generated window (generated on first
-    use)."""
+    """The KITTI-layout root of the street scenario's window (generated on first use)."""
     from frontends.sources import make_source
 
     source = make_source(
@@ -104,19 +88,6 @@ def split(name: str, full: bool) -> Split:
     return Split([*STREET, *root], "0:200", "1020:1171", note)
 
 
-def _run(args: list[str], log: Path) -> tuple[float, float]:
-    """``python -m slam.run ARGS``: (wall s, peak RSS MB); raises on failure."""
-    done = run_command(
-        [sys.executable, "-m", "slam.run", *args],
-        cwd=REPO,
-        env=dict(os.environ, PYTHONPATH=str(REPO)),
-        log_file=log,
-    )
-    if done.returncode != 0:
-        raise RuntimeError(f"slam.run {' '.join(args)} failed; see {log}")
-    return done.usage.wall_s, done.usage.peak_rss_mb
-
-
 def error_in_map_frame(map_run: Path, run: Path, first_frame: int) -> dict[str, float]:
     """Position error of ``run``'s poses (frames from ``first_frame`` on) against its truth
     carried into the map's frame by the rigid alignment of the map's truth onto its poses."""
@@ -124,8 +95,7 @@ def error_in_map_frame(map_run: Path, run: Path, first_frame: int) -> dict[str, 
     from slam.run_folder.trajectory_io import read_kitti
 
     T = _rigid_fit(
-        read_kitti(map_run / "poses_gt.kitti.txt")[:, :3, 3],
-        read_kitti(map_run / "poses_slam.kitti.txt")[:, :3, 3],
+        *(read_kitti(map_run / f"poses_{kind}.kitti.txt")[:, :3, 3] for kind in ("gt", "slam")),
         False,
     )
     poses = read_kitti(run / "poses_slam.kitti.txt")[first_frame:, :3, 3]
@@ -154,13 +124,31 @@ def odometry_alone(config_path: str) -> dict[str, float]:
     return {"frames": count, "wall_s": wall, "frames_per_s": count / wall}
 
 
-def _localised(spec: Split, work: Path, name: str, continuous: bool) -> dict[str, Any]:
+def _second_part(spec: Split, work: Path, name: str, continuous: bool, localise: bool):
+    """The second part on the map in ``work``: localised in it, or (``localise`` False)
+    continuing it; with or without the continuous map constraints."""
     out = work / name
     sets = [] if continuous else ["--set", "relocalise.continuous=false"]
-    args = [*spec.run_args, "--frames", spec.localised_frames, *NO_VIZ, *sets]
-    args += ["--map", str(work / "map"), "--localise", "--out", str(out)]
-    wall, rss = _run(args, work / f"{name}.log")
+    args = [
+        *spec.run_args,
+        "--frames",
+        spec.localised_frames,
+        *NO_VIZ,
+        *sets,
+        "--map",
+        str(work / "map"),
+        *(["--localise"] if localise else []),
+        "--out",
+        str(out),
+    ]
+    wall, rss = run_module("slam.run", args, work / f"{name}.log")
     metrics = json.loads((out / "metrics.json").read_text())
+    if not localise:
+        return {
+            "wall_s": wall,
+            "peak_rss_mb": rss,
+            "combined_ate_m": metrics.get("combined_ate_rmse_m"),
+        }
     placed = metrics["relocalisation"]
     first = metrics["localisation"]["frames_before_placement"]
     return {
@@ -175,19 +163,10 @@ def _localised(spec: Split, work: Path, name: str, continuous: bool) -> dict[str
     }
 
 
-def _continued(spec: Split, work: Path, name: str, continuous: bool) -> dict[str, Any]:
-    out = work / name
-    sets = [] if continuous else ["--set", "relocalise.continuous=false"]
-    args = [*spec.run_args, "--frames", spec.localised_frames, *NO_VIZ, *sets]
-    wall, rss = _run([*args, "--map", str(work / "map"), "--out", str(out)], work / f"{name}.log")
-    merged = json.loads((out / "metrics.json").read_text())
-    return {"wall_s": wall, "peak_rss_mb": rss, "combined_ate_m": merged.get("combined_ate_rmse_m")}
-
-
 def scenario(name: str, full: bool, work: Path) -> dict[str, Any]:
     spec = split(name, full)
     args = [*spec.run_args, "--frames", spec.map_frames, *NO_VIZ, "--out", str(work / "map")]
-    wall, rss = _run(args, work / "map.log")
+    wall, rss = run_module("slam.run", args, work / "map.log")
     own = json.loads((work / "map" / "metrics.json").read_text())
     result: dict[str, Any] = {
         "note": spec.note,
@@ -196,35 +175,38 @@ def scenario(name: str, full: bool, work: Path) -> dict[str, Any]:
             "peak_rss_mb": rss,
             "ate_m": own["trajectory"]["slam"]["ate_rmse_m"],
         },
-        "localise": _localised(spec, work, "localise", True),
-        "localise_placement_only": _localised(spec, work, "localise-placement-only", False),
+        "localise": _second_part(spec, work, "localise", True, True),
+        "localise_placement_only": _second_part(spec, work, "localise-placement-only", False, True),
     }
     alone, usage = in_child_measured(odometry_alone, result["localise"]["config"])
     result["odometry_alone"] = {**alone, "peak_rss_mb": usage.peak_rss_mb}
-    result["continue"] = _continued(spec, work, "continue", True)
-    result["continue_placement_only"] = _continued(spec, work, "continue-placement-only", False)
+    result["continue"] = _second_part(spec, work, "continue", True, False)
+    result["continue_placement_only"] = _second_part(
+        spec, work, "continue-placement-only", False, False
+    )
     return result
 
 
-def _cm(value: float | None) -> str:
-    return "-" if value is None else f"{100 * value:.1f}"
-
-
-def _rows(r: dict[str, Any]) -> list[str]:
+def _rows(r: dict[str, Any]) -> list[list]:
     rows = []
-    labels = {
-        "localise": "continuous (default)",
-        "localise_placement_only": "placement only (`relocalise.continuous=false`)",
-    }
-    for key, label in labels.items():
+    placement_only = "placement only (`relocalise.continuous=false`)"
+    for key, label in (
+        ("localise", "continuous (default)"),
+        ("localise_placement_only", placement_only),
+    ):
         run = r[key]
         e, loc = run["error_after_placement"], run["localisation"]
         gaps = ", ".join(f"{a}-{b}" for a, b in loc["coverage_gaps"][:4]) or "none"
         rows.append(
-            f"| `--localise`, {label} | {_cm(e['mean_m'])} / {_cm(e['worst_m'])} "
-            f"({e['frames']} frames) | {100 * loc['fraction_anchored']:.0f} % "
-            f"({loc['frames_before_placement']} before placement; gaps {gaps}) | "
-            f"{run['frames_per_s']:.1f} | {run['map_decode_s']:.1f} | {run['peak_rss_mb']:.0f} |"
+            [
+                f"`--localise`, {label}",
+                f"{cm(e['mean_m'])} / {cm(e['worst_m'])} ({e['frames']} frames)",
+                f"{100 * loc['fraction_anchored']:.0f} % ({loc['frames_before_placement']} "
+                f"before placement; gaps {gaps})",
+                f"{run['frames_per_s']:.1f}",
+                f"{run['map_decode_s']:.1f}",
+                f"{run['peak_rss_mb']:.0f}",
+            ]
         )
     return rows
 
@@ -249,19 +231,15 @@ def report(results: dict[str, Any], command: str) -> str:
         odo = r["odometry_alone"]
         lines += [
             f"### {name} ({r['note']})", "",
-            f"Map: ATE {_cm(r['map']['ate_m'])} cm (on itself), peak RSS "
+            f"Map: ATE {cm(r['map']['ate_m'])} cm (on itself), peak RSS "
             f"{r['map']['peak_rss_mb']:.0f} MB. Odometry alone on the localised frames: "
             f"{odo['frames_per_s']:.1f} frames/s ({odo['frames']} frames).", "",
-            "| run | error in the map's frame, mean / worst frame [cm] | map-anchored frames | "
-            "frames/s | decode [s] | peak RSS [MB] |",
-            "|---|---|---|---:|---:|---:|",
-            *_rows(r), "",
-            "| `--map map` (continue mapping) | merged combined ATE [cm] | peak RSS [MB] |",
-            "|---|---:|---:|",
-            f"| placement only (before) | {_cm(r['continue_placement_only']['combined_ate_m'])} "
-            f"| {r['continue_placement_only']['peak_rss_mb']:.0f} |",
-            f"| continuous (after) | {_cm(r['continue']['combined_ate_m'])} "
-            f"| {r['continue']['peak_rss_mb']:.0f} |", "",
+            *table("run | error in the map's frame, mean / worst frame [cm] | map-anchored "
+                   "frames | frames/s | decode [s] | peak RSS [MB]", _rows(r), "lllrrr"), "",
+            *table("`--map map` (continue mapping) | merged combined ATE [cm] | peak RSS [MB]",
+                   ([label, cm(r[key]["combined_ate_m"]), f"{r[key]['peak_rss_mb']:.0f}"]
+                    for label, key in (("placement only (before)", "continue_placement_only"),
+                                       ("continuous (after)", "continue"))), "lrr"), "",
         ]  # fmt: skip
     return "\n".join(lines) + "\n"
 
@@ -275,12 +253,8 @@ room."""
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     mode = parser.add_mutually_exclusive_group()
-    mode.add_argument(
-        "--quick", action="store_true", help="the short street split and the kitchen (default)"
-    )
-    mode.add_argument(
-        "--full", action="store_true", help="the whole KITTI 00 street in halves (hours)"
-    )
+    mode.add_argument("--quick", action="store_true", help="the short street split, the kitchen")
+    mode.add_argument("--full", action="store_true", help="the whole street in halves (hours)")
     parser.add_argument(
         "--scenario",
         nargs="+",

@@ -3,30 +3,18 @@
     python -m benchmarks.bench_map_size [--before REV] [--scenarios demo 7scenes]
                                         [--out benchmarks/results/map_size.md]
 
-Every scenario runs ``python -m slam.run ... --no-viz`` in its own process, once with this
-checkout and, with ``--before``, once with an older revision checked out into a temporary
-git worktree (the "before" column), so that peak RSS is each process's own. Reported per run:
-
-* ``map.npz`` size; voxels stored in submaps, bytes per stored submap voxel (the arrays of the
-  submaps' originals, uncompressed), global voxels and the overlap factor (stored / global);
-* peak RSS of the run process, frames/s, ATE and mesh accuracy (nothing may be traded silently);
-* the raw-data baseline: the same submaps' points, replayed through the keyframer with the run's
-  odometry poses and voxel-downsampled to V/4, as float32 (12 B a point; 24 B with normals): what a
-  system that re-fuses raw points after loop closure would have to keep.
-
-Scenarios: ``demo`` (the generated room, configs/demo.yaml), ``7scenes`` (real redkitchen
-seq-01 frames 0-399, configs/7scenes.yaml; skipped when ../shared/data is absent), and
-``kitti-1000`` / ``kitti-full``: a 64-beam LiDAR (2048 azimuth steps, ~126k points a scan)
-simulated along all 4,541 poses of the real KITTI 00 trajectory (frontends/generate, cached),
-run with configs/kitti.yaml on its first 1,000 frames or on all of them. The parent samples the
-child's peak RSS (``VmHWM``) as the run's trajectory file grows, which gives peak RSS as a
-function of sequence length.
+Every scenario runs ``python -m slam.run ... --no-viz`` in its own process, with this checkout
+and, with ``--before``, with REV checked out beside it. Reported per run: ``map.npz`` size, voxels
+stored in submaps and their bytes, global voxels and the overlap factor; peak RSS (sampled as the
+trajectory file grows: peak RSS by sequence length), frames/s, ATE and mesh accuracy; and the
+raw-data baseline: the same submaps' points replayed through the keyframer and downsampled to
+V/4, as float32 (what re-fusing raw points after loop closure would keep). Scenarios: the
+generated room, 7-Scenes redkitchen (skipped without ../shared/data), and the first 1,000 or all
+4,541 scans of the generated street along KITTI 00.
 """
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import json
 import logging
 import os
@@ -38,15 +26,16 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.harness.checkout import checkout
+from benchmarks.harness.checkout import revisions
 from benchmarks.harness.child import run_command
+from benchmarks.harness.cli import bench_parser, command_line, start_logging
 from benchmarks.harness.kitti import kitti_root, kitti_source
-from benchmarks.harness.machine import section_header
+from benchmarks.harness.machine import proc_memory_kib, section_header
 from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR
 from benchmarks.harness.repeat import REPEATS, repeat_runs, repeats_line
+from benchmarks.harness.results import cm
 from common.atomic_io import write_text_atomic
 
-RESULTS = RESULTS_DIR / "map_size.md"
 RSS_CHECKPOINTS = (500, 1000, 2000, 3000, 4000)
 SCENARIOS: dict[str, list[str]] = {
     "demo": ["demo"],
@@ -65,13 +54,8 @@ SCENARIOS: dict[str, list[str]] = {
 
 
 def _vm_hwm_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        return None
-    return None
+    peak = proc_memory_kib(pid).get("VmHWM")
+    return None if peak is None else peak / 1024
 
 
 def _frames_written(run_dir: Path) -> int:
@@ -194,10 +178,6 @@ def _metric(metrics: dict[str, Any], *keys: str) -> float | None:
     return value
 
 
-def _cm(value: float | None) -> str:
-    return "-" if value is None else f"{100 * value:.2f}"
-
-
 def _repeated(run: dict[str, Any], key: str, digits: int) -> str:
     """A repeated timing; a single run's is not shown (the KITTI runs: see bench_throughput)."""
     if run.get("repeats", 1) < REPEATS:
@@ -205,55 +185,52 @@ def _repeated(run: dict[str, Any], key: str, digits: int) -> str:
     return f"{run[key]:.{digits}f}"
 
 
-def table(name: str, runs: dict[str, dict[str, Any]]) -> list[str]:
-    """One Markdown table, a column per run (before / after)."""
-    labels = list(runs)
-    rows: list[tuple[str, list[str]]] = []
+def _ate(r: dict[str, Any]) -> str:
+    ate = [_metric(r["metrics"], "trajectory", kind, "ate_rmse_m") for kind in ("odometry", "slam")]
+    return " -> ".join(cm(v, 2) for v in ate)
 
-    def row(title: str, fn) -> None:
-        rows.append((title, [fn(runs[label]) for label in labels]))
 
-    row("`map.npz` [MB]", lambda r: f"{r['map']['file_mb']:.1f}")
-    row("submaps", lambda r: str(r["metrics"]["num_submaps"]))
-    row("voxels stored in submaps", lambda r: f"{r['map']['submap_voxels']:,}")
-    row(
+ROWS = (
+    ("`map.npz` [MB]", lambda r: f"{r['map']['file_mb']:.1f}"),
+    ("submaps", lambda r: str(r["metrics"]["num_submaps"])),
+    ("voxels stored in submaps", lambda r: f"{r['map']['submap_voxels']:,}"),
+    (
         "bytes per stored submap voxel (arrays / on disk)",
         lambda r: (
             f"{r['map']['bytes_per_submap_voxel']:.0f} / "
             f"{r['map']['file_bytes_per_submap_voxel']:.0f}"
         ),
-    )
-    row("global map voxels", lambda r: f"{r['metrics']['map']['voxels']:,}")
-    row(
+    ),
+    ("global map voxels", lambda r: f"{r['metrics']['map']['voxels']:,}"),
+    (
         "overlap (stored / global voxels)",
         lambda r: f"{r['map']['submap_voxels'] / max(r['metrics']['map']['voxels'], 1):.2f}",
-    )
-    row("peak RSS of the run, scoring included [MB]", lambda r: f"{r['peak_rss_mb']:.0f}")
-    row(
+    ),
+    ("peak RSS of the run, scoring included [MB]", lambda r: f"{r['peak_rss_mb']:.0f}"),
+    (
         "peak RSS before scoring against ground truth [MB]",
         lambda r: "-" if r.get("slam_peak_rss_mb") is None else f"{r['slam_peak_rss_mb']:.0f}",
-    )
-    row(
+    ),
+    (
         "peak RSS after N frames (last: before scoring, where reported) [MB]",
         lambda r: ", ".join(f"{n}: {mb:.0f}" for n, mb in sorted(r["rss_at_frames"].items())),
-    )
-    row("wall time of the run [s]", lambda r: _repeated(r, "wall_s", 0))
-    row("frames/s (as the run reports it)", lambda r: _repeated(r, "fps", 1))
-    row(
-        "ATE odometry -> SLAM [cm]",
-        lambda r: (
-            f"{_cm(_metric(r['metrics'], 'trajectory', 'odometry', 'ate_rmse_m'))} -> "
-            f"{_cm(_metric(r['metrics'], 'trajectory', 'slam', 'ate_rmse_m'))}"
-        ),
-    )
-    row("mesh accuracy [cm]", lambda r: _cm(_metric(r["metrics"], "mesh", "accuracy_m")))
-    lines = [
-        f"### {name}",
-        "",
-        "| | " + " | ".join(labels) + " |",
-        "|---|" + "---:|" * len(labels),
+    ),
+    ("wall time of the run [s]", lambda r: _repeated(r, "wall_s", 0)),
+    ("frames/s (as the run reports it)", lambda r: _repeated(r, "fps", 1)),
+    ("ATE odometry -> SLAM [cm]", _ate),
+    ("mesh accuracy [cm]", lambda r: cm(_metric(r["metrics"], "mesh", "accuracy_m"), 2)),
+)
+"""The table's rows: a title and the cell of one run."""
+
+
+def table(name: str, runs: dict[str, dict[str, Any]]) -> list[str]:
+    """One Markdown table, a column per run (before / after)."""
+    labels = list(runs)
+    lines = [f"### {name}", "", "| | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+    lines += [
+        f"| {title} | " + " | ".join(cell(runs[label]) for label in labels) + " |"
+        for title, cell in ROWS
     ]
-    lines += [f"| {title} | " + " | ".join(cells) + " |" for title, cells in rows]
     raw = runs[labels[-1]].get("raw")
     if raw is not None:
         ours = runs[labels[-1]]["map"]["file_mb"]
@@ -267,38 +244,35 @@ def table(name: str, runs: dict[str, dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before", metavar="REV", help="git revision to measure as 'before'")
+def build_parser():
+    parser = bench_parser(
+        __doc__, "the first 100 demo frames only", before=True, out=RESULTS_DIR / "map_size.md"
+    )
     parser.add_argument(
         "--scenarios",
         nargs="+",
         choices=list(SCENARIOS),
         help="default: demo, 7scenes and kitti-full (--quick: demo)",
     )
-    parser.add_argument("--quick", action="store_true", help="the first 100 demo frames only")
     parser.add_argument(
         "--after-only",
         nargs="*",
         default=[],
         choices=list(SCENARIOS),
-        help="scenarios measured with this checkout only (no 'before' run)",
+        help="scenarios measured with this checkout only",
     )
-    parser.add_argument("--out", type=Path, default=RESULTS, help="Markdown section to write")
     return parser
 
 
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    start_logging()
     if args.scenarios is None:
         args.scenarios = ["demo-100"] if args.quick else ["demo", "7scenes", "kitti-full"]
     if "7scenes" in args.scenarios and not (DATA / "7scenes_redkitchen").is_dir():
         log.warning("skipping 7scenes: %s is absent", DATA / "7scenes_redkitchen")
         args.scenarios.remove("7scenes")
-    command = shlex.join(
-        ["python", "-m", "benchmarks.bench_map_size", *(sys.argv[1:] if argv is None else argv)]
-    )
+    command = command_line("bench_map_size", argv)
     lines = [
         *section_header("Map size and memory (lean map)", command),
         "- Revisions: after = this checkout"
@@ -313,20 +287,16 @@ def main(argv: list[str] | None = None) -> None:
     ]
     with (
         tempfile.TemporaryDirectory(prefix="bench_map_size-") as tmp,
-        contextlib.ExitStack() as stack,
+        revisions(args.before, "before ({rev})") as codes,
     ):
         work = Path(tmp)
-        checkouts = {"after": REPO}
-        if args.before:
-            checkouts = {f"before ({args.before})": stack.enter_context(checkout(args.before))}
-            checkouts["after"] = REPO
         for name in args.scenarios:
             runs = {}
-            for label, code in checkouts.items():
+            for label, code in codes.items():
                 if label != "after" and name in args.after_only:
                     continue
                 rgbd = not name.startswith("kitti")
-                runs[label] = measure(code, name, work, with_raw=rgbd and label == "after")
+                runs[label] = measure(code or REPO, name, work, with_raw=rgbd and label == "after")
                 log.info("%s %s: %s", name, label, json.dumps(runs[label]["map"]))
             lines += table(name, runs)
     text = "\n".join(lines) + "\n"

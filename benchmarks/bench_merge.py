@@ -3,31 +3,21 @@ the scans, against one run over the whole sequence.
 
     python -m benchmarks.bench_merge [--quick] [--scenario demo kitti00 7scenes generated-lidar]
 
-Scenarios: ``demo`` (the generated room), ``kitti00`` (the generated 64-beam street along the real
-KITTI 00 trajectory, as ``slam.run kitti 00`` reads it: frames 0-2269 / 2270-4540; with
-``--scenario kitti00 --quick`` the 550-scan quick window), ``7scenes`` (real redkitchen seq-01
-frames 0-199 / 200-399; skipped without ``../shared/data``) and ``generated-lidar`` (the short
-street loop). ``--quick`` runs demo (120 frames) and 7scenes (kitti00's halves cost more than
-the quick budget allows).
-
-Per scenario: ``slam.run`` on the two halves (the second run knows nothing of where it starts)
-and on the whole; then the data folder (a link to it, for data this benchmark does not own) is
-taken away and ``slam.merge`` joins the two runs. Reported: combined ATE of the merge vs the full
-run's ATE, inter-session loops found and their error against the ground truth (for 7-Scenes, the
-dataset's KinectFusion poses, themselves cm-level off), the merge's wall time (median of
-``REPEATS`` merges) and its peak RSS beside the full run's, the bytes the session section adds to
-``map.npz``, and the merged map's mesh against (a) the raw points re-fused under the merged poses
-(what remapping must match) and (b) the full run's mesh (mean symmetric surface distance). Then
-the second half once more as ``slam.run --map`` of the first: where it was relocalised while it
-ran, and how far its live poses are from where the final merge puts them. Writes
+Scenarios (:data:`SCENARIOS`): the generated room, the generated street along KITTI 00, the real
+7-Scenes redkitchen seq-01 (skipped without ``../shared/data``) and the short generated street
+loop; ``--quick`` runs demo (120 frames) and 7scenes. Per scenario: ``slam.run`` on the two halves
+and on the whole; then, with the data folder taken away, ``slam.merge`` joins the two runs.
+Reported: combined ATE against the full run's, inter-session loops and their error against the
+ground truth, the merge's wall time (median of ``REPEATS``) and peak RSS, the session section's
+bytes in ``map.npz``, the merged mesh against the raw points re-fused under the merged poses and
+against the full run's mesh; then the second half as ``slam.run --map`` of the first: where it
+was relocalised live and how far its live poses are from the merged ones. Writes
 ``benchmarks/results/merge.md`` and ``.json``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import shutil
 import sys
 from dataclasses import dataclass
@@ -36,12 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.harness.child import run_command
+from benchmarks.harness.child import run_module
+from benchmarks.harness.cli import bench_parser
 from benchmarks.harness.kitti import FULL, QUICK, have_kitti, kitti_root, kitti_source
 from benchmarks.harness.machine import section_header
-from benchmarks.harness.paths import DATA, REPO
+from benchmarks.harness.paths import DATA
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line
-from benchmarks.harness.results import run_scenarios, write_results
+from benchmarks.harness.results import cm, run_scenarios, write_results
 
 SEVEN_SCENES = DATA / "7scenes_redkitchen"
 
@@ -77,11 +68,9 @@ QUICK_SCENARIOS = ("demo", "7scenes")
 
 KITTI_NOTE = (
     "the generated 64-beam street along the real KITTI 00 trajectory read by `slam.run kitti 00` "
-    "with configs/kitti.yaml (vertical-angle correction off, as the scans are ideal); quick: "
-    + QUICK.describe()
-    + ", full: "
-    + FULL.describe()
-    + ". 7scenes: ground truth = the dataset's KinectFusion poses."
+    f"with configs/kitti.yaml (vertical-angle correction off, as the scans are ideal); quick: "
+    f"{QUICK.describe()}, full: {FULL.describe()}. 7scenes: ground truth = the dataset's "
+    "KinectFusion poses."
 )
 
 
@@ -97,19 +86,6 @@ def _data_root(spec: Scenario, quick: bool) -> Path | None:
     if not have_kitti():
         raise FileNotFoundError("no KITTI 00 poses/calibration under ../shared/data/kitti")
     return kitti_root(kitti_source(quick))
-
-
-def _child(module: str, args: list[str], log: Path) -> tuple[float, float]:
-    """Run ``python -m module args``: (wall s, peak RSS MB); raises on failure."""
-    done = run_command(
-        [sys.executable, "-m", module, *args],
-        cwd=REPO,
-        env=dict(os.environ, PYTHONPATH=str(REPO)),
-        log_file=log,
-    )
-    if done.returncode != 0:
-        raise RuntimeError(f"{module} {' '.join(args)} failed; see {log}")
-    return done.usage.wall_s, done.usage.peak_rss_mb
 
 
 def _session_bytes(map_path: Path) -> int:
@@ -201,7 +177,7 @@ def scenario(name: str, quick: bool, work: Path) -> dict[str, Any]:
     out: dict[str, Any] = {"frames": n, "split": n // 2}
     runs = {"full": f"0:{n}", "a": f"0:{n // 2}", "b": f"{n // 2}:{n}"}
     for key, frames in runs.items():
-        wall, rss = _child("slam.run", [*spec.run_args, "--frames", frames, *common,
+        wall, rss = run_module("slam.run", [*spec.run_args, "--frames", frames, *common,
                                         "--out", str(work / key)], work / f"{key}.log")  # fmt: skip
         metrics = json.loads((work / key / "metrics.json").read_text())
         out[key] = {"wall_s": wall, "peak_rss_mb": rss,
@@ -211,7 +187,7 @@ def scenario(name: str, quick: bool, work: Path) -> dict[str, Any]:
     backup = work / "data-kept"
     shutil.move(data, backup)  # the merge runs without the scans
     try:
-        merges = [_child("slam.merge", [str(work / "a"), str(work / "b"), "--out",
+        merges = [run_module("slam.merge", [str(work / "a"), str(work / "b"), "--out",
                                         str(work / f"merged-{k}")], work / f"merge-{k}.log")
                   for k in range(REPEATS)]  # fmt: skip
     finally:
@@ -243,7 +219,7 @@ def _continued(spec, frames: str, common: list[str], work: Path) -> dict[str, An
     from slam.run_folder.trajectory_io import read_kitti
 
     out_dir = work / "continued"
-    wall, rss = _child("slam.run", [*spec.run_args, "--frames", frames, *common, "--map",
+    wall, rss = run_module("slam.run", [*spec.run_args, "--frames", frames, *common, "--map",
                                     str(work / "a"), "--out", str(out_dir)],
                        work / "continued.log")  # fmt: skip
     live = json.loads((out_dir / "session" / "metrics.json").read_text())["relocalisation"]
@@ -256,10 +232,6 @@ def _continued(spec, frames: str, common: list[str], work: Path) -> dict[str, An
             "submap_frames": live.get("submap_frames"), "submaps_tried": live["submaps_tried"],
             "live_vs_merged_max_m": float(gap.max()), "live_vs_merged_mean_m": float(gap.mean()),
             "combined_ate_m": merged.get("combined_ate_rmse_m")}  # fmt: skip
-
-
-def _cm(v: float | None) -> str:
-    return "-" if v is None else f"{100 * v:.2f}"
 
 
 def report(results: dict[str, Any], command: str) -> str:
@@ -283,12 +255,12 @@ def report(results: dict[str, Any], command: str) -> str:
             f"### {name} ({r['frames']} frames: sessions 0-{r['split'] - 1} and "
             f"{r['split']}-{r['frames'] - 1})", "",
             "| | value |", "|---|---:|",
-            f"| ATE full run [cm] | {_cm(r['full']['ate_m'])} |",
-            f"| ATE session A / B alone [cm] | {_cm(a['ate_m'])} / {_cm(r['b']['ate_m'])} |",
-            f"| combined ATE after merge [cm] | {_cm(m['combined_ate_m'])} |",
+            f"| ATE full run [cm] | {cm(r['full']['ate_m'], 2)} |",
+            f"| ATE session A / B alone [cm] | {cm(a['ate_m'], 2)} / {cm(r['b']['ate_m'], 2)} |",
+            f"| combined ATE after merge [cm] | {cm(m['combined_ate_m'], 2)} |",
             f"| merged / full ATE | {m['combined_ate_m'] / r['full']['ate_m']:.2f} |",
             f"| inter-session candidates / kept | {m['inter_candidates']} / {m['inter_kept']} |",
-            f"| worst kept inter-session edge vs truth [cm / deg] | {_cm(err_t)} / "
+            f"| worst kept inter-session edge vs truth [cm / deg] | {cm(err_t, 2)} / "
             f"{'-' if err_r is None else f'{err_r:.2f}'} |",
             f"| merge wall [s] | {Timing(m['wall_s']):.1f} |",
             f"| peak RSS of the merge / of the full SLAM run [MB] | {m['peak_rss_mb']:.0f} / "
@@ -296,9 +268,9 @@ def report(results: dict[str, Any], command: str) -> str:
             f"| session section / map.npz (session A) [kB] | {a['session_bytes'] / 1e3:.0f} / "
             f"{a['map_bytes'] / 1e3:.0f} ({100 * a['session_bytes'] / a['map_bytes']:.1f} %) |",
             f"| merged mesh vs raw points re-fused under merged poses [cm] | "
-            f"{_cm(r['mesh_vs_refused']['symmetric_m'])} |",
+            f"{cm(r['mesh_vs_refused']['symmetric_m'], 2)} |",
             f"| merged mesh vs full run's mesh [cm] | "
-            f"{_cm(r['mesh_vs_full_run']['symmetric_m'])} |",
+            f"{cm(r['mesh_vs_full_run']['symmetric_m'], 2)} |",
             *_continued_rows(r["continued"]),
             "",
         ]  # fmt: skip
@@ -306,29 +278,28 @@ def report(results: dict[str, Any], command: str) -> str:
 
 
 def _continued_rows(c: dict[str, Any]) -> list[str]:
-    placed = (
-        f"frames {c['submap_frames'][0]}-{c['submap_frames'][1]} of its {c['frames']} "
-        f"({c['submaps_tried']} submap(s) tried)"
-        if c["relocalised"]
-        else f"not placed ({c['submaps_tried']} submaps tried)"
-    )
+    placed = f"not placed ({c['submaps_tried']} submaps tried)"
+    if c["relocalised"]:
+        placed = (
+            f"frames {c['submap_frames'][0]}-{c['submap_frames'][1]} of its {c['frames']} "
+            f"({c['submaps_tried']} submap(s) tried)"
+        )
     return [
         f"| `--map A` on session B: relocalised live by | {placed} |",
         f"| `--map A`: live poses vs merged, mean / max [cm] | "
-        f"{_cm(c['live_vs_merged_mean_m'])} / {_cm(c['live_vs_merged_max_m'])} |",
+        f"{cm(c['live_vs_merged_mean_m'], 2)} / {cm(c['live_vs_merged_max_m'], 2)} |",
         f"| `--map A`: combined ATE [cm] / peak RSS [MB] | "
-        f"{_cm(c['combined_ate_m'])} / {c['peak_rss_mb']:.0f} |",
+        f"{cm(c['combined_ate_m'], 2)} / {c['peak_rss_mb']:.0f} |",
     ]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="shorter sequences")
+def build_parser():
+    parser = bench_parser(__doc__, "shorter sequences")
     parser.add_argument(
         "--scenario",
         nargs="+",
         choices=sorted(SCENARIOS),
-        help="default: demo, kitti00 and 7scenes (--quick: demo and 7scenes)",
+        help="default: demo kitti00 7scenes (--quick: demo 7scenes)",
     )
     parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
     return parser

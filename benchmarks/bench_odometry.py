@@ -2,36 +2,28 @@
 
     python -m benchmarks.bench_odometry [--quick]
 
-Writes ``benchmarks/results/odometry.md``:
-
-1. KISS-ICP on a generated 64-beam LiDAR sequence driven along the real KITTI 00 ground-truth
-   trajectory (frames 0-499 in full mode, 0-149 with ``--quick``; falls back to the generated
-   loop when ``../shared/data`` is absent), read through the KITTI loader.
-2. KISS-ICP speed on the five consecutive real HDL-64E scans of ``../shared/data`` (no ground
-   truth).
-3. RGB-D odometry on a generated room lap (640x480, 300 frames; ``--quick``: 320x240, 150).
-4. RGB-D odometry on real 7-Scenes redkitchen frames 0-399 (``--quick``: 0-99), with the default
-   options and, in full mode, the variants that motivated them.
-
-Frames/s count the ``register`` calls only (not loading or generation). Drift is reported as
-ATE (SE(3)-aligned), RPE between consecutive frames, end-point error as % of the path length,
-and the KITTI relative error where the path is long enough.
+Writes ``benchmarks/results/odometry.md``: KISS-ICP on generated 64-beam scans along KITTI 00
+(frames 0-499, ``--quick`` 0-149; the generated loop without ``../shared/data``) and its speed on
+five real HDL-64E scans; RGB-D odometry on a generated room lap and on real 7-Scenes redkitchen
+frames (with, in full mode, the variants that motivated the defaults). Frames/s count the
+``register`` calls only; drift is ATE (SE(3)-aligned), RPE between consecutive frames, end-point
+error as % of the path length, and the KITTI relative error where the path is long enough.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
+from benchmarks.harness.cli import bench_parser
 from benchmarks.harness.kitti import KITTI_POSES, have_kitti, kitti_source, window
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA, RESULTS_DIR
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line
+from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 from frontends.odometry import make_odometry
 from frontends.sources import make_source
@@ -48,26 +40,9 @@ log = logging.getLogger("benchmarks.bench_odometry")
 RESULTS = RESULTS_DIR / "odometry.md"
 
 
-@dataclass
-class Row:
-    """One odometry run."""
-
-    name: str
-    method: str
-    options: str
-    frames: int
-    length_m: float
-    fps: Timing
-    ate_m: float
-    rpe_m: float
-    rpe_deg: float
-    end_drift_percent: float
-    kitti: str
-    failures: str
-
-
-def _run(name: str, method: str, options: dict, source, *, kitti_lengths=None) -> Row:
-    """Register every frame of ``source`` and score it against its ground truth."""
+def _run(name: str, method: str, options: dict, source, *, kitti_lengths=None) -> list[str]:
+    """Register every frame of ``source`` and score it against its ground truth: a table row
+    (:data:`HEADER`)."""
     rates = []
     for _ in range(REPEATS):  # a fresh odometry each time; the poses are the same every run
         odometry = make_odometry(method, **options)
@@ -92,21 +67,20 @@ def _run(name: str, method: str, options: dict, source, *, kitti_lengths=None) -
     failures = "-"
     if isinstance(odometry, RgbdOdometry):  # the only one with a keyframe fallback
         failures = f"{odometry.num_failures} / {odometry.num_fallbacks}"
-    row = Row(
-        name=name,
-        method=method,
-        options=", ".join(f"{k}={v}" for k, v in options.items()) or "defaults",
-        frames=len(est),
-        length_m=length,
-        fps=Timing(rates),
-        ate_m=ate_rmse(est, gt),
-        rpe_m=relative.trans_rmse_m,
-        rpe_deg=relative.rot_rmse_deg,
-        end_drift_percent=100 * np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) / length,
-        kitti=kitti,
-        failures=failures,
-    )
-    log.info("%s", row)
+    end_drift = 100 * np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) / length
+    row = [
+        name,
+        ", ".join(f"{k}={v}" for k, v in options.items()) or "defaults",
+        len(est),
+        f"{length:.1f}",
+        f"{Timing(rates):.1f}",
+        f"{ate_rmse(est, gt):.4f}",
+        f"{relative.trans_rmse_m:.4f} / {relative.rot_rmse_deg:.3f}",
+        f"{end_drift:.2f}",
+        kitti,
+        failures,
+    ]
+    log.info("%s %s: %s", name, method, row)
     return row
 
 
@@ -118,7 +92,7 @@ def _kitti_lengths(length_m: float) -> tuple[float, ...]:
     return (step, 2 * step, 3 * step)
 
 
-def lidar_rows(quick: bool) -> tuple[list[Row], str]:
+def lidar_rows(quick: bool) -> tuple[list[list], str]:
     num_frames = 150 if quick else 500
     t0 = time.perf_counter()
     if have_kitti():
@@ -185,7 +159,7 @@ def real_scan_speed() -> str:
     )
 
 
-def room_rows(quick: bool) -> tuple[list[Row], str]:
+def room_rows(quick: bool) -> tuple[list[list], str]:
     width, height, num_frames = (320, 240, 150) if quick else (640, 480, 300)
     t0 = time.perf_counter()
     source = make_source(
@@ -203,7 +177,7 @@ def room_rows(quick: bool) -> tuple[list[Row], str]:
     return rows, note
 
 
-def seven_scenes_rows(quick: bool) -> tuple[list[Row], str]:
+def seven_scenes_rows(quick: bool) -> tuple[list[list], str]:
     root = DATA / "7scenes_redkitchen"
     if not root.is_dir():
         return [], f"{root} absent: 7-Scenes not measured."
@@ -233,25 +207,14 @@ def seven_scenes_rows(quick: bool) -> tuple[list[Row], str]:
     return rows, note
 
 
-def table(rows: list[Row]) -> list[str]:
-    lines = [
-        "| sequence | options | frames | path (m) | frames/s | ATE (m) | RPE (m / deg per frame) "
-        "| end drift (% of path) | KITTI rel. error | failures / fallbacks |",
-        "|---|---|---:|---:|---:|---:|---|---:|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r.name} | {r.options} | {r.frames} | {r.length_m:.1f} | {r.fps:.1f} | "
-            f"{r.ate_m:.4f} | {r.rpe_m:.4f} / {r.rpe_deg:.3f} | {r.end_drift_percent:.2f} | "
-            f"{r.kitti} | {r.failures} |"
-        )
-    return lines
+HEADER = (
+    "sequence | options | frames | path (m) | frames/s | ATE (m) | RPE (m / deg per frame) "
+    "| end drift (% of path) | KITTI rel. error | failures / fallbacks"
+)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="fewer frames, no variants")
-    return parser
+def build_parser():
+    return bench_parser(__doc__, "fewer frames, no variants")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -286,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "### KISS-ICP (LiDAR)",
         "",
-        *table(lidar),
+        *table(HEADER, lidar, "llrrrrlrll"),
         "",
         f"- {lidar_note}",
         "- The second row leaves out the first 20 scans, where KISS-ICP starts from a "
@@ -295,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "### OpenCV RGB-D odometry",
         "",
-        *table(room + seven),
+        *table(HEADER, room + seven, "llrrrrlrll"),
         "",
         f"- {room_note}",
         f"- {seven_note}",

@@ -2,26 +2,18 @@
 
     python -m benchmarks.bench_real [--quick] [--out FILE.md] [--figures DIR]
 
-Every run is ``python -m slam.run lidar FOLDER`` with ``configs/lidar.yaml`` (ranges, voxel sizes
-and submap length derived from the first scan), in its own process (wall time and peak RSS of that
-process):
-
-- MulRan Riverside02 (``../shared/data/mulran_riverside02_keyframes``: 331 Ouster OS1-64
-  keyframes, median 5.7 m apart) with ``--odometry gt`` (mapping with the reference poses,
-  ``optimized_poses.txt``), and with KISS-ICP odometry, both scored against the reference poses.
-  The mesh of the first run is compared with the scan points placed by the reference poses.
-- KITTI raw (``../shared/data/kitti_raw_22``: 22 consecutive HDL-64E scans, no ground truth) with
-  KISS-ICP: the motion per scan, and the mesh against the scan points placed by our own poses.
-
-``--quick`` uses the first 100 MulRan keyframes. Figures (trajectories, mesh close-up, mesh
-coloured by distance to the scan points) are written to ``--figures`` (default: ``docs/figures``
-for a full run, ``benchmarks/out/real-figures`` in quick mode, so that a quick run never replaces
-the README's figures). Writes benchmarks/results/real.md (and .json).
+Every run is ``python -m slam.run lidar FOLDER`` with ``configs/lidar.yaml`` in its own process
+(wall time and peak RSS of that process): the MulRan Riverside02 keyframes with ``--odometry gt``
+and with KISS-ICP, scored against the reference poses (the first run's mesh also against the scan
+points placed by them), and 22 KITTI raw scans (no ground truth) with KISS-ICP: motion per scan,
+mesh against the scan points placed by our poses. ``--quick``: the first 100 MulRan keyframes.
+Figures go to ``--figures`` (default ``docs/figures``; in quick mode ``benchmarks/out/
+real-figures``, so a quick run never replaces the README's). Writes benchmarks/results/real.md
+(and .json).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
@@ -30,19 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import real_scores as scores
 from benchmarks.harness.child import run_command
+from benchmarks.harness.cli import bench_parser
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA, REPO, RESULTS_DIR, WORK_DIR
 from benchmarks.harness.repeat import REPEATS, repeat_runs, repeats_line
-from benchmarks.real_scores import (
-    constant_velocity_error,
-    kiss_icp_with_reference_prediction,
-    map_points,
-    mesh_point_distances,
-    reference_floor,
-    step_statistics,
-    tracking_scores,
-)
+from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.bench_real")
@@ -71,17 +57,21 @@ def _slam_run(args: list[str], out: Path) -> dict:
         import shutil
 
         shutil.rmtree(out)
-    env = dict(
-        os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
-    )
-    command = [sys.executable, "-m", "slam.run", *args, "--no-viz", "--no-progress", "--out"]
+    paths = [str(REPO), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(paths))
+    command = [
+        sys.executable,
+        "-m",
+        "slam.run",
+        *args,
+        "--no-viz",
+        "--no-progress",
+        "--out",
+        str(out),
+    ]
     load_before = os.getloadavg()[0]
     result = run_command(
-        [*command, str(out)],
-        cwd=REPO,
-        env=env,
-        timeout_s=RUN_TIMEOUT_S,
-        log_file=work / f"{name}.log",
+        command, cwd=REPO, env=env, timeout_s=RUN_TIMEOUT_S, log_file=work / f"{name}.log"
     )
     if result.returncode != 0:
         tail = (work / f"{name}.log").read_text()[-2000:]
@@ -126,21 +116,23 @@ def run_benchmark(quick: bool, figures: Path, work: Path) -> dict:
     for name in ("mulran-gt", "mulran-kiss"):
         run = runs[name]
         folder = run["folder"]
-        run["odometry"] = tracking_scores(_poses(folder, "odometry"), reference)
-        run["slam"] = tracking_scores(_poses(folder, "slam"), reference)
-    results["fastlio_odometry"] = reference_floor(fastlio_odometry, reference)
+        run["odometry"] = scores.tracking_scores(_poses(folder, "odometry"), reference)
+        run["slam"] = scores.tracking_scores(_poses(folder, "slam"), reference)
+    results["fastlio_odometry"] = scores.tracking_scores(fastlio_odometry, reference)
 
     # Diagnosis: the same registration with the reference motion as its prediction.
     n = min(PRIOR_FRAMES_QUICK if quick else PRIOR_FRAMES, count)
     kiss_folder = runs["mulran-kiss"]["folder"]
-    prior_poses = kiss_icp_with_reference_prediction(
+    prior_poses = scores.kiss_icp_with_reference_prediction(
         mulran_files[:n], reference[:n], kiss_folder / "config.yaml"
     )
-    cv_error = constant_velocity_error(reference)
+    cv_error = scores.constant_velocity_error(reference)
     results["diagnosis"] = {
         "frames": n,
-        "reference_prediction": tracking_scores(prior_poses, reference[:n]),
-        "constant_velocity": tracking_scores(_poses(kiss_folder, "odometry")[:n], reference[:n]),
+        "reference_prediction": scores.tracking_scores(prior_poses, reference[:n]),
+        "constant_velocity": scores.tracking_scores(
+            _poses(kiss_folder, "odometry")[:n], reference[:n]
+        ),
         "cv_error_median_m": float(np.median(cv_error)),
         "cv_error_p90_m": float(np.percentile(cv_error, 90)),
         "cv_error_above_2m": int(np.count_nonzero(cv_error > 2.0)),
@@ -154,15 +146,16 @@ def run_benchmark(quick: bool, figures: Path, work: Path) -> dict:
     # with --odometry gt are the reference poses re-anchored there.
     gt_folder = runs["mulran-gt"]["folder"]
     mesh_poses = _poses(gt_folder, "slam")
-    points = map_points(mulran_files, mesh_poses, gt_folder / "config.yaml")
-    gt_mesh = mesh_point_distances(gt_folder / "mesh.ply", points)
+    points = scores.map_points(mulran_files, mesh_poses, gt_folder / "config.yaml")
+    gt_mesh = scores.mesh_point_distances(gt_folder / "mesh.ply", points)
     runs["mulran-gt"]["mesh"] = gt_mesh
 
     raw = runs["kitti-raw-kiss"]
     raw_poses = _poses(raw["folder"], "odometry")
-    raw["steps"] = step_statistics(raw_poses)
-    raw_points = map_points(pcd_scan_files(KITTI_RAW), raw_poses, raw["folder"] / "config.yaml")
-    raw_mesh = mesh_point_distances(raw["folder"] / "mesh.ply", raw_points)
+    raw["steps"] = scores.step_statistics(raw_poses)
+    raw_config = raw["folder"] / "config.yaml"
+    raw_points = scores.map_points(pcd_scan_files(KITTI_RAW), raw_poses, raw_config)
+    raw_mesh = scores.mesh_point_distances(raw["folder"] / "mesh.ply", raw_points)
     raw["mesh"] = raw_mesh
 
     from benchmarks.real_figures import write_real_figures
@@ -194,35 +187,35 @@ def run_benchmark(quick: bool, figures: Path, work: Path) -> dict:
     return results
 
 
-def _traj_row(name: str, s: dict, run: dict | None) -> str:
-    x, y, z = s["ate_xyz_m"]
-    cost = (
-        f"{run['wall_s']:.0f} | {run['peak_rss_mb']:.0f} | {run['load']:.1f}"
-        if run
-        else "- | - | -"
-    )
-    return (
-        f"| {name} | {s['steps'] + 1} | {s['ate_m']:.2f} | {x:.2f} / {y:.2f} / {z:.2f} | "
-        f"{s['est_length_m']:.0f} / {s['length_m']:.0f} | "
-        f"{s['steps_lost']} / {s['steps']} | {cost} |"
-    )
-
-
-def _traj_header(first_column: str) -> list[str]:
+def _traj_row(name: str, s: dict, run: dict | None) -> list:
+    cost = ["-"] * 3
+    if run:
+        cost = [f"{run['wall_s']:.0f}", f"{run['peak_rss_mb']:.0f}", f"{run['load']:.1f}"]
     return [
-        f"| {first_column} | poses | ATE (m) | x / y / z RMSE (m) | path est / ref (m) | "
-        "steps off by > 1 m | wall (s) | peak RSS (MB) | load |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|",
+        name,
+        s["steps"] + 1,
+        f"{s['ate_m']:.2f}",
+        " / ".join(f"{v:.2f}" for v in s["ate_xyz_m"]),
+        f"{s['est_length_m']:.0f} / {s['length_m']:.0f}",
+        f"{s['steps_lost']} / {s['steps']}",
+        *cost,
     ]
 
 
-def _mesh_row(name: str, m: dict) -> str:
-    return (
-        f"| {name} | {m['vertices']} | {m['vertex_to_points_median_m']:.3f} | "
-        f"{m['vertex_to_points_p90_m']:.3f} | {100 * m['vertices_near']:.1f} % | "
-        f"{m['points_to_mesh_median_m']:.3f} | {m['points_to_mesh_p90_m']:.3f} | "
-        f"{100 * m['points_near']:.1f} % |"
+def _traj_table(first_column: str, rows: list[list]) -> list[str]:
+    header = (
+        f"{first_column} | poses | ATE (m) | x / y / z RMSE (m) | path est / ref (m) | "
+        "steps off by > 1 m | wall (s) | peak RSS (MB) | load"
     )
+    return table(header, rows, "lrrlrrrrr")
+
+
+def _mesh_row(name: str, m: dict) -> list:
+    cells = [name, m["vertices"]]
+    for side, near in (("vertex_to_points", "vertices_near"), ("points_to_mesh", "points_near")):
+        cells += [f"{m[f'{side}_{q}_m']:.3f}" for q in ("median", "p90")]
+        cells.append(f"{100 * m[near]:.1f} %")
+    return cells
 
 
 def write_report(path: Path, results: dict, command: str) -> None:
@@ -247,12 +240,20 @@ def write_report(path: Path, results: dict, command: str) -> None:
             "run's (the same in every run)."
         ).removeprefix("- "),
         "",
-        *_traj_header("MulRan trajectory"),
-        _traj_row("`--odometry gt` (reference poses), SLAM", gt["slam"], gt),
-        _traj_row("KISS-ICP odometry", kiss["odometry"], kiss),
-        _traj_row(f"KISS-ICP + loops, SLAM ({kiss['loops_kept']} loops kept)", kiss["slam"], None),
-        _traj_row(
-            "FAST-LIO2 odometry (`odom_poses.txt`, no run)", results["fastlio_odometry"], None
+        *_traj_table(
+            "MulRan trajectory",
+            [
+                _traj_row("`--odometry gt` (reference poses), SLAM", gt["slam"], gt),
+                _traj_row("KISS-ICP odometry", kiss["odometry"], kiss),
+                _traj_row(
+                    f"KISS-ICP + loops, SLAM ({kiss['loops_kept']} loops kept)", kiss["slam"], None
+                ),
+                _traj_row(
+                    "FAST-LIO2 odometry (`odom_poses.txt`, no run)",
+                    results["fastlio_odometry"],
+                    None,
+                ),
+            ],
         ),
         "",
         f"KISS-ICP on the keyframes: {kiss['odometry']['steps_lost']} of "
@@ -265,9 +266,15 @@ def write_report(path: Path, results: dict, command: str) -> None:
         f"{diag['frames']} keyframes, once with its constant-velocity prediction (the run) and "
         "once predicted with the reference's own motion:",
         "",
-        *_traj_header("first keyframes"),
-        _traj_row("constant-velocity prediction (the run)", diag["constant_velocity"], None),
-        _traj_row("prediction = reference motion", diag["reference_prediction"], None),
+        *_traj_table(
+            "first keyframes",
+            [
+                _traj_row(
+                    "constant-velocity prediction (the run)", diag["constant_velocity"], None
+                ),
+                _traj_row("prediction = reference motion", diag["reference_prediction"], None),
+            ],
+        ),
         "",
         f"Over the {diag['cv_predictions'] + 2} keyframes of the runs (median spacing "
         f"{diag['spacing_median_m']:.1f} m), the constant-velocity prediction lands a median "
@@ -284,11 +291,15 @@ def write_report(path: Path, results: dict, command: str) -> None:
         f"poses): vertex -> nearest point, and point -> mesh surface ({MAX_QUERIES_LABEL}); "
         "'near' is within 0.5 m (half the MulRan map voxel).",
         "",
-        "| mesh | vertices | vertex->points median (m) | p90 (m) | vertices near | "
-        "points->mesh median (m) | p90 (m) | points near |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
-        _mesh_row("MulRan, reference poses", gt["mesh"]),
-        _mesh_row("KITTI raw 22 scans, KISS-ICP poses", raw["mesh"]),
+        *table(
+            "mesh | vertices | vertex->points median (m) | p90 (m) | vertices near | "
+            "points->mesh median (m) | p90 (m) | points near",
+            [
+                _mesh_row("MulRan, reference poses", gt["mesh"]),
+                _mesh_row("KITTI raw 22 scans, KISS-ICP poses", raw["mesh"]),
+            ],
+            "lrrrrrrr",
+        ),
         "",
         f"KITTI raw, KISS-ICP: {steps['scans']} scans, motion per scan median "
         f"{steps['step_median_m']:.3f} m (min {steps['step_min_m']:.3f}, max "
@@ -308,10 +319,8 @@ def write_report(path: Path, results: dict, command: str) -> None:
 MAX_QUERIES_LABEL = "a seeded subset of 50,000 points"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="the first 100 MulRan keyframes")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR / "real.md")
+def build_parser():
+    parser = bench_parser(__doc__, "the first 100 MulRan keyframes", out=RESULTS_DIR / "real.md")
     parser.add_argument("--figures", type=Path, help="figure folder (see the module docstring)")
     return parser
 
@@ -324,9 +333,8 @@ def main(argv: list[str] | None = None) -> int:
     if not (MULRAN / "scans").is_dir() or not KITTI_RAW.is_dir():
         log.warning("real scans not found under %s; bench_real skipped", DATA)
         lines = section_header("Real LiDAR scans", command)
-        write_text_atomic(
-            args.out, "\n".join([*lines, "", f"Skipped: no real scans under {DATA}.", ""])
-        )
+        skipped = [*lines, "", f"Skipped: no real scans under {DATA}.", ""]
+        write_text_atomic(args.out, "\n".join(skipped))
         return 0
     figures = args.figures or (WORK_DIR / "real-figures" if args.quick else REPO / "docs/figures")
     results = run_benchmark(args.quick, figures, WORK_DIR / "real")

@@ -4,21 +4,18 @@
         [--out FILE]
 
 Each case is a command on generated data in a temporary folder (bad input, environment errors,
-signals, ``--serve``); the table records its exit code and the line that tells the user what
-happened (the ``error:`` line, else the first warning, else the last line of a traceback),
-plus what a probe saw (bound addresses, file modes, temporaries left). ``--before REV`` runs
-every case also against a ``git worktree`` checkout of REV (e.g. df1b174) with ``PYTHONPATH``
-pointing at it. ``--quick`` leaves out the cases that run the pipeline more than once.
-Cases come in groups (``--only`` runs one): ``general`` here, ``maps`` (map files from elsewhere) in
-``benchmarks/reliability_maps.py``, ``commands`` (arguments, config bounds, ``--rrd``, ``--serve``)
-in ``benchmarks/reliability_commands.py``; each cell also gives the command's peak RSS, and a table
-per group counts one-line errors, tracebacks and cases that left files behind.
-Writes ``benchmarks/results/reliability.md``. Self-contained: standard library, numpy and cv2.
+signals, ``--serve``); the table records its exit code, the line that tells the user what
+happened (the ``error:`` line, else the first warning, else the last line of a traceback), what a
+probe saw (bound addresses, file modes, temporaries left) and the command's peak RSS.
+``--before REV`` runs every case also against a checkout of REV; ``--quick`` leaves out the cases
+that run the pipeline more than once. Groups (``--only``): ``general`` here, ``maps`` in
+``benchmarks/reliability_maps.py``, ``commands`` in ``benchmarks/reliability_commands.py``; a
+table per group counts one-line errors, tracebacks and cases that left files behind.
+Writes ``benchmarks/results/reliability.md``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -36,11 +33,14 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness.checkout import checkout
+from benchmarks.harness.cli import bench_parser
 from benchmarks.harness.net import free_port, listening_addresses
-from benchmarks.harness.paths import REPO
+from benchmarks.harness.paths import REPO, RESULTS_DIR
 from benchmarks.harness.reliability import PY, Case, Outcome, message_of, outcome, run
+from benchmarks.harness.results import table
 from benchmarks.reliability_commands import COMMAND_CASES
 from benchmarks.reliability_maps import MAP_CASES
+from common.atomic_io import write_text_atomic
 
 DEMO = ["demo", "--no-progress", "--set", "output.mesh_samples=1000"]
 
@@ -49,8 +49,17 @@ def slam_run(code: Path, *args: str) -> subprocess.CompletedProcess:
     return run(code, [PY, "-m", "slam.run", *args])
 
 
+def slam_eval(code: Path, run_folder: Path) -> subprocess.CompletedProcess:
+    return run(code, [PY, "-m", "slam.eval", str(run_folder), "--no-plots"])
+
+
 def python_snippet(code: Path, snippet: str) -> subprocess.CompletedProcess:
     return run(code, [PY, "-c", "import logging; logging.basicConfig()\n" + snippet])
+
+
+def demo_case(*args: str):
+    """A case that is ``slam.run demo --no-viz ARGS``, reported as it is."""
+    return lambda code, work, base: outcome(slam_run(code, *DEMO, "--no-viz", *args))
 
 
 def written(path: Path) -> str:
@@ -98,16 +107,16 @@ def flip_member(path: Path, out: Path, member: str = "latent_coeffs.npy") -> Non
     out.write_bytes(bytes(data))
 
 
-def mount_tmpfs(folder: Path, options: str) -> bool:
+def in_tmpfs(folder: Path, options: str, *args: str) -> Outcome:
+    """``slam.run args`` with a tmpfs mounted (``options``) at ``folder``; root only."""
     folder.mkdir(parents=True, exist_ok=True)
-    if os.geteuid() != 0:
-        return False
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)])
-    return done.returncode == 0
-
-
-def umount(folder: Path) -> None:
-    subprocess.run(["umount", str(folder)], capture_output=True)
+    mount = ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)]
+    if os.geteuid() != 0 or subprocess.run(mount).returncode != 0:
+        return Outcome(None, "skipped: needs root and tmpfs mounts")
+    try:
+        return outcome(slam_run(*args))
+    finally:
+        subprocess.run(["umount", str(folder)], capture_output=True)
 
 
 # -- cases -------------------------------------------------------------------------------------
@@ -145,7 +154,7 @@ def case_corrupt_map_eval(code: Path, work: Path, base: Path) -> Outcome:
     copy = work / "run"
     shutil.copytree(base, copy)
     flip_member(base / "map.npz", copy / "map.npz")
-    return outcome(run(code, [PY, "-m", "slam.eval", str(copy), "--no-plots"]))
+    return outcome(slam_eval(code, copy))
 
 
 def case_truncated_ply(code: Path, work: Path, base: Path) -> Outcome:
@@ -158,32 +167,27 @@ def case_truncated_ply(code: Path, work: Path, base: Path) -> Outcome:
     out = work / "run"
     result = slam_run(code, "lidar", str(scans), "--dataloader", "generic", "--no-viz",
                       "--no-progress", "--out", str(out))  # fmt: skip
-    return outcome(
-        result, f"metrics.json {'written' if (out / 'metrics.json').exists() else 'absent'}"
-    )
+    return outcome(result, written(out / "metrics.json"))
 
 
 def case_disk_full(code: Path, work: Path, base: Path) -> Outcome:
-    folder = work / "full"
-    if not mount_tmpfs(folder, "size=160k"):
-        return Outcome(None, "skipped: needs root and tmpfs mounts")
-    try:
-        result = slam_run(code, *DEMO, "--frames", "0:6", "--rrd", str(folder / "o/recording.rrd"),
-                          "--out", str(folder / "o"))  # fmt: skip
-    finally:
-        umount(folder)
-    return outcome(result)
+    full = work / "full"
+    return in_tmpfs(
+        full,
+        "size=160k",
+        code,
+        *DEMO,
+        "--frames",
+        "0:6",
+        "--rrd",
+        str(full / "o/recording.rrd"),
+        "--out",
+        str(full / "o"),
+    )
 
 
 def case_read_only_out(code: Path, work: Path, base: Path) -> Outcome:
-    folder = work / "ro"
-    if not mount_tmpfs(folder, "size=1m,ro"):
-        return Outcome(None, "skipped: needs root and tmpfs mounts")
-    try:
-        result = slam_run(code, *DEMO, "--no-viz", "--out", str(folder))
-    finally:
-        umount(folder)
-    return outcome(result)
+    return in_tmpfs(work / "ro", "size=1m,ro", code, *DEMO, "--no-viz", "--out", str(work / "ro"))
 
 
 def case_root_is_file(code: Path, work: Path, base: Path) -> Outcome:
@@ -205,10 +209,6 @@ def case_bad_weights(code: Path, work: Path, base: Path) -> Outcome:
     return outcome(result, ", ".join(p for p in (hint, left) if p))
 
 
-def case_out_proc(code: Path, work: Path, base: Path) -> Outcome:
-    return outcome(slam_run(code, *DEMO, "--no-viz", "--out", "/proc/x"))
-
-
 def case_eval_interrupted(code: Path, work: Path, base: Path) -> Outcome:
     copy = work / "run"
     shutil.copytree(base, copy)
@@ -216,10 +216,7 @@ def case_eval_interrupted(code: Path, work: Path, base: Path) -> Outcome:
         (copy / name).unlink(missing_ok=True)
     status = {"state": "interrupted", "frames_done": 5, "frames_total": 10, "reason": "Ctrl-C"}
     (copy / "run_status.json").write_text(json.dumps(status))
-    result = run(code, [PY, "-m", "slam.eval", str(copy), "--no-plots"])
-    return outcome(
-        result, f"metrics.json {'written' if (copy / 'metrics.json').exists() else 'absent'}"
-    )
+    return outcome(slam_eval(code, copy), written(copy / "metrics.json"))
 
 
 def case_sigterm(code: Path, work: Path, base: Path) -> Outcome:
@@ -274,14 +271,6 @@ def case_containment(code: Path, work: Path, base: Path) -> Outcome:
     return outcome(python_snippet(code, _tum_snippet(work, "seq")))
 
 
-def case_set_names(code: Path, work: Path, base: Path) -> Outcome:
-    return outcome(slam_run(code, *DEMO, "--no-viz", "--set", "submaps.max_frames=abc"))
-
-
-def case_set_range(code: Path, work: Path, base: Path) -> Outcome:
-    return outcome(slam_run(code, *DEMO, "--no-viz", "--set", "source.frames=10:5"))
-
-
 def case_no_intrinsics(code: Path, work: Path, base: Path) -> Outcome:
     write_tum(work / "my_camera", 3, 3, size=(480, 640), intrinsics=False)
     return outcome(python_snippet(code, _tum_snippet(work, "my_camera")))
@@ -298,11 +287,7 @@ def case_eval_bad_tum(code: Path, work: Path, base: Path) -> Outcome:
     copy = work / "run"
     shutil.copytree(base, copy)
     (copy / "poses_slam.tum.txt").write_text("1.0 garbage\n")
-    return outcome(run(code, [PY, "-m", "slam.eval", str(copy), "--no-plots"]))
-
-
-def case_negative_frames(code: Path, work: Path, base: Path) -> Outcome:
-    return outcome(slam_run(code, *DEMO, "--no-viz", "--frames", "-5:10"))
+    return outcome(slam_eval(code, copy))
 
 
 def case_fsync(code: Path, work: Path, base: Path) -> Outcome:
@@ -332,7 +317,7 @@ CASES = [
     Case("4", "output.root is a file", "slam.run demo --set output.root=afile", case_root_is_file),
     Case("4", "foreign prior weights (pickled object)",
          "slam.run demo --set mapping.weights_path=foreign.pt", case_bad_weights),
-    Case("4", "--out /proc/x", "slam.run demo --out /proc/x", case_out_proc),
+    Case("4", "--out /proc/x", "slam.run demo --out /proc/x", demo_case("--out", "/proc/x")),
     Case("5", "slam.eval on an interrupted run", "slam.eval RUN (run_status: interrupted)",
          case_eval_interrupted),
     Case("6", "SIGTERM after the first submap", "kill -TERM during slam.run demo --rrd",
@@ -341,16 +326,16 @@ CASES = [
     Case("8", "40 RGB vs 25 depth images", "make_source('tum', ...)", case_count_mismatch),
     Case("9", "rgb.txt entry /etc/passwd", "make_source('tum', ...)", case_containment),
     Case("10", "--set validation error", "slam.run demo --set submaps.max_frames=abc",
-         case_set_names),
+         demo_case("--set", "submaps.max_frames=abc")),
     Case("11", "--set source.frames=10:5", "slam.run demo --set source.frames=10:5",
-         case_set_range),
+         demo_case("--set", "source.frames=10:5")),
     Case("12", "RGB-D folder without intrinsics.txt", "make_source('tum', ..., 'my_camera')",
          case_no_intrinsics),
     Case("12", "depth_scale 0 in intrinsics.txt", "make_source('tum', ...)[0]",
          case_zero_depth_scale),
     Case("13", "slam.eval with a malformed poses_slam.tum.txt", "slam.eval RUN",
          case_eval_bad_tum),
-    Case("14", "--frames -5:10", "slam.run demo --frames -5:10", case_negative_frames),
+    Case("14", "--frames -5:10", "slam.run demo --frames -5:10", demo_case("--frames", "-5:10")),
     Case("14", "atomic writes fsync", "write_text_atomic(x.txt)", case_fsync),
 ]  # fmt: skip
 CASES += MAP_CASES + COMMAND_CASES
@@ -412,16 +397,10 @@ def class_summary(outcomes: list[Outcome | None]) -> str:
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="skip the multi-run cases")
-    parser.add_argument("--before", metavar="REV", help="also run every case at this revision")
-    parser.add_argument(
-        "--only", metavar="GROUP", help="run only this group of cases (general, maps or commands)"
-    )
-    parser.add_argument(
-        "--out", type=Path, help="default: benchmarks/results/reliability[-GROUP].md"
-    )
+def build_parser():
+    parser = bench_parser(__doc__, "skip the multi-run cases", before=True)
+    parser.add_argument("--only", metavar="GROUP", help="only this group: general, maps, commands")
+    parser.add_argument("--out", type=Path, help="default: results/reliability[-GROUP].md")
     return parser
 
 
@@ -452,21 +431,27 @@ def main(argv: list[str] | None = None) -> int:
         f"[what a probe saw], cut at {CELL_MAX_CHARS} characters. Commands run on generated "
         "data in a temporary folder, whose path is left out of the messages.",
         "",
-        f"| # | case | command | before ({args.before or '-'}) | after |",
-        "|---|---|---|---|---|",
+        *table(
+            f"# | case | command | before ({args.before or '-'}) | after",
+            (
+                [c.number, c.title, f"`{c.command}`", cell(b), cell(a)]
+                for c, b, a in zip(cases, before, after, strict=True)
+            ),
+        ),
+        "",
     ]
-    for case, b, a in zip(cases, before, after, strict=True):
-        lines.append(f"| {case.number} | {case.title} | `{case.command}` | {cell(b)} | {cell(a)} |")
-    lines += ["", "| class | before | after |", "|---|---|---|"]
-    for group in dict.fromkeys(c.group for c in cases):
-        pick = [i for i, c in enumerate(cases) if c.group == group]
-        summary_before = class_summary([before[i] for i in pick])
-        lines.append(f"| {group} | {summary_before} | {class_summary([after[i] for i in pick])} |")
+    names = dict.fromkeys(c.group for c in cases)
+    groups = [[i for i, c in enumerate(cases) if c.group == name] for name in names]
+    lines += table(
+        "class | before | after",
+        (
+            [cases[pick[0]].group, *(class_summary([o[i] for i in pick]) for o in (before, after))]
+            for pick in groups
+        ),
+    )
     if args.out is None:
-        name = f"reliability-{args.only}.md" if args.only else "reliability.md"
-        args.out = REPO / "benchmarks" / "results" / name
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
+        args.out = RESULTS_DIR / (f"reliability-{args.only}.md" if args.only else "reliability.md")
+    write_text_atomic(args.out, "\n".join(lines) + "\n")
     print(args.out)
     return 0
 

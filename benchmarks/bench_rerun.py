@@ -3,36 +3,23 @@
     python -m benchmarks.bench_rerun [--quick] [--frames A:B]
     python -m benchmarks.bench_rerun --rates [--before DIR] [--repeats 3]
 
-Each case is run twice in this process with ``slam.app.runner``'s own ``execute``: once with
-``--no-viz``
-(:class:`~slam.algorithm.viz.NullLogger`) and once writing an ``.rrd`` file, after the sequence has
-been
-generated/cached so that neither run pays for generation. Measured:
+Each case runs twice in this process with ``slam.app.runner``'s ``execute`` (after its sequence
+is generated): with ``--no-viz`` and writing an ``.rrd`` file. Measured: both wall times and
+their difference (noisy on a shared machine); the time inside the logger's methods (the logger
+wrapped by a timer); the pipeline's ``map_logging`` stage (it also meshes for the viewer); the
+recording's size and largest entities; whether both runs wrote identical poses.
 
-- wall time of both runs and their difference (the end-to-end overhead, noisy on a shared machine);
-- time spent inside the logger's methods (the logger is wrapped by a timer; this is the part of
-  the overhead that Rerun logging itself costs, and it is much less noisy);
-- time of the pipeline's ``map_logging`` stage, which also extracts meshes for the viewer at
-  submap boundaries (only when a recording is made);
-- the recording's size, its largest entities, and whether both runs wrote identical poses.
+``--rates`` measures instead the pipeline rate (``timing.frames_per_s``) of ``python -m slam.run``
+child processes with the default recording and with ``--no-viz``, on the demo and the first 120
+frames of the generated street, ``--repeats`` times interleaved; ``--before DIR`` (another
+checkout) adds its rows (``benchmarks/results/rerun_rates.md``).
 
-``--rates`` measures instead what the recording costs the pipeline: ``python -m slam.run`` as
-a child process, with the default recording and with ``--no-viz``, on the demo (240 frames) and
-the first 120 frames of the generated street (without the mesh scores and files, which come
-after the pipeline), ``--repeats`` times each (interleaved, so that the
-load of a shared machine falls on both alike), and reports the pipeline rate (frames/s,
-``timing.frames_per_s`` of ``metrics.json``) as median, min and max. With ``--before DIR`` (a
-checkout of another commit with its own ``.venv`` or this one's) the same runs are made there too,
-for a before/after table (``benchmarks/results/rerun_rates.md``).
-
-Quick mode: the first 60 frames of the demo. Full mode: the whole demo and, when
-``../shared/data/kitti`` is present, a 1,500-frame LiDAR sequence generated along the real KITTI 00
-trajectory.
+Quick mode: the first 30 demo frames. Full mode: the whole demo and, when
+``../shared/data/kitti`` is present, 1,500 LiDAR frames generated along KITTI 00's trajectory.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import statistics
@@ -46,9 +33,11 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.harness.cli import bench_parser, command_line
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA, RESULTS_DIR
 from benchmarks.harness.paths import WORK_DIR as BENCH_OUT
+from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 
 RESULTS = RESULTS_DIR / "rerun.md"
@@ -68,14 +57,6 @@ SHARED_KITTI = DATA / "kitti"
 
 
 @dataclass
-class Case:
-    """One ``slam.app.runner`` command line (without viz flags)."""
-
-    name: str
-    argv: list[str]
-
-
-@dataclass
 class TimedCalls:
     """Seconds spent per logger method."""
 
@@ -86,43 +67,41 @@ class TimedCalls:
     def total_s(self) -> float:
         return float(sum(self.seconds.values()))
 
+    def summary(self) -> dict[str, Any]:
+        """The time inside the logger, in all and by method, and the calls by method."""
+        return {
+            "logger_s": self.total_s,
+            "logger_by_method": dict(self.seconds),
+            "calls_by_method": dict(self.calls),
+        }
+
+
+LOGGER_METHODS = (
+    "set_time",
+    "log_scan",
+    "log_sensor",
+    "log_trajectory",
+    "log_loop_closures",
+    "log_map",
+    "log_metrics",
+    "close",
+)
+
 
 def timed_logger(inner, timings: TimedCalls):
     """A :class:`~slam.algorithm.viz.Logger` forwarding to ``inner`` and timing every call."""
     from slam.algorithm.viz import Logger
 
-    class TimedLogger(Logger):
-        def _call(self, name: str, *args: Any, **kwargs: Any) -> None:
+    def forward(name: str):
+        def call(self, *args: Any, **kwargs: Any) -> None:
             start = time.perf_counter()
             getattr(inner, name)(*args, **kwargs)
             timings.seconds[name] += time.perf_counter() - start
             timings.calls[name] += 1
 
-        def set_time(self, frame_index, timestamp_s):
-            self._call("set_time", frame_index, timestamp_s)
+        return call
 
-        def log_scan(self, points_W, colors=None):
-            self._call("log_scan", points_W, colors)
-
-        def log_sensor(self, T_W_S, intrinsics=None, rgb=None, depth_m=None):
-            self._call("log_sensor", T_W_S, intrinsics, rgb, depth_m)
-
-        def log_trajectory(self, name, positions_W):
-            self._call("log_trajectory", name, positions_W)
-
-        def log_loop_closures(self, accepted, rejected=()):
-            self._call("log_loop_closures", accepted, rejected)
-
-        def log_map(self, voxel_centers_W, voxel_values, mesh=None):
-            self._call("log_map", voxel_centers_W, voxel_values, mesh)
-
-        def log_metrics(self, **scalars):
-            self._call("log_metrics", **scalars)
-
-        def close(self):
-            self._call("close")
-
-    return TimedLogger()
+    return type("TimedLogger", (Logger,), {name: forward(name) for name in LOGGER_METHODS})()
 
 
 def run_case(argv: list[str], folder: Path, timings: TimedCalls | None) -> dict[str, Any]:
@@ -143,13 +122,13 @@ def run_case(argv: list[str], folder: Path, timings: TimedCalls | None) -> dict[
         recorder.build_logger = original
 
 
-def prepare(argv: list[str]) -> int:
-    """Generate/cache the case's sequence; returns its number of frames."""
+def prepare(argv: list[str]):
+    """The case's run config and its source (generated or cached now)."""
     from slam.app.cli import build_parser, resolve_config
     from slam.assembly.builders import build_source
 
     _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
-    return len(build_source(cfg))
+    return cfg, build_source(cfg)
 
 
 def logger_alone(argv: list[str], submap_frames: int = 20) -> dict[str, Any]:
@@ -160,12 +139,9 @@ def logger_alone(argv: list[str], submap_frames: int = 20) -> dict[str, Any]:
     import trimesh
     from scipy.spatial import cKDTree
 
-    from slam.app.cli import build_parser, resolve_config
     from slam.app.rerun_logger import RerunLogger
-    from slam.assembly.builders import build_source
 
-    _, cfg = resolve_config(build_parser().parse_args([*argv, "--no-viz"]))
-    source = build_source(cfg)
+    cfg, source = prepare(argv)
     voxel = cfg.mapping.voxel_size_m
     gt_mesh = trimesh.load(source.gt_mesh_path, force="mesh") if source.gt_mesh_path else None
     path = WORK_DIR / "logger_alone.rrd"
@@ -197,9 +173,7 @@ def logger_alone(argv: list[str], submap_frames: int = 20) -> dict[str, Any]:
     logger.close()
     return {
         "frames": len(source),
-        "logger_s": timings.total_s,
-        "logger_by_method": dict(timings.seconds),
-        "calls_by_method": dict(timings.calls),
+        **timings.summary(),
         "load_s": load_s,
         "rrd_bytes": path.stat().st_size,
     }
@@ -210,31 +184,32 @@ def same_poses(a: Path, b: Path) -> bool:
     return all((a / n).read_bytes() == (b / n).read_bytes() for n in names)
 
 
-def measure(case: Case) -> dict[str, Any]:
+def measure(name: str, argv: list[str]) -> dict[str, Any]:
+    """One case (a ``slam.run`` command line without viz flags) with ``--no-viz`` and with
+    ``--rrd``."""
     from slam.app.rerun_logger import summarize_recording
 
-    folder = WORK_DIR / case.name
+    folder = WORK_DIR / name
     shutil.rmtree(folder, ignore_errors=True)
-    frames = prepare(case.argv)
-    plain = run_case([*case.argv, "--no-viz", "--no-progress"], folder / "no-viz", None)
+    frames = len(prepare(argv)[1])
+    plain = run_case([*argv, "--no-viz", "--no-progress"], folder / "no-viz", None)
     timings = TimedCalls()
     rrd = folder / "rrd" / "recording.rrd"
-    logged = run_case([*case.argv, "--rrd", str(rrd), "--no-progress"], folder / "rrd", timings)
+    logged = run_case([*argv, "--rrd", str(rrd), "--no-progress"], folder / "rrd", timings)
     summary = summarize_recording(rrd)
-    stages_plain = plain["timing"]["stages"]
-    stages_logged = logged["timing"]["stages"]
-    map_logging_s = stages_logged.get("map_logging", {}).get("total_s", 0.0)
+
+    def map_logging_s(run: dict) -> float:
+        return run["timing"]["stages"].get("map_logging", {}).get("total_s", 0.0)
+
     return {
-        "name": case.name,
-        "command": "python -m slam.run " + " ".join(case.argv) + " [--no-viz | --rrd FILE]",
+        "name": name,
         "frames": frames,
+        "command": "python -m slam.run " + " ".join(argv) + " [--no-viz | --rrd FILE]",
         "wall_plain_s": plain["timing"]["wall_s"],
         "wall_logged_s": logged["timing"]["wall_s"],
-        "map_logging_plain_s": stages_plain.get("map_logging", {}).get("total_s", 0.0),
-        "map_logging_logged_s": map_logging_s,
-        "logger_s": timings.total_s,
-        "logger_by_method": dict(timings.seconds),
-        "calls_by_method": dict(timings.calls),
+        "map_logging_plain_s": map_logging_s(plain),
+        "map_logging_logged_s": map_logging_s(logged),
+        **timings.summary(),
         "rrd_bytes": summary.size_bytes,
         "entities": summary.entities,
         "same_poses": same_poses(folder / "no-viz", folder / "rrd"),
@@ -243,14 +218,41 @@ def measure(case: Case) -> dict[str, Any]:
 
 def _method_table(result: dict) -> list[str]:
     """Markdown table of the time spent in each logger method, slowest first."""
-    lines = ["| method | calls | total [s] | per call [ms] |", "|---|---:|---:|---:|"]
-    for method, seconds in sorted(result["logger_by_method"].items(), key=lambda kv: -kv[1]):
-        calls = result["calls_by_method"][method]
-        lines.append(f"| {method} | {calls} | {seconds:.3f} | {1e3 * seconds / calls:.2f} |")
-    return lines
+    by_time = sorted(result["logger_by_method"].items(), key=lambda kv: -kv[1])
+    calls = result["calls_by_method"]
+    return table(
+        "method | calls | total [s] | per call [ms]",
+        (
+            [method, calls[method], f"{seconds:.3f}", f"{1e3 * seconds / calls[method]:.2f}"]
+            for method, seconds in by_time
+        ),
+        "lrrr",
+    )
+
+
+def _case_row(r: dict) -> list:
+    diff, mb = r["wall_logged_s"] - r["wall_plain_s"], r["rrd_bytes"] / 1e6
+    return [
+        r["name"],
+        r["frames"],
+        f"{r['wall_plain_s']:.1f}",
+        f"{r['wall_logged_s']:.1f}",
+        f"{diff:+.1f} s ({100 * diff / r['wall_plain_s']:+.1f} %)",
+        f"{r['logger_s']:.2f}",
+        f"{100 * r['logger_s'] / r['wall_logged_s']:.1f} %",
+        f"{r['map_logging_plain_s']:.1f} / {r['map_logging_logged_s']:.1f}",
+        f"{mb:.1f}",
+        f"{100 * mb / r['frames']:.1f}",
+        "yes" if r["same_poses"] else "NO",
+    ]
 
 
 def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str) -> str:
+    header = (
+        "case | frames | wall no-viz [s] | wall rrd [s] | wall diff | time in logger [s] "
+        "| logger / wall rrd | map_logging stage no-viz / rrd [s] | recording [MB] "
+        "| MB / 100 frames | identical poses"
+    )
     lines = [
         *section_header("rerun", command),
         "",
@@ -265,22 +267,7 @@ def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str)
         "viewer (with `--no-viz` only the final mesh), so its growth is visualisation cost "
         "paid by the pipeline, not by Rerun.",
         "",
-        "| case | frames | wall no-viz [s] | wall rrd [s] | wall diff | time in logger [s] "
-        "| logger / wall rrd | map_logging stage no-viz / rrd [s] | recording [MB] "
-        "| MB / 100 frames | identical poses |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
-    ]
-    for r in results:
-        diff = r["wall_logged_s"] - r["wall_plain_s"]
-        lines.append(
-            f"| {r['name']} | {r['frames']} | {r['wall_plain_s']:.1f} | {r['wall_logged_s']:.1f} "
-            f"| {diff:+.1f} s ({100 * diff / r['wall_plain_s']:+.1f} %) | {r['logger_s']:.2f} "
-            f"| {100 * r['logger_s'] / r['wall_logged_s']:.1f} % "
-            f"| {r['map_logging_plain_s']:.1f} / {r['map_logging_logged_s']:.1f} "
-            f"| {r['rrd_bytes'] / 1e6:.1f} | {100 * r['rrd_bytes'] / 1e6 / r['frames']:.1f} "
-            f"| {'yes' if r['same_poses'] else 'NO'} |"
-        )
-    lines += [
+        *table(header, map(_case_row, results), "lrrrrrrrrrl"),
         "",
         f"### Logger alone on the demo's {alone['frames']} real frames",
         "",
@@ -298,6 +285,7 @@ def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str)
         *_method_table(alone),
     ]
     for r in results:
+        top = sorted(r["entities"].items(), key=lambda kv: -kv[1].arrow_bytes)[:8]
         lines += [
             "",
             f"### {r['name']}: time inside the logger per method",
@@ -305,19 +293,19 @@ def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str)
             f"Command: `{r['command']}`",
             "",
             *_method_table(r),
-        ]
-        lines += [
             "",
             f"Largest entities of the recording (uncompressed Arrow bytes; the file is "
             f"{r['rrd_bytes'] / 1e6:.1f} MB):",
             "",
-            "| entity | rows | MB |",
-            "|---|---:|---:|",
+            *table(
+                "entity | rows | MB",
+                (
+                    [entity, stats.rows + stats.static_rows, f"{stats.arrow_bytes / 1e6:.2f}"]
+                    for entity, stats in top
+                ),
+                "lrr",
+            ),
         ]
-        top = sorted(r["entities"].items(), key=lambda kv: -kv[1].arrow_bytes)[:8]
-        for entity, stats in top:
-            rows = stats.rows + stats.static_rows
-            lines.append(f"| {entity} | {rows} | {stats.arrow_bytes / 1e6:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -343,8 +331,7 @@ def measure_rates(trees: dict[str, Path], repeats: int) -> dict[tuple[str, str, 
                     run = [*argv, *flags, *RATE_OUTPUTS]
                     rate = pipeline_rate(root, run, WORK_DIR / "rates")
                     rates[(tree, case, mode)].append(rate)
-                    line = f"{tree} | {case} | {mode} | run {repeat + 1}: {rate:.2f} frames/s"
-                    print(f"bench_rerun: {line}", file=sys.stderr, flush=True)
+                    say(f"{tree} | {case} | {mode} | run {repeat + 1}: {rate:.2f} frames/s")
     return rates
 
 
@@ -352,6 +339,13 @@ def rates_markdown(rates: dict, trees: dict[str, Path], repeats: int, command: s
     def cell(values: list[float]) -> str:
         return f"{statistics.median(values):.1f} ({min(values):.1f}-{max(values):.1f})"
 
+    rows = []
+    for tree in trees:
+        for case in RATE_CASES:
+            logged, plain = rates[(tree, case, "recording")], rates[(tree, case, "--no-viz")]
+            ratio = statistics.median(logged) / statistics.median(plain)
+            rows.append([tree, case, cell(logged), cell(plain), f"{ratio:.2f}"])
+    header = "code | case | recording [frames/s] | --no-viz [frames/s] | recording / --no-viz"
     lines = [
         *section_header("rerun rates", command),
         "",
@@ -359,78 +353,58 @@ def rates_markdown(rates: dict, trees: dict[str, Path], repeats: int, command: s
         f" `timing.frames_per_s`) of `python -m slam.run`: median of {repeats} runs (min-max), "
         "with the default recording (`recording.rrd`) and with `--no-viz`.",
         "",
-        "| code | case | recording [frames/s] | --no-viz [frames/s] | recording / --no-viz |",
-        "|---|---|---:|---:|---:|",
+        *table(header, rows, "llrrr"),
     ]
-    for tree in trees:
-        for case in RATE_CASES:
-            logged, plain = rates[(tree, case, "recording")], rates[(tree, case, "--no-viz")]
-            ratio = statistics.median(logged) / statistics.median(plain)
-            lines.append(f"| {tree} | {case} | {cell(logged)} | {cell(plain)} | {ratio:.2f} |")
     return "\n".join(lines) + "\n"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="first 30 demo frames only")
+def say(message: str) -> None:
+    print(f"bench_rerun: {message}", file=sys.stderr, flush=True)
+
+
+def build_parser():
+    parser = bench_parser(__doc__, "first 30 demo frames only")
     parser.add_argument("--frames", help="frame range of the demo case (overrides the mode)")
-    parser.add_argument(
-        "--skip-lidar", action="store_true", help="full mode without the 1,500-frame LiDAR case"
-    )
-    parser.add_argument(
-        "--rates", action="store_true", help="pipeline rate with recording vs --no-viz instead"
-    )
-    parser.add_argument(
-        "--before", type=Path, help="--rates: also measure this checkout (e.g. a git worktree)"
-    )
+    parser.add_argument("--skip-lidar", action="store_true", help="no 1,500-frame LiDAR case")
+    parser.add_argument("--rates", action="store_true", help="recording vs --no-viz rates instead")
+    parser.add_argument("--before", type=Path, help="--rates: also measure this checkout")
     parser.add_argument("--repeats", type=int, default=3, help="--rates: runs of each case")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    argv_shown = list(sys.argv[1:] if argv is None else argv)
-    command = " ".join(["python -m benchmarks.bench_rerun", *argv_shown])
+    command = command_line("bench_rerun", argv)
     if args.rates:
-        here = Path(__file__).resolve().parents[1]
         trees = {"before": args.before.resolve()} if args.before else {}
-        trees["this checkout"] = here
+        trees["this checkout"] = Path(__file__).resolve().parents[1]
         rates = measure_rates(trees, args.repeats)
         write_text_atomic(RATES, rates_markdown(rates, trees, args.repeats, command))
-        print(f"bench_rerun: wrote {RATES}", file=sys.stderr)
+        say(f"wrote {RATES}")
         return 0
-
     frames = args.frames or ("0:30" if args.quick else None)
     demo = ["demo", *(["--frames", frames] if frames else [])]
-    cases = [Case("demo" + (f" [{frames}]" if frames else ""), demo)]
+    cases = {"demo" + (f" [{frames}]" if frames else ""): demo}
     if not args.quick and not args.skip_lidar:
+        kitti = {
+            "trajectory": "kitti",
+            "kitti_poses": SHARED_KITTI / "poses" / "00.txt",
+            "kitti_calib": SHARED_KITTI / "sequences" / "00" / "calib.txt",
+            "num_frames": 1500,
+        }
+        sets = [arg for key, val in kitti.items() for arg in ("--set", f"generated.{key}={val}")]
         if SHARED_KITTI.is_dir():
-            cases.append(
-                Case(
-                    "generated LiDAR, KITTI 00 trajectory",
-                    [
-                        "generated-lidar",
-                        "--set",
-                        "generated.trajectory=kitti",
-                        "--set",
-                        f"generated.kitti_poses={SHARED_KITTI / 'poses' / '00.txt'}",
-                        "--set",
-                        f"generated.kitti_calib={SHARED_KITTI / 'sequences' / '00' / 'calib.txt'}",
-                        "--set",
-                        "generated.num_frames=1500",
-                    ],
-                )
-            )
+            cases["generated LiDAR, KITTI 00 trajectory"] = ["generated-lidar", *sets]
         else:
             print(f"skipping the KITTI-trajectory case: {SHARED_KITTI} is absent", file=sys.stderr)
-    print("bench_rerun: logger alone on the demo frames", file=sys.stderr)
+    say("logger alone on the demo frames")
     alone = logger_alone(["demo"])
     results = []
-    for case in cases:
-        print(f"bench_rerun: {case.name}", file=sys.stderr)
-        results.append(measure(case))
+    for name, case_argv in cases.items():
+        say(name)
+        results.append(measure(name, case_argv))
     write_text_atomic(RESULTS, markdown(results, alone, command))
-    print(f"bench_rerun: wrote {RESULTS}", file=sys.stderr)
+    say(f"wrote {RESULTS}")
     return 0
 
 

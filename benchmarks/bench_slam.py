@@ -2,41 +2,32 @@
 
     python -m benchmarks.bench_slam [--quick] [--out benchmarks/results/slam.md]
 
-Runs, each in its own process (one torch thread, no viewer, map on the CPU):
-
-* LiDAR: a 64-beam LiDAR simulated along the real KITTI 00 ground-truth trajectory (frames
-  0-1700 in full mode, the 550-scan quick window in quick mode; both contain the revisit of the
-  start area from frame 1559 on), configs/kitti.yaml, once with KISS-ICP odometry and (full mode)
-  once with ground truth plus an injected yaw drift, so that the loop closure has a drift to
-  remove. KISS-SLAM against ours on these streets: bench_variants.
-* The generated RGB-D room (configs/demo.yaml) with every submap keeping its points: after the
-  run a second map is encoded from scratch at the final poses and compared with the remapped map.
-* Remapping throughput: every submap of each finished map moved once more (remove, transform from
-  the original encoding, fuse), against the paper's 50 frames/s.
-
-The runs are deterministic, so they run once; the timed parts (moving every submap, re-encoding
-the room from its points) are repeated ``REPEATS`` times on the finished maps. Speed of the whole
-pipeline is bench_throughput's (LiDAR) and bench_accuracy's (RGB-D); RGB-D trajectory accuracy is
-bench_accuracy's.
+Runs, each in its own process (one torch thread, no viewer, map on the CPU): a 64-beam LiDAR
+simulated along KITTI 00 (frames 0-1700, or the 550-scan quick window; both revisit the start)
+with configs/kitti.yaml, with KISS-ICP odometry and (full mode) with ground truth plus an
+injected yaw drift; the generated RGB-D room (configs/demo.yaml), whose remapped map is compared
+with one encoded from scratch at the final poses; and moving every submap of each finished map
+once more (remapping throughput). The runs are deterministic and run once; the timed parts are
+repeated ``REPEATS`` times on the finished maps.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from benchmarks.harness.child import in_child
+from benchmarks.harness.cli import bench_parser, start_logging
 from benchmarks.harness.kitti import KITTI_POSES, have_kitti, kitti_source, window
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import RESULTS_DIR
 from benchmarks.harness.pipeline import load_config, run_pipeline, trajectory_summary
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line, timed
+from benchmarks.harness.results import cm, table
 from common.atomic_io import write_text_atomic
 from frontends.odometry.base import Odometry, OdometryResult
 
@@ -44,7 +35,6 @@ FULL_LIDAR_FRAMES = 1700
 """Full mode's LiDAR window: the first 1,700 poses (the revisit of the start is at 1559)."""
 DRIFT_TOTAL_DEG = 1.65
 """Injected yaw drift over the LiDAR window (the revisit stays within the proximity radius)."""
-PAPER_REMAP_FPS = 50.0
 LIDAR_FALSE_LOOP = (1.0, 2.0)
 """A verified LiDAR loop counts as false beyond 1 m / 2 deg from the ground truth."""
 
@@ -166,49 +156,61 @@ def scenario_room() -> dict:
     return {**out, **_remapping(pipeline)}
 
 
-def _cm(value: float) -> str:
-    return f"{100 * value:.2f}"
-
-
 def _trajectory_rows(rows: list[tuple[str, dict]]) -> list[str]:
-    lines = [
-        "| run | frames | submaps | loop candidates | verified | kept by graph | false verified "
-        f"/ kept (beyond {LIDAR_FALSE_LOOP[0]:.0f} m, {LIDAR_FALSE_LOOP[1]:.0f} deg) | median "
-        "loop error [cm / deg] | ATE odometry -> SLAM [m] | ATE x / y / z odometry -> SLAM [m] "
-        "| mesh accuracy [cm] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
+    metres, degrees = LIDAR_FALSE_LOOP
+    header = (
+        "run | frames | submaps | loop candidates | verified | kept by graph | false "
+        f"verified / kept (beyond {metres:.0f} m, {degrees:.0f} deg) | "
+        "median loop error [cm / deg] | ATE odometry -> SLAM [m] | ATE x / y / z odometry "
+        "-> SLAM [m] | mesh accuracy [cm]"
+    )
+    cells = []
     for name, r in rows:
         errors = np.array(r["loop_errors"], dtype=float).reshape(-1, 3)
         wrong = (errors[:, 0] > LIDAR_FALSE_LOOP[0]) | (errors[:, 1] > LIDAR_FALSE_LOOP[1])
         median = (f"{100 * np.median(errors[:, 0]):.1f} / {np.median(errors[:, 1]):.2f}"
                   if len(errors) else "n/a")  # fmt: skip
         axes = [" / ".join(f"{v:.3f}" for v in r[f"ate_xyz_{k}_m"]) for k in ("odometry", "slam")]
-        lines.append(
-            f"| {name} | {r['frames']} | {r['submaps']} | {r['candidates']} | {r['verified']} | "
-            f"{r['kept']} | {int(wrong.sum())} / {int((wrong & (errors[:, 2] > 0)).sum())} | "
-            f"{median} | {r['ate_odometry_m']:.3f} -> {r['ate_slam_m']:.3f} | "
-            f"{axes[0]} -> {axes[1]} | {_cm(r['mesh_accuracy_m'])} |"
+        cells.append(
+            [
+                name,
+                r["frames"],
+                r["submaps"],
+                r["candidates"],
+                r["verified"],
+                r["kept"],
+                f"{int(wrong.sum())} / {int((wrong & (errors[:, 2] > 0)).sum())}",
+                median,
+                f"{r['ate_odometry_m']:.3f} -> {r['ate_slam_m']:.3f}",
+                f"{axes[0]} -> {axes[1]}",
+                cm(r["mesh_accuracy_m"], 2),
+            ]
         )
-    return lines
+    return table(header, cells)
 
 
 def _move_rows(rows: list[tuple[str, dict]]) -> list[str]:
-    lines = [
-        "| run | remap passes during the run / submap moves | submaps (frames), mean voxels "
-        "per submap | moving every submap once more [s] | submaps/s | frames/s (paper: 50) |",
-        "|---|---|---|---|---|---|",
-    ]
+    cells = []
     for name, r in rows:
         seconds = r["move_all_s"]
         submaps, frames = (Timing(r[key] / s for s in seconds)
                            for key in ("move_all_submaps", "move_all_frames"))  # fmt: skip
-        lines.append(
-            f"| {name} | {r['remap_events']} / {r['remap_moved']} | {r['move_all_submaps']} "
-            f"({r['move_all_frames']}), {r['submap_voxels_mean']:.0f} | {Timing(seconds):.2f} | "
-            f"{submaps:.1f} | {frames:.0f} |"
+        cells.append(
+            [
+                name,
+                f"{r['remap_events']} / {r['remap_moved']}",
+                f"{r['move_all_submaps']} ({r['move_all_frames']}), {r['submap_voxels_mean']:.0f}",
+                f"{Timing(seconds):.2f}",
+                f"{submaps:.1f}",
+                f"{frames:.0f}",
+            ]
         )
-    return lines
+    return table(
+        "run | remap passes during the run / submap moves | submaps (frames), mean "
+        "voxels per submap | moving every submap once more [s] | submaps/s | frames/s "
+        "(paper: 50)",
+        cells,
+    )
 
 
 def report(results: dict, command: str) -> str:
@@ -247,15 +249,22 @@ def report(results: dict, command: str) -> str:
         "after remapping against a map encoded from scratch with the same points at the final "
         "poses (mean / median distance between the meshes, 100,000 samples each way).",
         "",
-        "| remapped -> scratch mean [cm] | scratch -> remapped mean [cm] | medians [cm] | "
-        "re-encoding all submaps from points [s] | room mesh vs ground truth: accuracy / "
-        "completion [cm], completion ratio (< 5 cm) |",
-        "|---|---|---|---|---|",
-        f"| {_cm(room['remap_vs_scratch_m'][0])} | {_cm(room['remap_vs_scratch_m'][1])} | "
-        f"{_cm(room['remap_vs_scratch_median_m'][0])} / "
-        f"{_cm(room['remap_vs_scratch_median_m'][1])} | {Timing(room['scratch_encode_s']):.1f} "
-        f"({room['scratch_encode_points']} points) | {_cm(room['accuracy_m'])} / "
-        f"{_cm(room['completion_m'])}, {100 * room['completion_ratio']:.0f} % |",
+        *table(
+            "remapped -> scratch mean [cm] | scratch -> remapped mean [cm] | medians [cm] | "
+            "re-encoding all submaps from points [s] | room mesh vs ground truth: accuracy / "
+            "completion [cm], completion ratio (< 5 cm)",
+            [
+                [
+                    cm(room["remap_vs_scratch_m"][0], 2),
+                    cm(room["remap_vs_scratch_m"][1], 2),
+                    " / ".join(cm(v, 2) for v in room["remap_vs_scratch_median_m"]),
+                    f"{Timing(room['scratch_encode_s']):.1f} ({room['scratch_encode_points']} "
+                    f"points)",
+                    f"{cm(room['accuracy_m'], 2)} / {cm(room['completion_m'], 2)}, "
+                    f"{100 * room['completion_ratio']:.0f} %",
+                ]
+            ],
+        ),
         "",
         "Moving every submap of each finished map once more (remove + transform from the original "
         "encoding + fuse); the paper remaps per frame, here a submap of many frames moves as one:",
@@ -266,13 +275,9 @@ def report(results: dict, command: str) -> str:
     return "\n".join(lines)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="the quick window, no drift run")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR / "slam.md")
-    parser.add_argument(
-        "--report-only", action="store_true", help="rewrite the section from the saved .json"
-    )
+def build_parser():
+    parser = bench_parser(__doc__, "the quick window, no drift run", out=RESULTS_DIR / "slam.md")
+    parser.add_argument("--report-only", action="store_true", help="rewrite from the saved .json")
     return parser
 
 
@@ -284,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
         saved = json.loads(raw.read_text())
         write_text_atomic(args.out, report(saved, saved["command"]))
         return 0
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    start_logging("%(asctime)s %(name)s: %(message)s")
     results: dict[str, Any] = {"quick": args.quick, "command": command}
     if have_kitti():
         log.info("LiDAR, KISS-ICP")

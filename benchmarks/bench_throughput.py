@@ -4,31 +4,22 @@
     python -m benchmarks.bench_throughput --only ours --frames 1000 --profile
     python -m benchmarks.bench_throughput --report-only
 
-The sequence is benchmarks.harness.kitti's generated KITTI-00 LiDAR (the full window: all 4,541
-poses, 2048 firings per revolution; ``--quick``: the first 100 scans of the quick window);
-``--frames N`` runs the first N scans (KISS-SLAM: ``--n-scans N``). Every method runs in its own
-process, one after the other, so its peak memory is its own. Ours runs as ``slam.app.runner``
-does with ``--no-viz``: configs/kitti.yaml, the whole pipeline, the final optimisation, the final
-mesh and ``map.npz``; RSS is sampled every 1,000 frames and at the end, each sample with a
-per-object breakdown (:mod:`benchmarks.memory_breakdown`). Each method runs ``REPEATS`` times;
-timings are their median (min-max), the rest is the first run's. ``--before REV`` also measures ours
-with revision REV, checked out beside this tree, in the same invocation. ``--profile`` runs ours
-under cProfile instead, with the workers inline (the same work, all on the profiled thread), and
-writes the top functions by CPU time of the process (KISS-ICP's thread pool included) to
-``benchmarks/results/throughput_profile.md``; its times are not comparable to unprofiled runs.
-
-Writes ``benchmarks/results/throughput.json`` (this invocation's runs only) and
-``benchmarks/results/throughput.md``.
+The scans are benchmarks.harness.kitti's (the full window; ``--quick``: the first 100 scans of the
+quick window, no KISS-SLAM; ``--frames N``: the first N). Every method runs ``REPEATS`` times in
+its own process, so its peak memory is its own. Ours runs as ``slam.run --no-viz`` does
+(configs/kitti.yaml, final optimisation, mesh and ``map.npz``), its RSS sampled every 1,000 frames
+with a per-object breakdown (:mod:`benchmarks.memory_breakdown`). ``--before REV`` also measures
+ours at REV, checked out beside this tree. ``--profile`` runs ours under cProfile with the
+workers inline and writes ``benchmarks/results/throughput_profile.md``.
+Writes ``benchmarks/results/throughput.json`` and ``throughput.md``.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import logging
 import os
-import shlex
 import sys
 import tempfile
 import time
@@ -36,11 +27,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from benchmarks.harness.checkout import checkout
+from benchmarks.harness.checkout import revisions
 from benchmarks.harness.child import UnsupportedRevision, in_child
+from benchmarks.harness.cli import bench_parser, command_line, start_logging
 from benchmarks.harness.kitti import KITTI_POSES, have_kitti, kitti_source, window
-from benchmarks.harness.machine import machine_line
+from benchmarks.harness.machine import machine_line, proc_memory_kib
 from benchmarks.harness.paths import RESULTS_DIR
+from benchmarks.harness.pipeline import QUIET
 from benchmarks.harness.reference import kiss_icp_alone, kiss_slam
 from benchmarks.harness.repeat import REPEATS, repeat_runs, restore_all
 from benchmarks.memory_breakdown import memory_breakdown, trim_mb
@@ -60,14 +53,8 @@ log = logging.getLogger("benchmarks.bench_throughput")
 
 def _rss_mb() -> tuple[float, float]:
     """(current, peak) resident memory of this process in MB (MiB, as before)."""
-    current = peak = float("nan")
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                current = int(line.split()[1]) / 1024
-            elif line.startswith("VmHWM:"):
-                peak = int(line.split()[1]) / 1024
-    return current, peak
+    memory = proc_memory_kib()
+    return memory.get("VmRSS", float("nan")) / 1024, memory.get("VmHWM", float("nan")) / 1024
 
 
 def _phase_peak() -> float:
@@ -113,12 +100,8 @@ def _config(extra: dict[str, Any] | None = None):
     """configs/kitti.yaml for the generated scans, without viewer, with ``extra`` on top."""
     from slam.assembly.config import default_config_path, load_run_config, merge_overrides
 
-    overrides: dict[str, Any] = {
-        "source": {"dataset": "generated"},
-        "viz": {"mode": "none", "mesh_every_submaps": 10**9, "mesh_after_remap": False},
-        "mapping": {"device": "cpu"},
-    }
-    return load_run_config(default_config_path("kitti"), merge_overrides(overrides, extra or {}))
+    overrides = merge_overrides({"source": {"dataset": "generated"}, **QUIET}, extra or {})
+    return load_run_config(default_config_path("kitti"), overrides)
 
 
 def _apply_thread_budget(cfg) -> str:
@@ -215,6 +198,8 @@ def scenario_ours(
     )
     stage = {k: float(sum(v)) for k, v in pipeline.timings_s.items() if k != "frame"}
     stage.update(final_mesh=final_mesh_s, map_save=map_save_s)
+    workers = pipeline.executor
+    odometry_poses, slam_poses = pipeline.odometry_poses(), pipeline.slam_poses()
     return {
         "frames": count,
         "wall_s": wall,
@@ -223,8 +208,8 @@ def scenario_ours(
         # thread pool, reading ahead, the final mesh and the map file
         "cpu_threads_s": {
             "main": main_cpu_s,
-            "map_worker": pipeline.executor.map_worker.cpu_s,
-            "submap_worker": pipeline.executor.submap_worker.cpu_s,
+            "map_worker": workers.map_worker.cpu_s,
+            "submap_worker": workers.submap_worker.cpu_s,
             "odometry_process": child.cpu_s if child else None,
         },
         "odometry_process_peak_rss_mb": child.peak_rss_mb if child else None,
@@ -240,10 +225,10 @@ def scenario_ours(
         "map_voxels": neural_map.num_voxels,
         "submaps": len(pipeline.submaps),
         "loops_kept": sum(1 for c in pipeline.accepted_loops() if c.graph_inlier),
-        "ate_odometry_m": ate_rmse(pipeline.odometry_poses(), gt),
-        "ate_slam_m": ate_rmse(pipeline.slam_poses(), gt),
-        "ate_xyz_odometry_m": ate_per_axis_rmse(pipeline.odometry_poses(), gt).tolist(),
-        "ate_xyz_slam_m": ate_per_axis_rmse(pipeline.slam_poses(), gt).tolist(),
+        "ate_odometry_m": ate_rmse(odometry_poses, gt),
+        "ate_slam_m": ate_rmse(slam_poses, gt),
+        "ate_xyz_odometry_m": ate_per_axis_rmse(odometry_poses, gt).tolist(),
+        "ate_xyz_slam_m": ate_per_axis_rmse(slam_poses, gt).tolist(),
         "mesh_accuracy_m": errors["accuracy_m"],
         "mesh_faces": len(mesh.faces),
         "threads": threads,
@@ -260,57 +245,37 @@ def scenario_kiss_icp(quick: bool, num_frames: int, relief_m: float = 0.0) -> di
     return {**out, "peak_rss_mb": _rss_mb()[1], "threads": threads}
 
 
-def scenario_kiss_slam(quick: bool, num_frames: int, relief_m: float = 0.0) -> dict:
-    return kiss_slam(kitti_source(quick, num_frames, relief_m), num_frames)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser():
+    quick = f"the first {QUICK_FRAMES} scans of the quick window, no KISS-SLAM"
+    parser = bench_parser(__doc__, quick, before=True)
     parser.add_argument("--frames", type=int, help="first N scans (default: the whole window)")
     parser.add_argument("--only", choices=METHODS, action="append")
     parser.add_argument("--skip-kiss-slam", action="store_true")
-    parser.add_argument("--before", metavar="REV", help="also measure ours at revision REV")
     parser.add_argument(
         "--override",
         type=json.loads,
         default=None,
-        help="config overrides for ours, as JSON (e.g. "
-        '\'{"mapping": {"jacobian_pairs_per_voxel": 0}}\'); recorded with the run',
+        help="config overrides for ours, as JSON; recorded",
     )
     parser.add_argument(
         "--relief",
         type=float,
         default=0.0,
-        help="height of the hills beside the road, metres (generated.terrain_relief_m)",
+        help="generated.terrain_relief_m: hills beside the road",
     )
-    parser.add_argument(
-        "--profile",
-        action="store_true",
-        help="ours under cProfile, workers inline; writes results/throughput_profile.md",
-    )
+    parser.add_argument("--profile", action="store_true", help="ours under cProfile, inline")
     parser.add_argument("--report-only", action="store_true", help="rewrite from the .json")
-    parser.add_argument(
-        "--quick",
-        action="store_true",
-        help=f"the first {QUICK_FRAMES} scans of the quick window, no KISS-SLAM (run_all --quick)",
-    )
     return parser
 
 
 def _measure(name: str, args, code: Path | None) -> dict:
     """One method in its own process; ``code``: the checkout whose ``slam`` it imports."""
     if name == "kiss_slam":
-        return repeat_runs(
-            lambda: scenario_kiss_slam(args.quick, args.frames, args.relief), TIMING_KEYS
-        )
-    calls = {
-        "ours": (
-            scenario_ours,
-            (args.quick, args.frames, args.override, args.relief, args.profile),
-        ),
-        "kiss_icp": (scenario_kiss_icp, (args.quick, args.frames, args.relief)),
-    }
-    fn, fn_args = calls[name]
+        run = (args.quick, args.frames, args.relief)
+        return repeat_runs(lambda: kiss_slam(kitti_source(*run), args.frames), TIMING_KEYS)
+    fn, fn_args = scenario_kiss_icp, (args.quick, args.frames, args.relief)
+    if name == "ours":
+        fn, fn_args = scenario_ours, (*fn_args[:2], args.override, args.relief, args.profile)
     repeats = 1 if args.profile else REPEATS
     try:
         return repeat_runs(lambda: in_child(fn, *fn_args, code=code), TIMING_KEYS, repeats)
@@ -328,10 +293,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     w = window(args.quick)
     args.frames = min(args.frames or w.num_frames, QUICK_FRAMES if args.quick else w.num_frames)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    shown = sys.argv[1:] if argv is None else argv
+    start_logging("%(asctime)s %(name)s: %(message)s")
     saved: dict[str, Any] = {
-        "command": shlex.join(["python", "-m", "benchmarks.bench_throughput", *shown]),
+        "command": command_line("bench_throughput", argv),
         "machine": machine_line(),
         "quick": args.quick,
         "frames": args.frames,
@@ -343,11 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     methods = list(args.only or ["kiss_icp", "kiss_slam", "ours"])
     if (args.skip_kiss_slam or args.quick) and "kiss_slam" in methods:
         methods.remove("kiss_slam")
-    with contextlib.ExitStack() as stack:
-        codes: dict[str, Path | None] = {}
-        if args.before:
-            codes[f"before {args.before}"] = stack.enter_context(checkout(args.before))
-        codes["after"] = None
+    with revisions(args.before) as codes:
         for label, code in codes.items():
             run = saved["runs"].setdefault(label, {"code": label})
             for name in methods:

@@ -2,37 +2,24 @@
 
     python -m benchmarks.bench_variants [--quick] [--variants NAME ...] [--set KEY=VALUE ...]
 
-Each variant is a generated street along the real KITTI 00 trajectory (and its elevations): the
-standard street with seeds 0, 1 and 2, a sparse street (long blank walls far apart), a periodic
-street (one identical building every 16 m), 1,024 vs 2,048 firings, range noise 5 cm with
-2 % dropouts (the default is 2 cm), and the standard street read with KISS-ICP's KITTI
-vertical-angle correction (``source.kitti.correct_vertical_angle=true``): what ``slam.run kitti``
-did to a KITTI-layout simulation whose scans lack the HDL-64E's 0.205 deg beam error before
-``auto`` (the default now) chose it from the road, and still does when it is set.
-configs/kitti.yaml with KISS-ICP odometry; the odometry columns are KISS-ICP alone on the same
-scans. KISS-SLAM (0.0.2, default config, its own process,
-benchmarks.harness.reference.kiss_slam) runs on the same scans in the same invocation, read as
-ours reads them (with the KITTI correction only in that variant); ``--no-kiss-slam`` skips it.
-``--before-set KEY=VALUE`` runs every variant a second time with those overrides (e.g.
-``pose_graph.gravity.enabled=false``: the configuration before the gravity factors), shown as a
-"before" row under each variant.
-Default: the full 4,541 scans; ``--quick``: every 3rd of frames 0-1647 (550 scans, the window
-of benchmarks.bench_slam, which includes the first revisit). In that window '1024 firings'
-is 'standard, seed 0' (the quick window has 1,024 firings). ``--set`` overrides the run config
-(e.g. ``loop_closure.lidar.ambiguity_check=false`` for the "before" table). One table with
-per-axis ATE, SLAM's unaligned errors in the first scan's frame (the frame the poses files claim),
-loops kept, the worst kept loop vs the truth, and the worst variant per column.
-The accuracy comes from one run of the whole window (deterministic); the wall time is the median
-of ``REPEATS`` further runs on the variant's first ``TIMING_SCANS`` scans.
-Writes benchmarks/results/variants.md (and .json) unless ``--out`` says otherwise.
-``--combine A.json B.json ...`` runs nothing: it writes one table from the results of several
-invocations (e.g. one full-length variant each, every one with its own KISS-ICP and KISS-SLAM
-rows), naming each invocation's command, date and machine.
+Each variant is a generated street along the real KITTI 00 trajectory (:data:`VARIANTS`: seeds,
+sparse and periodic streets, firings, range noise with dropouts, and the standard street read
+with KISS-ICP's KITTI vertical-angle correction), run with configs/kitti.yaml and KISS-ICP
+odometry; the odometry columns are KISS-ICP alone on the same scans, and KISS-SLAM
+(``benchmarks.harness.reference.kiss_slam``; ``--no-kiss-slam`` skips it) runs on the same scans
+read as ours reads them. ``--before-set KEY=VALUE`` runs every variant again with those
+overrides, as a "before" row; ``--set`` overrides the run config. Default: the full 4,541 scans;
+``--quick``: the quick window of benchmarks.bench_slam (550 scans, 1,024 firings). One table
+with per-axis ATE, SLAM's unaligned errors, loops kept, the worst kept loop vs the truth, and
+the worst variant per column; accuracy from one run of the window (deterministic), wall time the
+median of ``REPEATS`` runs on the first ``TIMING_SCANS`` scans. Writes
+benchmarks/results/variants.md (and .json) unless ``--out`` says otherwise.
+``--combine A.json B.json ...`` runs nothing: one table from the results of several invocations,
+naming each invocation's command, date and machine.
 """
 
 from __future__ import annotations
 
-import argparse
 import concurrent.futures
 import datetime as dt
 import itertools
@@ -45,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.harness.cli import bench_parser, start_logging
 from benchmarks.harness.kitti import KITTI_POSES, kitti_source
 from benchmarks.harness.kitti import window as kitti_window
 from benchmarks.harness.machine import machine_line
@@ -56,6 +44,7 @@ from benchmarks.harness.pipeline import (
     trajectory_summary,
 )
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line
+from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -206,6 +195,20 @@ def _targets(name: str, r: dict) -> str:
     )
 
 
+def new_results(quick: bool, command: str, before_sets: list[str]) -> dict:
+    """An invocation's results before any run: what, where and when."""
+    return {
+        "machine": machine_line(),
+        "date": dt.datetime.now().isoformat(timespec="seconds"),
+        "quick": quick,
+        "command": command,
+        "before_sets": before_sets,
+        "runs": {},
+        "before": {},
+        "kiss_slam": {},
+    }
+
+
 def combine_results(paths: list[Path]) -> dict:
     """One results dict from the JSON files of several invocations (same window; a variant
     at most once)."""
@@ -214,22 +217,17 @@ def combine_results(paths: list[Path]) -> dict:
         raise ValueError("--combine: the files mix --quick and full-length results")
     if len({tuple(part.get("before_sets", [])) for _, part in parts}) != 1:
         raise ValueError("--combine: the files were run with different --before-set overrides")
-    combined: dict = {
-        "machine": machine_line(),
-        "date": dt.datetime.now().isoformat(timespec="seconds"),
-        "quick": parts[0][1]["quick"],
-        "command": "python -m benchmarks.bench_variants --combine "
-        + " ".join(Path(path).name for path, _ in parts),
-        "before_sets": parts[0][1].get("before_sets", []),
-        "runs": {},
-        "before": {},
-        "kiss_slam": {},
-        "sources": [],
-    }
+    names = " ".join(Path(path).name for path, _ in parts)
+    combined = new_results(
+        parts[0][1]["quick"],
+        f"python -m benchmarks.bench_variants --combine {names}",
+        parts[0][1].get("before_sets", []),
+    )
+    combined["sources"] = [
+        {"file": Path(path).name, **{k: part[k] for k in ("command", "date", "machine")}}
+        for path, part in parts
+    ]
     for path, part in parts:
-        combined["sources"].append(
-            {"file": Path(path).name, **{k: part[k] for k in ("command", "date", "machine")}}
-        )
         for kind in ("runs", "before", "kiss_slam"):
             for name, row in part.get(kind, {}).items():
                 if name in combined[kind]:
@@ -273,12 +271,14 @@ def write_report(path: Path, results: dict) -> None:
             else ""
         ),
         "",
-        "| variant | scans | KISS-ICP ATE [m] | KISS-ICP x / y / z [m] | KISS-SLAM ATE [m] "
-        "| KISS-SLAM x / y / z [m] | KISS-SLAM closures | SLAM ATE [m] "
-        "| SLAM x / y / z [m] | SLAM unaligned [m] / yaw / tilt [deg] | verified | kept "
-        "| worst kept loop [m / deg] | z ratio "
-        f"| pitch bias [mrad / 100 m] | wall, first {TIMING_SCANS} scans [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        *table(
+            "variant | scans | KISS-ICP ATE [m] | KISS-ICP x / y / z [m] | KISS-SLAM ATE [m] "
+            "| KISS-SLAM x / y / z [m] | KISS-SLAM closures | SLAM ATE [m] | SLAM x / y / z "
+            "[m] | SLAM unaligned [m] / yaw / tilt [deg] | verified | kept | worst kept loop "
+            f"[m / deg] | z ratio | pitch bias [mrad / 100 m] | wall, first {TIMING_SCANS} "
+            "scans [s]",
+            [],
+        ),
     ]
     kiss = results.get("kiss_slam", {})
     for name, r in runs.items():
@@ -312,26 +312,19 @@ def write_report(path: Path, results: dict) -> None:
     write_text_atomic(path, "\n".join(lines))
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--quick",
-        action="store_true",
-        help=f"550 scans (every 3rd), 1024 firings; variants {', '.join(QUICK_VARIANTS)}",
-    )
+def build_parser():
+    quick = f"550 scans (every 3rd), 1024 firings; variants {', '.join(QUICK_VARIANTS)}"
+    parser = bench_parser(__doc__, quick, out=RESULTS_DIR / "variants.md")
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS))
     add_override_arguments(parser, "'before' row of every variant")
-    parser.add_argument(
-        "--no-kiss-slam", action="store_true", help="do not run KISS-SLAM on the variants"
-    )
+    parser.add_argument("--no-kiss-slam", action="store_true", help="do not run KISS-SLAM")
     parser.add_argument("--jobs", type=int, default=2, help="variants run at a time")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR / "variants.md")
     parser.add_argument(
         "--combine",
         type=Path,
         nargs="+",
         metavar="JSON",
-        help="run nothing: write one table from these results files of earlier invocations",
+        help="run nothing: one table from these results files",
     )
     return parser
 
@@ -349,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.variants is None:
         args.variants = list(QUICK_VARIANTS) if args.quick else list(VARIANTS)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    start_logging("%(asctime)s %(name)s: %(message)s")
     if not KITTI_POSES.is_file():
         print(f"{KITTI_POSES}: missing; the variants follow KITTI 00's poses", file=sys.stderr)
         return 2
@@ -359,16 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     command += " --no-kiss-slam" if args.no_kiss_slam else ""
     if args.variants != list(QUICK_VARIANTS if args.quick else VARIANTS):
         command += " --variants " + " ".join(f"'{v}'" for v in args.variants)
-    results: dict = {
-        "machine": machine_line(),
-        "date": dt.datetime.now().isoformat(timespec="seconds"),
-        "quick": args.quick,
-        "command": command,
-        "before_sets": args.before_sets,
-        "runs": {},
-        "before": {},
-        "kiss_slam": {},
-    }
+    results = new_results(args.quick, command, args.before_sets)
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
         futures = {}

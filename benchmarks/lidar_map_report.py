@@ -10,6 +10,7 @@ from benchmarks.harness.lidar_surface import (
     POINT_THRESHOLDS_M,
     THRESHOLDS_M,
 )
+from benchmarks.harness.results import cm, table
 
 KIND_TITLES = {
     "gt": "Generated street, ground-truth poses (`odometry.method: gt`)",
@@ -19,10 +20,6 @@ KIND_TITLES = {
 TARGET_RSS_WALL_RATIO = 1.3
 TARGET_PRECISION = 0.9
 TARGET_FILE_SHARE = 0.1
-
-
-def _cm(value: float) -> str:
-    return f"{100 * value:.1f}"
 
 
 BEFORE_ROWS = "neural map, before"
@@ -38,36 +35,46 @@ def _quality_table(by_name: dict[str, dict], points_only: bool) -> list[str]:
             for t in THRESHOLDS_M
             for kind, label in (("precision", "P"), ("recall", "R"), ("f", "F"))
         ]
-    distances = ["accuracy [cm]"] + ([] if points_only else ["completion [cm]"])
-    header = ["map", "region", "observed within"] + [label for _, label in metrics] + distances
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for name, run in by_name.items():
-        for row in run["scores"]:
-            if name == BEFORE_ROWS and row["region"] != "global":
-                continue
-            cells = [name, row["region"], f"{row['range_m']:g} m"]
-            cells += [f"{row[key]:.3f}" for key, _ in metrics]
-            cells.append(_cm(row["accuracy_m"]))
-            if not points_only:
-                cells.append(_cm(row["completion_m"]))
-            lines.append("| " + " | ".join(cells) + " |")
-    return lines
+    distances = ["accuracy"] + ([] if points_only else ["completion"])
+    header = [
+        "map",
+        "region",
+        "observed within",
+        *(label for _, label in metrics),
+        *(f"{d} [cm]" for d in distances),
+    ]
+    rows = [
+        [
+            name,
+            row["region"],
+            f"{row['range_m']:g} m",
+            *(f"{row[key]:.3f}" for key, _ in metrics),
+            *(cm(row[f"{d}_m"]) for d in distances),
+        ]
+        for name, run in by_name.items()
+        for row in run["scores"]
+        if name != BEFORE_ROWS or row["region"] == "global"
+    ]
+    return table(" | ".join(header), rows)
 
 
 def _cost_table(by_name: dict[str, dict]) -> list[str]:
-    lines = [
-        "| map | build [s] | mesh [s] | `map.npz` [MB] | memory [MB] | peak RSS [MB] |",
-        "|---|---|---|---|---|---|",
-    ]
+    rows = []
     for name, run in by_name.items():
         cost = run["cost"]
         file_mb = cost.get("map_file_bytes")
-        lines.append(
-            f"| {name} | {cost['wall_s']:.1f} | {cost['mesh_s']:.1f} | "
-            f"{'-' if file_mb is None else f'{file_mb / 1e6:.2f}'} | "
-            f"{cost['map_memory_bytes'] / 1e6:.1f} | {cost['peak_rss_mb']:.0f} |"
+        rows.append(
+            [
+                name,
+                f"{cost['wall_s']:.1f}",
+                f"{cost['mesh_s']:.1f}",
+                "-" if file_mb is None else f"{file_mb / 1e6:.2f}",
+                f"{cost['map_memory_bytes'] / 1e6:.1f}",
+                f"{cost['peak_rss_mb']:.0f}",
+            ]
         )
-    return lines
+    header = "map | build [s] | mesh [s] | `map.npz` [MB] | memory [MB] | peak RSS [MB]"
+    return table(header, rows)
 
 
 def _row(run: dict, region: str, range_m: float) -> dict:
@@ -98,15 +105,14 @@ def target_lines(by_name: dict[str, dict], range_m: float) -> list[str]:
         ),
     ]
     before = by_name.get(BEFORE_ROWS)
-    if before is not None:
-        for key, label in (("wall_s", "wall time"), ("peak_rss_mb", "peak RSS")):
-            ratio = ours["cost"][key] / before["cost"][key]
-            checks.append(
-                (
-                    f"{label} {ratio:.2f}x the before run's (<= {TARGET_RSS_WALL_RATIO}x)",
-                    ratio <= TARGET_RSS_WALL_RATIO,
-                )
+    for key, label in (("wall_s", "wall time"), ("peak_rss_mb", "peak RSS")) if before else ():
+        ratio = ours["cost"][key] / before["cost"][key]
+        checks.append(
+            (
+                f"{label} {ratio:.2f}x the before run's (<= {TARGET_RSS_WALL_RATIO}x)",
+                ratio <= TARGET_RSS_WALL_RATIO,
             )
+        )
     return [
         f"Targets over the surface observed within {range_m:g} m (ground-truth poses, global):",
         "",
@@ -131,12 +137,12 @@ def report_lines(
         + "".join(
             f"; {name}: `{' '.join(sets) or 'as configured'}`" for name, sets in variants.items()
         ),
-        f"- Observed surface: ground-truth mesh samples within {_cm(OBSERVED_DISTANCE_M)} cm of "
+        f"- Observed surface: ground-truth mesh samples within {cm(OBSERVED_DISTANCE_M)} cm of "
         f"a scan point of lower range than the limit (points placed by the ground-truth poses, "
-        f"averaged on a {_cm(OBSERVED_POINT_VOXEL_M)} cm grid). Precision and accuracy over the "
+        f"averaged on a {cm(OBSERVED_POINT_VOXEL_M)} cm grid). Precision and accuracy over the "
         "map's surface within the limit of a sensor position; recall and completion over the "
         "observed samples. P / R / F @ d: precision, recall, F-score at d cm.",
-        f"- TSDF: {_cm(tsdf_voxel_m)} cm voxels, truncation 3 voxels, the scans' points within "
+        f"- TSDF: {cm(tsdf_voxel_m)} cm voxels, truncation 3 voxels, the scans' points within "
         f"{sensor_range_m:g} m at the same poses (benchmarks/harness/lidar_tsdf.py); memory: the "
         "8^3-voxel blocks it allocates at 8 bytes a voxel. Build: the pipeline's wall time "
         "(neural map) or the integration (TSDF); peak RSS of the run's own process.",
@@ -150,11 +156,14 @@ def report_lines(
         if kind == "mulran":
             count = "all" if mulran_frames is None else f"the first {mulran_frames}"
             title += f", {count} keyframes, configs/lidar.yaml"
-        lines += [f"### {title}", ""]
-        lines += _quality_table(by_name, points_only=kind == "mulran")
-        lines += [""]
-        lines += _cost_table(by_name)
-        lines += [""]
+        lines += [
+            f"### {title}",
+            "",
+            *_quality_table(by_name, points_only=kind == "mulran"),
+            "",
+            *_cost_table(by_name),
+            "",
+        ]
         if kind == "gt":
             lines += target_lines(by_name, sensor_range_m)
     return lines

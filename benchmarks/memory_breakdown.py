@@ -1,21 +1,13 @@
 """Where a running pipeline's memory is (LiDAR or RGB-D): a per-object breakdown next to the RSS.
 
-:func:`memory_breakdown` sums the bytes of the arrays (numpy) and tensors (torch) each part of a
-:class:`~slam.algorithm.pipeline.SlamPipeline` holds, found by walking its attributes, each
-buffer counted once; KISS-ICP's local map is counted from its points (24 bytes each, the
-``Eigen::Vector3d`` of its voxel hash map, without the hash table). What glibc's allocator holds
-free inside the process (``mallinfo2``: free chunks in its arenas) is the allocator slack, and
-``malloc_trim(0)`` shows how much of the RSS goes back to the OS (free chunks that were already
-handed back with ``madvise`` still count as free but are not resident, so the slack is not
-subtracted from the RSS). The rest of the RSS is the code and libraries (torch, GTSAM, KISS-ICP)
-measured before the first frame (``baseline``), and what no walk reaches (``unattributed``:
-resident allocator slack, Python objects, C++ containers such as map_closures' database).
-
-RGB-D runs add the loop detector's kept keyframes (:class:`~slam.algorithm.loops.keyframes.
-KeyframeFeatures`, one per closed submap: images, ORB features, refinement cloud and its k-d tree),
-the odometry's state (its keyframe, previous frame and clouds) and, when the caller passes them,
-the frames in hand and read ahead. The frames waiting in the submap worker's queue are out of
-reach (the executor's queue cannot be walked); they are part of ``unattributed``.
+:func:`memory_breakdown` sums the bytes of the numpy arrays and torch tensors each part of a
+:class:`~slam.algorithm.pipeline.SlamPipeline` holds (walking its attributes, each buffer once);
+KISS-ICP's local map counts 24 bytes a point. glibc's free chunks (``mallinfo2``) are the
+allocator slack, and ``malloc_trim(0)`` shows how much of the RSS goes back to the OS. The rest
+of the RSS is the code and libraries measured before the first frame (``baseline``) and what no
+walk reaches (``unattributed``: resident slack, Python objects, C++ containers, the frames in the
+submap worker's queue). RGB-D runs add the loop detector's kept keyframes and the odometry's
+state.
 """
 
 from __future__ import annotations
@@ -27,19 +19,14 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.harness.machine import proc_memory_kib
+
 MB = 1e6
 
 
-def rss_mb() -> tuple[float, float]:
-    """(current, peak) resident memory of this process in MB."""
-    current = peak = float("nan")
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                current = int(line.split()[1]) * 1024 / MB
-            elif line.startswith("VmHWM:"):
-                peak = int(line.split()[1]) * 1024 / MB
-    return current, peak
+def rss_mb() -> float:
+    """Resident memory of this process in MB."""
+    return proc_memory_kib().get("VmRSS", float("nan")) * 1024 / MB
 
 
 class _Mallinfo2(ctypes.Structure):
@@ -79,9 +66,9 @@ def trim_mb() -> float | None:
     libc = _libc()
     if libc is None or not hasattr(libc, "malloc_trim"):
         return None
-    before = rss_mb()[0]
+    before = rss_mb()
     libc.malloc_trim(0)
-    return before - rss_mb()[0]
+    return before - rss_mb()
 
 
 def buffer_bytes(obj: Any, seen: set[int] | None = None, depth: int = 6) -> int:
@@ -166,19 +153,9 @@ def _list_of_arrays_bytes(arrays: list) -> int:
     return sum(sys.getsizeof(a) for a in arrays if a is not None)
 
 
-def memory_breakdown(
-    pipeline,
-    baseline_mb: float,
-    pending: Any = None,
-    source: Any = None,
-    extra_mb: dict[str, float] | None = None,
-) -> dict[str, float]:
+def memory_breakdown(pipeline, baseline_mb: float) -> dict[str, float]:
     """MB held by each part of ``pipeline`` (call between frames), with the RSS, the baseline
-    (RSS before the first frame), the allocator's free bytes and the unattributed rest.
-
-    ``pending``: frames the caller holds (the frame in hand), counted as ``source_read_ahead``;
-    ``source``: the data source (its caches); ``extra_mb``: parts the caller measured itself
-    (e.g. the frames loaded ahead, which the source's generator holds out of reach)."""
+    (RSS before the first frame), the allocator's free bytes and the unattributed rest."""
     seen: set[int] = set()
     parts: dict[str, float] = {}
     kiss = getattr(pipeline.odometry, "_kiss", None)
@@ -189,10 +166,6 @@ def memory_breakdown(
     parts.update(keyframe_bytes(detector, seen))
     open_submap = getattr(pipeline.keyframer, "current", None)
     parts["open_submap_keyframe"] = buffer_bytes(getattr(open_submap, "keyframe", None), seen) / MB
-    if pending is not None:
-        parts["source_read_ahead"] = buffer_bytes(pending, seen) / MB
-    if source is not None:
-        parts["source"] = buffer_bytes(source, seen) / MB
     if kiss is None:
         parts["odometry_state"] = buffer_bytes(pipeline.odometry, seen) / MB
     parts["place_descriptors"] = buffer_bytes(getattr(detector, "descriptors", {}), seen) / MB
@@ -204,18 +177,12 @@ def memory_breakdown(
     if model is not None:
         buffer_bytes(model, seen)  # the network is part of the baseline
     parts["neural_map_store_and_mesh"] = buffer_bytes(pipeline.map, seen) / MB
-    parts["per_frame_poses"] = (
-        sum(
-            _list_of_arrays_bytes(values)
-            for values in (pipeline._frame_T_A_S, pipeline._odometry_poses, pipeline._gt)
-        )
-        / MB
-    )
+    poses = (pipeline._frame_T_A_S, pipeline._odometry_poses, pipeline._gt)
+    parts["per_frame_poses"] = sum(map(_list_of_arrays_bytes, poses)) / MB
     parts["pose_graph_and_remap_events"] = (
         buffer_bytes(pipeline.graph, seen) + buffer_bytes(pipeline.remapper.events, seen)
     ) / MB
-    parts.update(extra_mb or {})
-    current = rss_mb()[0]
+    current = rss_mb()
     free = allocator_free_mb()
     out = {"rss": current, "baseline": baseline_mb, **parts}
     out["allocator_free"] = float("nan") if free is None else free

@@ -80,12 +80,6 @@ def _mesh_figures(
     ]
 
 
-def _in_reference_frame(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """A run's poses (its first pose at the identity) in the reference's world frame, which is
-    level (the first reference pose is tilted by about 1 degree: 35 m of height over 2 km)."""
-    return reference[0] @ poses
-
-
 def write_real_figures(out: Path, *, mulran: dict, kitti_raw: dict) -> list[Path]:
     """``real-mulran/{trajectory,mesh,mesh_distance}.png`` and
     ``real-kitti-raw/{trajectory,mesh,mesh_distance}.png`` under ``out``. Every trajectory is
@@ -95,48 +89,49 @@ def write_real_figures(out: Path, *, mulran: dict, kitti_raw: dict) -> list[Path
     mulran_dir, raw_dir = out / "real-mulran", out / "real-kitti-raw"
     mulran_dir.mkdir(parents=True, exist_ok=True)
     raw_dir.mkdir(parents=True, exist_ok=True)
+    # a run's poses start at the identity; the reference's world frame is level (its first pose
+    # is tilted by about 1 degree: 35 m of height over 2 km)
     reference = mulran["reference"]
     trajectories = {
         "reference (FAST-LIO2 + Scan Context loops)": reference,
         "FAST-LIO2 odometry": mulran["fastlio"],
-        "ours: KISS-ICP odometry": _in_reference_frame(mulran["kiss"], reference),
+        "ours: KISS-ICP odometry": reference[0] @ mulran["kiss"],
     }
     if not np.allclose(mulran["kiss_slam"], mulran["kiss"], atol=1e-3):
-        trajectories["ours: SLAM (KISS-ICP + loops)"] = _in_reference_frame(
-            mulran["kiss_slam"], reference
-        )
-    trajectories[
-        f"KISS-ICP predicted with the reference motion (first {len(mulran['diagnosis'])})"
-    ] = _in_reference_frame(mulran["diagnosis"], reference)
-    written = [
+        trajectories["ours: SLAM (KISS-ICP + loops)"] = reference[0] @ mulran["kiss_slam"]
+    diagnosis = f"KISS-ICP predicted with the reference motion (first {len(mulran['diagnosis'])})"
+    trajectories[diagnosis] = reference[0] @ mulran["diagnosis"]
+    poses = mulran["mesh_poses"]
+    centre = poses[min(CLOSE_UP_FRAME, len(poses) - 1), :3, 3]
+    return [
         plots.plot_trajectories_top_down(
             mulran_dir / "trajectory.png",
             trajectories,
             title="MulRan Riverside02 keyframes: KISS-ICP (ours) vs reference",
             size_in=(7.0, 5.0),
             dpi=110,
-        )
-    ]
-    poses = mulran["mesh_poses"]
-    centre = poses[min(CLOSE_UP_FRAME, len(poses) - 1), :3, 3]
-    written += _mesh_figures(
-        mulran_dir, mulran["mesh"], mulran["distances"], poses, centre, "MulRan, reference poses"
-    )
-    written.append(
+        ),
+        *_mesh_figures(
+            mulran_dir,
+            mulran["mesh"],
+            mulran["distances"],
+            poses,
+            centre,
+            "MulRan, reference poses",
+        ),
         plots.plot_trajectories_top_down(
             raw_dir / "trajectory.png",
             {"ours: KISS-ICP odometry": kitti_raw["poses"]},
             title="KITTI raw, 22 scans: KISS-ICP (no ground truth)",
             size_in=(6.0, 4.0),
             dpi=110,
-        )
-    )
-    written += _mesh_figures(
-        raw_dir,
-        kitti_raw["mesh"],
-        kitti_raw["distances"],
-        kitti_raw["poses"],
-        None,
-        "KITTI raw, KISS-ICP poses",
-    )
-    return written
+        ),
+        *_mesh_figures(
+            raw_dir,
+            kitti_raw["mesh"],
+            kitti_raw["distances"],
+            kitti_raw["poses"],
+            None,
+            "KITTI raw, KISS-ICP poses",
+        ),
+    ]

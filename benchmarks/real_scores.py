@@ -1,12 +1,8 @@
 """Scores of ``benchmarks.bench_real``: trajectories against reference poses, the motion per scan
 of a run without ground truth, a mesh against the scan points it was built from, and why KISS-ICP
-loses the MulRan keyframes.
-
-KISS-ICP predicts each scan's pose with a constant-velocity model (the last scan-to-scan motion
-repeated) and registers the scan to its local map from there. :func:`kiss_icp_with_reference_
-prediction` replays the same registration (the run's ``odometry.kiss_icp`` settings) with the
-prediction replaced by the reference's own motion: if the registration then tracks, what fails on
-the keyframes is the prediction (metres off at 0.1-45 m spacing), not the registration."""
+loses the MulRan keyframes (:func:`kiss_icp_with_reference_prediction`: the same registration
+predicted with the reference's motion instead of constant velocity; if it then tracks, what fails
+is the prediction, not the registration)."""
 
 from __future__ import annotations
 
@@ -45,19 +41,13 @@ def tracking_scores(est: np.ndarray, reference: np.ndarray) -> dict[str, float |
         "step_error_median_m": float(np.median(step_error)),
         "steps": len(step_error),
         "steps_lost": int(np.count_nonzero(step_error > LOST_STEP_M)),
-        "lost_step_median_length_m": float(np.median(ref_length[step_error > LOST_STEP_M]))
-        if np.any(step_error > LOST_STEP_M)
-        else 0.0,
-        "kept_step_median_length_m": float(np.median(ref_length[step_error <= LOST_STEP_M]))
-        if np.any(step_error <= LOST_STEP_M)
-        else 0.0,
+        "lost_step_median_length_m": _median_or_zero(ref_length[step_error > LOST_STEP_M]),
+        "kept_step_median_length_m": _median_or_zero(ref_length[step_error <= LOST_STEP_M]),
     }
 
 
-def reference_floor(other: np.ndarray, reference: np.ndarray) -> dict[str, float | int]:
-    """How far a second estimate of the same poses (FAST-LIO2's odometry before loop closure) is
-    from the reference: the scale of what "agrees with the reference" can mean."""
-    return tracking_scores(other, reference)
+def _median_or_zero(values: np.ndarray) -> float:
+    return float(np.median(values)) if len(values) else 0.0
 
 
 def step_statistics(poses: np.ndarray) -> dict[str, float]:
@@ -109,18 +99,19 @@ def mesh_point_distances(mesh_path: Path, points: np.ndarray) -> dict[str, float
     rng = np.random.default_rng(0)
     subset = points[rng.choice(len(points), min(len(points), MAX_SURFACE_QUERIES), replace=False)]
     point_distance = surface_distances(subset, mesh)
-    return {
-        "vertices": len(mesh.vertices),
-        "faces": len(mesh.faces),
-        "points": len(points),
-        "vertex_to_points_median_m": float(np.median(vertex_distance)),
-        "vertex_to_points_p90_m": float(np.percentile(vertex_distance, 90)),
-        "vertices_near": float(np.mean(vertex_distance <= NEAR_M)),
-        "points_to_mesh_median_m": float(np.median(point_distance)),
-        "points_to_mesh_p90_m": float(np.percentile(point_distance, 90)),
-        "points_near": float(np.mean(point_distance <= NEAR_M)),
-        "vertex_distances_m": vertex_distance,
-    }
+    out = {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "points": len(points)}
+    for side, near, d in (
+        ("vertex_to_points", "vertices_near", vertex_distance),
+        ("points_to_mesh", "points_near", point_distance),
+    ):
+        out.update(
+            {
+                f"{side}_median_m": float(np.median(d)),
+                f"{side}_p90_m": float(np.percentile(d, 90)),
+                near: float(np.mean(d <= NEAR_M)),
+            }
+        )
+    return {**out, "vertex_distances_m": vertex_distance}
 
 
 def _orthonormal(poses: np.ndarray) -> np.ndarray:

@@ -18,18 +18,7 @@ DEMO = ["demo", "--no-progress", "--frames", "0:6", "--set", "output.mesh_sample
 
 def _slam_run(code: Path, work: Path, *args: str, env: dict[str, str] | None = None):
     command = [PY, "-m", "slam.run", *DEMO, *args, "--out", str(work / "run")]
-    if env is None:
-        return run(code, command, timeout=300)
-    saved = {key: os.environ.get(key) for key in env}
-    os.environ.update(env)
-    try:
-        return run(code, command, timeout=300)
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+    return run(code, command, timeout=300, env=env)
 
 
 def _left(work: Path) -> str:
@@ -104,36 +93,59 @@ def case_absurd_generated_config(code: Path, work: Path, base: Path) -> Outcome:
     return outcome(run(code, [PY, "-m", "slam.eval", str(folder), "--no-plots"], timeout=300))
 
 
+def _eval_arg(number: str, flag: str, value: str) -> Case:
+    return _command(
+        number,
+        f"slam.eval {flag} {value}",
+        f"slam.eval RUN {flag} {value}",
+        _eval_case(flag, value),
+    )
+
+
+def _set(number: str, assignment: str) -> Case:
+    return _command(number, assignment, f"slam.run demo --set {assignment}", _set_case(assignment))
+
+
+def _command(number: str, title: str, command: str, fn) -> Case:
+    return Case(number, title, command, fn, quick=False, group="commands")
+
+
 COMMAND_CASES = [
-    Case("C1", "slam.eval --cull-distance-m 0", "slam.eval RUN --cull-distance-m 0",
-         _eval_case("--cull-distance-m", "0"), quick=False, group="commands"),
-    Case("C1", "slam.eval --cull-distance-m 0.0001", "slam.eval RUN --cull-distance-m 0.0001",
-         _eval_case("--cull-distance-m", "0.0001"), quick=False, group="commands"),
-    Case("C2", "slam.eval --samples -5", "slam.eval RUN --samples -5",
-         _eval_case("--samples", "-5"), quick=False, group="commands"),
-    Case("C2", "slam.eval --samples 1e10", "slam.eval RUN --samples 1e10",
-         _eval_case("--samples", "1e10"), quick=False, group="commands"),
-    Case("C2", "slam.eval --gt-mesh of random bytes", "slam.eval RUN --gt-mesh garbage.ply",
-         case_garbage_gt_mesh, quick=False, group="commands"),
-    Case("C2", "run config with generated.num_frames 10^9", "slam.eval RUN (edited config.yaml)",
-         case_absurd_generated_config, quick=False, group="commands"),
-    Case("C3", "mapping.voxel_size_m=inf", "slam.run demo --set mapping.voxel_size_m=inf",
-         _set_case("mapping.voxel_size_m=inf"), quick=False, group="commands"),
-    Case("C3", "mapping.voxel_size_m=1e-9", "slam.run demo --set mapping.voxel_size_m=1e-9",
-         _set_case("mapping.voxel_size_m=1e-9"), quick=False, group="commands"),
-    Case("C3", "mapping.encoder_table_nodes=1000000",
-         "slam.run demo --set mapping.encoder_table_nodes=1000000",
-         _set_case("mapping.encoder_table_nodes=1000000"), quick=False, group="commands"),
-    Case("C3", "threads=1000000", "slam.run demo --set threads=1000000",
-         _set_case("threads=1000000"), quick=False, group="commands"),
-    Case("C5", "--serve with the data port taken", "slam.run demo --serve (gRPC port in use)",
-         case_grpc_port_taken, quick=False, group="commands"),
-    Case("C5", "--serve bound to 8.8.8.8", "slam.run demo --serve --set viz.serve_bind_ip=8.8.8.8",
-         case_foreign_bind_ip, quick=False, group="commands"),
-    Case("C6", "--rrd onto an existing file", "slam.run demo --rrd EXISTING", case_rrd_exists,
-         quick=False, group="commands"),
-    Case("C6", "--rrd under /proc", "slam.run demo --rrd /proc/x/recording.rrd",
-         case_rrd_unwritable, quick=False, group="commands"),
-    Case("C9", "RERUN=off", "RERUN=off slam.run demo", case_rerun_off, quick=False,
-         group="commands"),
+    _eval_arg("C1", "--cull-distance-m", "0"),
+    _eval_arg("C1", "--cull-distance-m", "0.0001"),
+    _eval_arg("C2", "--samples", "-5"),
+    _eval_arg("C2", "--samples", "1e10"),
+    _command(
+        "C2",
+        "slam.eval --gt-mesh of random bytes",
+        "slam.eval RUN --gt-mesh garbage.ply",
+        case_garbage_gt_mesh,
+    ),
+    _command(
+        "C2",
+        "run config with generated.num_frames 10^9",
+        "slam.eval RUN (edited config.yaml)",
+        case_absurd_generated_config,
+    ),
+    _set("C3", "mapping.voxel_size_m=inf"),
+    _set("C3", "mapping.voxel_size_m=1e-9"),
+    _set("C3", "mapping.encoder_table_nodes=1000000"),
+    _set("C3", "threads=1000000"),
+    _command(
+        "C5",
+        "--serve with the data port taken",
+        "slam.run demo --serve (gRPC port in use)",
+        case_grpc_port_taken,
+    ),
+    _command(
+        "C5",
+        "--serve bound to 8.8.8.8",
+        "slam.run demo --serve --set viz.serve_bind_ip=8.8.8.8",
+        case_foreign_bind_ip,
+    ),
+    _command("C6", "--rrd onto an existing file", "slam.run demo --rrd EXISTING", case_rrd_exists),
+    _command(
+        "C6", "--rrd under /proc", "slam.run demo --rrd /proc/x/recording.rrd", case_rrd_unwritable
+    ),
+    _command("C9", "RERUN=off", "RERUN=off slam.run demo", case_rerun_off),
 ]

@@ -2,23 +2,16 @@
 
     python -m benchmarks.run_all [--quick] [--only NAME ...] [--before REV] [--assemble]
 
-Each ``benchmarks/bench_<name>.py`` in :data:`BENCHMARKS` runs in its own process
-(``python -m benchmarks.bench_<name> [--quick]``) and writes ``benchmarks/results/<name>.md``.
-``benchmarks/results/`` is emptied first, so it and ``BENCHMARKS.md`` hold this invocation's
-results only: a benchmark that is not run (``--only``) has no section. A benchmark that fails,
-times out or writes no section is reported with the tail of its log (``benchmarks/out/logs/``)
-and does not stop the others. ``--before REV`` passes ``--before REV`` to the benchmarks that
-compare revisions (:data:`BEFORE_AFTER`): each checks out REV beside this tree and measures both
-in the same invocation. ``--assemble`` rebuilds ``BENCHMARKS.md`` from ``results/run_all.json``
-and the sections without running anything. The report ends with a "History" section that links
-(never inlines) the archived runs of ``benchmarks/archive/``, and must stay under
-:data:`MAX_REPORT_BYTES`. A section's relative links (pictures beside it in
-``benchmarks/results/``) are rewritten to hold from ``BENCHMARKS.md``.
-
-``--quick`` passes ``--quick`` to every benchmark and holds the run to a wall-clock budget
-(35 minutes by default): each benchmark may use at most twice its fair share of the time that is
-left (so one slow benchmark cannot starve the rest); one that runs longer is reported as a
-timeout.
+Each ``benchmarks/bench_<name>.py`` of :data:`BENCHMARKS` runs in its own process and writes
+``benchmarks/results/<name>.md``; ``benchmarks/results/`` is emptied first, so the report holds
+this invocation's sections only. A benchmark that fails, times out or writes no section is
+reported with the tail of its log (``benchmarks/out/logs/``) and does not stop the others.
+``--before REV`` goes to the benchmarks of :data:`BEFORE_AFTER` (each measures REV checked out
+beside this tree in the same invocation). ``--assemble`` only rebuilds ``BENCHMARKS.md`` from
+``results/run_all.json``. The report links the archived runs ("History"), must stay under
+:data:`MAX_REPORT_BYTES`, and has its sections' relative links rebased onto its own folder.
+``--quick`` passes ``--quick`` on and holds the run to a budget (35 minutes by default), each
+benchmark getting at most twice its fair share of what is left.
 """
 
 from __future__ import annotations
@@ -39,6 +32,7 @@ from pathlib import Path
 from benchmarks.harness.history import history_lines
 from benchmarks.harness.machine import load_average, machine_description, now
 from benchmarks.harness.paths import REPO, RESULTS_DIR, WORK_DIR
+from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 
 log = logging.getLogger("benchmarks.run_all")
@@ -190,12 +184,19 @@ def assemble(record: dict, *, results_dir: Path = RESULTS_DIR, output: Path = OU
     :data:`MAX_REPORT_BYTES` starts with a warning (:func:`main` then fails)."""
     statuses = record.get("benchmarks", [])
     lines = header_lines(record)
-    lines += ["| benchmark | status | wall time [s] | command |", "|---|---|---:|---|"]
-    for state in statuses:
-        lines.append(
-            f"| [{state['name']}](#{state['name']}) | {state['status']} | "
-            f"{state['seconds']:.1f} | `{state['command']}` |"
-        )
+    lines += table(
+        "benchmark | status | wall time [s] | command",
+        (
+            [
+                f"[{s['name']}](#{s['name']})",
+                s["status"],
+                f"{s['seconds']:.1f}",
+                f"`{s['command']}`",
+            ]
+            for s in statuses
+        ),
+        "llrl",
+    )
     lines.append("")
     for state in statuses:
         name = state["name"]
@@ -261,8 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--budget-s",
         type=float,
         default=None,
-        help=f"total wall-clock budget (default {QUICK_BUDGET_S} s with --quick, twice that "
-        "with --before, else none)",
+        help=f"total wall-clock budget (default {QUICK_BUDGET_S} s with --quick, "
+        "twice that with --before, else none)",
     )
     return parser
 

@@ -6,6 +6,7 @@ import numpy as np
 
 from benchmarks.harness.kitti import window
 from benchmarks.harness.paths import RESULTS_DIR
+from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 
 REPORT = RESULTS_DIR / "throughput.md"
@@ -55,27 +56,39 @@ def write_report(saved: dict) -> None:
         "recorded): on two cores that are both busy, the wall time is about half of it, and it "
         "varies less between runs than the wall time.",
         "",
-        "| run | code | frames | method | wall [s] | CPU [s] | frames/s | vs KISS-ICP | "
-        "vs KISS-SLAM | peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    rows = []
     for key in sorted(results):
         run = results[key]
-        icp = run.get("kiss_icp") or {}
-        kslam = run.get("kiss_slam") or {}
+        icp, kslam = run.get("kiss_icp") or {}, run.get("kiss_slam") or {}
         for name in ("kiss_icp", "kiss_slam", "ours"):
             r = run.get(name)
             if not r or "skipped" in r or "frames" not in r:
                 continue
             vs_icp = r["wall_s"] / icp["wall_s"] if icp.get("wall_s") else None
             vs_slam = r["wall_s"] / kslam["wall_s"] if kslam.get("wall_s") else None
-            lines.append(
-                f"| {key} | {run['code']} | {r['frames']} | {name} | {_f(r['wall_s'])} | "
-                f"{_f(r.get('cpu_s'), 0)} | {_f(r['fps'], 2)} | {_f(vs_icp, 2)} | "
-                f"{_f(vs_slam, 2)} | "
-                f"{_f(r.get('peak_rss_mb'), 0)} | {_f(r.get('ate_odometry_m'), 3)} | "
-                f"{_f(r.get('ate_slam_m'), 3)} | {_f(run.get('load'), 1)} |"
+            rows.append(
+                [
+                    key,
+                    run["code"],
+                    r["frames"],
+                    name,
+                    _f(r["wall_s"]),
+                    _f(r.get("cpu_s"), 0),
+                    _f(r["fps"], 2),
+                    _f(vs_icp, 2),
+                    _f(vs_slam, 2),
+                    _f(r.get("peak_rss_mb"), 0),
+                    _f(r.get("ate_odometry_m"), 3),
+                    _f(r.get("ate_slam_m"), 3),
+                    _f(run.get("load"), 1),
+                ]
             )
+    header = (
+        "run | code | frames | method | wall [s] | CPU [s] | frames/s | vs KISS-ICP | "
+        "vs KISS-SLAM | peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load"
+    )
+    lines += table(header, rows)
     lines += _cpu_floor_lines(saved)
     lines += _per_axis_lines(results)
     lines += [
@@ -91,32 +104,41 @@ def write_report(saved: dict) -> None:
         "whole map meshed after the last remap (on the whole thread budget) and `map_save` writing "
         "`map.npz`, both after the last frame; n/a: not timed then), memory and map:",
         "",
-        "| run | " + " | ".join(STAGES) + " | whole run | "
-        "CPU main / submap worker / map worker / odometry process / other [s] | "
-        f"RSS at {RSS_EVERY:,}-frame steps [MB] | map.npz [MB] | voxels | mesh accuracy [cm] | "
-        "threads |",
-        "|---|" + "---|" * (len(STAGES) + 7),
     ]
+    rows = []
     for key in sorted(results):
         r = results[key].get("ours")
         if not r:
             continue
-        cells = [_f(r["stage_s"].get(s)) for s in STAGES]
         rss = ", ".join(f"{k}: {v:.0f}" for k, v in r["rss_mb"].items())
-        threads = r.get("cpu_threads_s")
+        threads, cpu = r.get("cpu_threads_s"), "n/a"
         if threads:
-            main, worker = threads["main"], threads["map_worker"] or 0.0
-            submap = threads.get("submap_worker") or 0.0
-            child = threads.get("odometry_process") or 0.0
-            other = r["cpu_s"] - main - worker - submap - child
-            cpu = f"{main:.0f} / {submap:.0f} / {worker:.0f} / {child:.0f} / {other:.0f}"
-        else:
-            cpu = "n/a"
-        lines.append(
-            f"| {key} | " + " | ".join(cells) + f" | {_f(r['wall_s'])} | {cpu} | {rss} | "
-            f"{r['map_npz_mb']:.1f} | {r['map_voxels']:,} | {100 * r['mesh_accuracy_m']:.2f} | "
-            f"{r['threads']} |"
+            parts = [
+                threads["main"],
+                threads.get("submap_worker") or 0.0,
+                threads["map_worker"] or 0.0,
+                threads.get("odometry_process") or 0.0,
+            ]
+            cpu = " / ".join(f"{v:.0f}" for v in (*parts, r["cpu_s"] - sum(parts)))
+        rows.append(
+            [
+                key,
+                *(_f(r["stage_s"].get(s)) for s in STAGES),
+                _f(r["wall_s"]),
+                cpu,
+                rss,
+                f"{r['map_npz_mb']:.1f}",
+                f"{r['map_voxels']:,}",
+                f"{100 * r['mesh_accuracy_m']:.2f}",
+                r["threads"],
+            ]
         )
+    lines += table(
+        "run | " + " | ".join(STAGES) + " | whole run | CPU main / submap worker / map "
+        f"worker / odometry process / other [s] | RSS at {RSS_EVERY:,}-frame steps [MB] "
+        "| map.npz [MB] | voxels | mesh accuracy [cm] | threads",
+        rows,
+    )
     shares = [k for k in sorted(results) if (results[k].get("ours") or {}).get("stage_cpu_s")]
     if shares:
         lines += [
@@ -127,21 +149,24 @@ def write_report(saved: dict) -> None:
             "map worker overlaps the main thread, so its wall time there is mostly waiting for "
             "a core; `map_worker_wait` is what the main thread lost waiting for the worker.",
             "",
-            "| run | stage | wall [s] | CPU [s] | CPU / run wall | CPU / run CPU |",
-            "|---|---|---|---|---|---|",
         ]
+        rows = []
         for key in shares:
             r = results[key]["ours"]
-            stage_s = dict(r["stage_s"])
             cpu = r["stage_cpu_s"]
-            for stage in (*STAGES, "map_worker_wait"):
-                if stage not in cpu:
-                    continue
-                lines.append(
-                    f"| {key} | {stage} | {_f(stage_s.get(stage))} | {cpu[stage]:.1f} | "
-                    f"{100 * cpu[stage] / r['wall_s']:.0f} % | "
-                    f"{100 * cpu[stage] / r['cpu_s']:.0f} % |"
-                )
+            rows += [
+                [
+                    key,
+                    stage,
+                    _f(r["stage_s"].get(stage)),
+                    f"{cpu[stage]:.1f}",
+                    f"{100 * cpu[stage] / r['wall_s']:.0f} %",
+                    f"{100 * cpu[stage] / r['cpu_s']:.0f} %",
+                ]
+                for stage in (*STAGES, "map_worker_wait")
+                if stage in cpu
+            ]
+        lines += table("run | stage | wall [s] | CPU [s] | CPU / run wall | CPU / run CPU", rows)
     lines += _memory_lines(results)
     lines.append("")
     write_text_atomic(REPORT, "\n".join(lines))
@@ -216,12 +241,14 @@ def _memory_lines(results: dict) -> list[str]:
             f"Ours ({key}), memory by object [MB, 10^6 bytes] at frame N and after `finish()`"
             f" (benchmarks/memory_breakdown.py).{growth}",
             "",
-            "| part | " + " | ".join(k for k, _ in samples) + " |",
-            "|---|" + "---|" * len(samples),
+            *table(
+                "part | " + " | ".join(k for k, _ in samples),
+                (
+                    [label, *(_f(v.get(part), 1) for _, v in samples)]
+                    for part, label in MEMORY_PARTS
+                ),
+            ),
         ]
-        for part, label in MEMORY_PARTS:
-            cells = [_f(v.get(part), 1) for _, v in samples]
-            lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -264,14 +291,8 @@ def _per_axis_lines(results: dict) -> list[str]:
                 "n/a" if xyz is None else " / ".join(f"{v:.3f}" for v in xyz)
                 for xyz in (odometry, slam)
             ]
-            rows.append(f"| {key} | {name} | {cells[0]} | {cells[1]} |")
+            rows.append([key, name, *cells])
     if not rows:
         return []
-    return [
-        "",
-        "Per-axis ATE [m] (x / y / z, z up), where recorded:",
-        "",
-        "| run | method | odometry x / y / z | SLAM x / y / z |",
-        "|---|---|---|---|",
-        *rows,
-    ]
+    header = "run | method | odometry x / y / z | SLAM x / y / z"
+    return ["", "Per-axis ATE [m] (x / y / z, z up), where recorded:", "", *table(header, rows)]

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.harness.crafted_maps import CRAFTED, header_edit, no_descriptors, rewritten
+from benchmarks.harness.crafted_maps import CRAFTED, header_edit, rewritten
 from common.atomic_folder import FolderBusyError, atomic_folder
 from mapping.config import MapConfig
 from mapping.errors import MapFileError
@@ -197,6 +197,15 @@ def test_run_merged_with_itself_or_its_part_is_refused(good: Path, tmp_path: Pat
         merge_sessions([whole[0], inputs[0][0]], [whole[1], inputs[0][1]])
 
 
+def _no_descriptors(header, arrays):
+    """A session without place descriptors (its run had loop closure off)."""
+    arrays["session_descriptor_ids"] = np.zeros(0, np.int64)
+    arrays["session_descriptor_planar"] = np.zeros(0, bool)
+    arrays["session_descriptor_offsets"] = np.zeros(1, np.int64)
+    arrays["session_descriptor_positions"] = np.zeros((0, 3), np.float16)
+    arrays["session_descriptor_bits"] = np.zeros((0, 32), np.uint8)
+
+
 def test_output_folder_is_claimed_and_appears_whole(tmp_path: Path):
     out = tmp_path / "out"
     with atomic_folder(out) as partial:
@@ -228,7 +237,7 @@ def test_cli_cases_end_in_one_line(good: Path, tmp_path: Path):
     without place descriptors before reading a frame (its data is never generated)."""
     crafted = {
         "inflated": _crafted(good, tmp_path / "inflated", CRAFTED[INFLATED]),
-        "no-descriptors": _crafted(good, tmp_path / "nodesc", rewritten(no_descriptors)),
+        "no-descriptors": _crafted(good, tmp_path / "nodesc", rewritten(_no_descriptors)),
     }
     (tmp_path / ".busy.claim").write_text(f"{os.getpid()}\n")  # a live writer holds it
     run = ("slam.run", "--no-viz", "--no-progress", "--root", str(tmp_path / "data"))

@@ -31,3 +31,14 @@ def checkout(revision: str) -> Iterator[Path]:
             subprocess.run(
                 ["git", "worktree", "remove", "--force", str(path)], cwd=REPO, capture_output=True
             )
+
+
+@contextlib.contextmanager
+def revisions(before: str | None, label: str = "before {rev}") -> Iterator[dict[str, Path | None]]:
+    """The code a before/after benchmark measures, by row label: a checkout of ``before``
+    (labelled ``label``) where one is asked for, then this tree (``"after"``: None)."""
+    if before is None:
+        yield {"after": None}
+        return
+    with checkout(before) as path:
+        yield {label.format(rev=before): path, "after": None}

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmarks.harness.paths import REPO
+
 CODE_UNDER_TEST = ("slam", "frontends", "mapping", "common")
 """Top-level packages that ``code=`` swaps for a checkout's."""
 
@@ -36,13 +38,8 @@ class Usage:
 
 
 def _use_code(checkout: str | None) -> None:
-    """Pool initializer: import ``slam``, ``frontends`` and ``mapping`` from ``checkout``.
-
-    ``benchmarks`` itself is already imported from this tree (this function lives in it), so the
-    benchmark code stays the current one while the code under test is the checkout's. Packages
-    under test that spawning already imported (with the parent's main module) are forgotten, so
-    that their next import comes from ``checkout``.
-    """
+    """Pool initializer: import the code under test from ``checkout`` (``benchmarks`` stays this
+    tree's); packages under test that spawning already imported are forgotten first."""
     if checkout is not None:
         for name in list(sys.modules):
             if name.split(".")[0] in CODE_UNDER_TEST:
@@ -103,12 +100,9 @@ def run_command(
     log_file: Path | None = None,
     on_poll=None,
 ) -> CommandResult:
-    """Run ``command`` and measure it with ``wait4`` (no ``/usr/bin/time`` needed).
-
-    Output goes to ``log_file`` if given (``stdout`` is then empty), else it is captured.
-    ``on_poll(pid)`` is called about once a second while the command runs (e.g. to sample its
-    memory). A command running past ``timeout_s`` is killed and reported with status -9.
-    """
+    """Run ``command``, measured with ``wait4``; its output goes to ``log_file`` (else it is
+    captured), ``on_poll(pid)`` is called about once a second, and past ``timeout_s`` it is
+    killed (status -9)."""
     start = time.perf_counter()
     stream = open(log_file, "w") if log_file is not None else subprocess.PIPE
     try:
@@ -139,12 +133,17 @@ def run_command(
     finally:
         if log_file is not None:
             stream.close()
-    return CommandResult(
-        child.returncode,
-        text,
-        Usage(
-            time.perf_counter() - start,
-            usage.ru_utime + usage.ru_stime,
-            usage.ru_maxrss / 1024,
-        ),
+    cost = Usage(
+        time.perf_counter() - start, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
     )
+    return CommandResult(child.returncode, text, cost)
+
+
+def run_module(module: str, args: list[str], log_file: Path) -> tuple[float, float]:
+    """``python -m module args`` in this tree, its output in ``log_file``: (wall s, peak RSS
+    MB); a failure raises, naming the log."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    done = run_command([sys.executable, "-m", module, *args], cwd=REPO, env=env, log_file=log_file)
+    if done.returncode != 0:
+        raise RuntimeError(f"{module} {' '.join(args)} failed; see {log_file}")
+    return done.usage.wall_s, done.usage.peak_rss_mb

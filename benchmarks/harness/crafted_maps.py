@@ -150,15 +150,6 @@ def _parts(header, arrays):
     header["session"]["parts"] = [{"name": "x", "first_row": "zero", "rows": 5}]
 
 
-def no_descriptors(header, arrays):
-    """A session without place descriptors (its run had loop closure off)."""
-    arrays["session_descriptor_ids"] = np.zeros(0, np.int64)
-    arrays["session_descriptor_planar"] = np.zeros(0, bool)
-    arrays["session_descriptor_offsets"] = np.zeros(1, np.int64)
-    arrays["session_descriptor_positions"] = np.zeros((0, 3), np.float16)
-    arrays["session_descriptor_bits"] = np.zeros((0, 32), np.uint8)
-
-
 CRAFTED = {
     "size: member inflating past its declared size": inflated_member,
     "size: npy header claiming 10^12 elements": claims_10e12_elements,

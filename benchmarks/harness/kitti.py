@@ -1,10 +1,7 @@
-"""The generated KITTI-00 LiDAR sequence every LiDAR benchmark uses.
-
-A 64-beam LiDAR simulated along the real KITTI 00 ground-truth trajectory
-(``frontends.sources.generated``; generated on first use, then cached). Two windows, so that all
-benchmarks share one cached sequence per mode: the full trajectory (all 4,541 poses, 2048 firings
-per revolution) and a quick one (every 3rd pose of 0-1647, 1024 firings; it still contains the
-revisit of the start area from frame 1559 on). A benchmark takes the first N frames of a window.
+"""The generated KITTI-00 LiDAR sequence every LiDAR benchmark uses: a 64-beam LiDAR simulated
+along the real KITTI 00 trajectory (generated on first use, then cached), in two windows shared
+by all benchmarks: :data:`FULL` and :data:`QUICK` (which still revisits the start from frame 1559
+on). A benchmark takes the first N frames of a window.
 """
 
 from __future__ import annotations
@@ -25,10 +22,6 @@ class Window:
     num_frames: int
     step: int
     azimuth_steps: int
-
-    @property
-    def last_pose(self) -> int:
-        return (self.num_frames - 1) * self.step
 
     def describe(self, frames: int | None = None) -> str:
         n = self.num_frames if frames is None else min(frames, self.num_frames)
@@ -54,11 +47,7 @@ def have_kitti() -> bool:
 
 
 def kitti_source(
-    quick: bool,
-    num_frames: int | None = None,
-    relief_m: float = 0.0,
-    first: int = 0,
-    **variant,
+    quick: bool, num_frames: int | None = None, relief_m: float = 0.0, first: int = 0, **variant
 ):
     """Frames ``first`` to ``num_frames - 1`` of the quick or full window (all by default), with
     hills of ``relief_m`` beside the road (another cached sequence when non-zero); ``variant``

@@ -73,14 +73,10 @@ def scan_set(scans: list[np.ndarray], poses: np.ndarray, max_range_m: float) -> 
 def _voxel_means(points: np.ndarray, voxel_m: float) -> np.ndarray:
     from common.voxel_keys import point_voxel_keys
 
-    _, inverse, counts = np.unique(
-        point_voxel_keys(points, voxel_m), return_inverse=True, return_counts=True
-    )
-    inverse = inverse.ravel()
-    return (
-        np.stack([np.bincount(inverse, weights=points[:, k]) for k in range(3)], axis=1)
-        / counts[:, None]
-    )
+    keys = point_voxel_keys(points, voxel_m)
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    sums = [np.bincount(inverse.ravel(), weights=points[:, k]) for k in range(3)]
+    return np.stack(sums, axis=1) / counts[:, None]
 
 
 def crop_to_region(gt: trimesh.Trimesh, positions_W: np.ndarray, radius_m: float):
@@ -109,16 +105,23 @@ def observed_mask(samples: np.ndarray, scans: ScanSet, range_m: float) -> np.nda
     if not use.any():
         return np.zeros(len(samples), dtype=bool)
     points = _voxel_means(scans.points_W[use], OBSERVED_POINT_VOXEL_M)
-    distance, _ = cKDTree(points).query(
-        samples, distance_upper_bound=OBSERVED_DISTANCE_M, workers=-1
-    )
-    return np.isfinite(distance)
+    tree = cKDTree(points)
+    return np.isfinite(tree.query(samples, distance_upper_bound=OBSERVED_DISTANCE_M, workers=-1)[0])
 
 
 def _subset(points: np.ndarray, limit: int, seed: int) -> np.ndarray:
     if len(points) <= limit:
         return points
     return points[np.random.default_rng(seed).choice(len(points), limit, replace=False)]
+
+
+def _mesh_samples_in_range(mesh, positions_W: np.ndarray, range_m: float) -> np.ndarray:
+    """A seeded subset of points sampled on ``mesh`` within ``range_m`` of a sensor position."""
+    from scipy.spatial import cKDTree
+
+    points, _ = trimesh.sample.sample_surface(mesh, 4 * MAX_SCORED_SAMPLES, seed=2)
+    near, _ = cKDTree(positions_W).query(points, distance_upper_bound=range_m, workers=-1)
+    return _subset(points[np.isfinite(near)], MAX_SCORED_SAMPLES, 3)
 
 
 def region_scores(
@@ -130,8 +133,6 @@ def region_scores(
 ) -> dict[str, float]:
     """Precision, recall and F-score at every :data:`THRESHOLDS_M`, accuracy and completion
     (metres) of ``mesh`` over one region (module docstring)."""
-    from scipy.spatial import cKDTree
-
     from slam.evaluation.metrics.mesh import surface_distances
 
     observed = _subset(observed, MAX_SCORED_SAMPLES, 1)
@@ -140,9 +141,7 @@ def region_scores(
         for t in THRESHOLDS_M:
             scores.update({f"precision_{t:g}": 0.0, f"recall_{t:g}": 0.0, f"f_{t:g}": 0.0})
         return {**scores, "accuracy_m": float("inf"), "completion_m": float("inf")}
-    points, _ = trimesh.sample.sample_surface(mesh, 4 * MAX_SCORED_SAMPLES, seed=2)
-    near, _ = cKDTree(positions_W).query(points, distance_upper_bound=range_m, workers=-1)
-    points = _subset(points[np.isfinite(near)], MAX_SCORED_SAMPLES, 3)
+    points = _mesh_samples_in_range(mesh, positions_W, range_m)
     to_gt = surface_distances(points, gt_region, num_reference_samples=REFERENCE_SAMPLES)
     to_map = surface_distances(observed, mesh, num_reference_samples=REFERENCE_SAMPLES)
     for t in THRESHOLDS_M:
@@ -168,9 +167,7 @@ def point_precision(
 
     if len(mesh.faces) == 0:
         return {f"precision_{t:g}": 0.0 for t in POINT_THRESHOLDS_M} | {"accuracy_m": float("inf")}
-    samples, _ = trimesh.sample.sample_surface(mesh, 4 * MAX_SCORED_SAMPLES, seed=2)
-    near, _ = cKDTree(positions_W).query(samples, distance_upper_bound=range_m, workers=-1)
-    samples = _subset(samples[np.isfinite(near)], MAX_SCORED_SAMPLES, 3)
+    samples = _mesh_samples_in_range(mesh, positions_W, range_m)
     distance, _ = cKDTree(points_W).query(samples, workers=-1)
     scores = {f"precision_{t:g}": float(np.mean(distance < t)) for t in POINT_THRESHOLDS_M}
     return {**scores, "accuracy_m": float(distance.mean())}

@@ -1,20 +1,12 @@
 """A compact LiDAR TSDF in numpy: the map a LiDAR mapping system would otherwise keep.
 
-Each scan is integrated along its rays: every point is sampled at offsets of one voxel from
-``-truncation`` to ``+truncation`` along its ray (from the sensor origin through the point), and
-each sample's voxel receives the projective signed distance ``range(point) - |centre - origin|``
-(positive in front of the surface, clipped to the truncation) with weight 1. A voxel's value is
-the mean of every sample it received over all scans (the weighted running mean of a TSDF with
-unit weights, computed as sums). Samples are reduced per batch of scans with ``np.unique`` and
-``np.bincount`` and merged into one sorted array of packed voxel keys (``common.voxel_keys``).
-
-The surface is meshed by ``skimage.measure.marching_cubes`` on blocks of ``BLOCK``^3 voxels (with
-the one-voxel border they share with their neighbours), many blocks per call, stacked along one
-axis with the cubes that would span two blocks or touch an unobserved voxel masked out.
-
-Memory is reported as a block-hashed TSDF allocates it (Voxblox, Open3D): every block of
-``BLOCK``^3 voxels that holds an observed voxel, times ``BYTES_PER_VOXEL`` (float32 distance and
-float32 weight).
+Each scan point is sampled at offsets of one voxel from ``-truncation`` to ``+truncation`` along
+its ray; each sample's voxel receives the projective signed distance ``range(point) - |centre -
+origin|`` (clipped to the truncation) with weight 1, and a voxel's value is the mean over all
+scans. Samples are reduced per batch with ``np.unique``/``np.bincount`` into one sorted array of
+packed voxel keys (``common.voxel_keys``). The surface is meshed by marching cubes on blocks of
+``BLOCK``^3 voxels, many blocks per call. Memory is reported as a block-hashed TSDF allocates
+it (Voxblox, Open3D): every block holding an observed voxel, times ``BYTES_PER_VOXEL``.
 """
 
 from __future__ import annotations
@@ -43,9 +35,7 @@ class LidarTsdf:
         min_weight: voxels with fewer samples are left out of the mesh.
     """
 
-    def __init__(
-        self, voxel_m: float, truncation_m: float | None = None, min_weight: float = 1.0
-    ) -> None:
+    def __init__(self, voxel_m: float, truncation_m: float | None = None, min_weight: float = 1.0):
         self.voxel_m = float(voxel_m)
         self.truncation_m = 3.0 * self.voxel_m if truncation_m is None else float(truncation_m)
         self.min_weight = float(min_weight)
@@ -128,9 +118,8 @@ class LidarTsdf:
         shifts = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
         blocks = np.unique((blocks[:, None, :] - shifts[None]).reshape(-1, 3), axis=0)
         side = BLOCK + 1
-        local = np.stack(np.meshgrid(*(np.arange(side),) * 3, indexing="ij"), axis=-1).reshape(
-            -1, 3
-        )
+        local = np.stack(np.meshgrid(*(np.arange(side),) * 3, indexing="ij"), axis=-1)
+        local = local.reshape(-1, 3)
         vertices, faces, offset = [], [], 0
         for start in range(0, len(blocks), BLOCKS_PER_CALL):
             chunk = blocks[start : start + BLOCKS_PER_CALL]

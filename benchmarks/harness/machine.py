@@ -73,14 +73,7 @@ def machine_description() -> dict[str, str]:
     }
 
 
-SECTION_KEYS = (
-    "cpu",
-    "cores",
-    "load average (1, 5, 15 min)",
-    "torch",
-    "revision",
-    "date",
-)
+SECTION_KEYS = ("cpu", "cores", "load average (1, 5, 15 min)", "torch", "revision", "date")
 """What a section's machine line repeats of :func:`machine_description`; the report's header
 (``benchmarks.run_all``) holds the rest (the other versions, the platform) once."""
 
@@ -93,9 +86,16 @@ def machine_line() -> str:
 
 def section_header(title: str, command: str) -> list[str]:
     """The first lines of a benchmark's section: its title, exact command and machine."""
-    return [
-        f"## {title}",
-        "",
-        f"- Command: `{command}`",
-        f"- Machine: {machine_line()} (a shared machine: other jobs inflate wall times)",
-    ]
+    machine = f"- Machine: {machine_line()} (a shared machine: other jobs inflate wall times)"
+    return [f"## {title}", "", f"- Command: `{command}`", machine]
+
+
+def proc_memory_kib(pid: int | str = "self") -> dict[str, int]:
+    """``VmRSS`` and ``VmHWM`` (current and peak resident memory, KiB) of process ``pid`` from
+    /proc; empty where it cannot be read (e.g. the process has ended)."""
+    try:
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:
+        return {}
+    fields = (line.partition(":") for line in lines)
+    return {key: int(value.split()[0]) for key, _, value in fields if key in ("VmRSS", "VmHWM")}

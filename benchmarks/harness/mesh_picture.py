@@ -1,11 +1,10 @@
 """Top-down pictures of LiDAR meshes over one street corner, coloured by height.
 
-A mesh is drawn as a height map: points sampled uniformly over its faces in the window
-(:data:`SAMPLES_PER_PIXEL` per pixel of ground), each pixel holding the highest sample's height
-above the nearest sensor position, so that the road lies dark, kerbs and walls bright whatever
-the slope of the street, and a pixel no face covers stays background. A few hundred thousand
-faces take about a second. The corner is chosen from the ground-truth positions alone
-(:func:`street_corner`), so that every picture of one run shows the same square.
+A mesh is drawn as a height map: points sampled uniformly over its faces in the window, each
+pixel holding the highest sample's height above the nearest sensor position (the road dark,
+kerbs and walls bright whatever the slope; a pixel no face covers stays background). The corner
+is chosen from the ground-truth positions alone (:func:`street_corner`), so that every picture
+of one run shows the same square.
 """
 
 from __future__ import annotations
@@ -92,17 +91,10 @@ def street_corner(positions_W: np.ndarray, side_m: float = WINDOW_SIDE_M) -> Cor
     passes = np.array([passes_near(positions_W, positions_W[i], side_m / 2) for i in candidates])
     chosen = np.lexsort((-turns[candidates], -passes))[0]
     best = candidates[chosen]
-    return Corner(
-        scan=int(best),
-        centre_W=positions_W[best].copy(),
-        turn_deg=float(turns[best]),
-        passes=int(passes[chosen]),
-    )
+    return Corner(int(best), positions_W[best].copy(), float(turns[best]), int(passes[chosen]))
 
 
-def _window_triangles(
-    vertices_W: np.ndarray, faces: np.ndarray, window_low: np.ndarray, side_m: float
-) -> np.ndarray:
+def _window_triangles(vertices_W, faces, window_low: np.ndarray, side_m: float) -> np.ndarray:
     """The triangles (F, 3, 3) of the faces whose x-y bounds meet the window, gathered
     :data:`CHUNK_SAMPLES` faces at a time (a whole run's mesh is millions of faces)."""
     vertices_W = np.asarray(vertices_W)
@@ -115,9 +107,7 @@ def _window_triangles(
     return np.concatenate(kept) if kept else np.zeros((0, 3, 3))
 
 
-def _window_samples(
-    triangles_W: np.ndarray, side_m: float, pixels: int, seed: int
-) -> Iterator[np.ndarray]:
+def _window_samples(triangles_W, side_m: float, pixels: int, seed: int) -> Iterator[np.ndarray]:
     """Points drawn uniformly over the triangles (F, 3, 3) of :func:`_window_triangles`,
     :data:`SAMPLES_PER_PIXEL` per pixel area of their surface, :data:`CHUNK_SAMPLES` at a
     time (a large triangle reaching past the window spends samples outside it, but leaves no

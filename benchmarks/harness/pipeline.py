@@ -1,10 +1,6 @@
-"""One whole-pipeline run in this process, as the accuracy, SLAM and variant benchmarks make it.
-
-:func:`run_pipeline` loads a shipped config (plus overrides) with no viewer and the map on the
-CPU, builds the map and the odometry, feeds every frame of a source through
-:class:`~slam.algorithm.pipeline.SlamPipeline` and finishes it: the pipeline and the wall time.
-:func:`loop_errors`, :func:`rejections` and :func:`trajectory_summary` are what every such
-benchmark reads from the finished pipeline against the ground truth.
+"""One whole-pipeline run in this process, as the accuracy, SLAM and variant benchmarks make it
+(:func:`run_pipeline`), and what they read from the finished pipeline against the ground truth
+(:func:`trajectory_summary`).
 """
 
 from __future__ import annotations
@@ -33,7 +29,7 @@ def add_override_arguments(parser, rows: str) -> None:
         dest="before_sets",
         action="append",
         default=[],
-        help=f"also run with this override (KEY=VALUE) on top, as the {rows}",
+        help=f"also run with this override KEY=VALUE on top, as the {rows}",
     )
 
 
@@ -41,9 +37,8 @@ def load_config(config_name: str, overrides: dict[str, Any] | None = None):
     """``configs/<config_name>.yaml`` with :data:`QUIET` and ``overrides`` on top."""
     from slam.assembly.config import default_config_path, load_run_config, merge_overrides
 
-    return load_run_config(
-        default_config_path(config_name), merge_overrides(QUIET, overrides or {})
-    )
+    path = default_config_path(config_name)
+    return load_run_config(path, merge_overrides(QUIET, overrides or {}))
 
 
 def run_pipeline(cfg, source, odometry=None) -> tuple[Any, float]:

@@ -11,7 +11,7 @@ import sys
 import tempfile
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 PY = sys.executable
@@ -32,7 +32,6 @@ class Case:
     command: str
     run: Callable[[Path, Path, Path], Outcome]  # (code root, work folder, base run) -> outcome
     quick: bool = True
-    notes: list[str] = field(default_factory=list)
     group: str = "general"
 
 
@@ -56,10 +55,13 @@ def message_of(stderr: str, stdout: str = "") -> str:
     return f"(stdout) {out[0]}" if out else "(no output)"
 
 
-def run(code: Path, args: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
-    """``args`` with ``code`` on ``PYTHONPATH``; the result's ``peak_rss_mb`` is the command's
-    own peak resident memory (its waited-for children included)."""
-    env = {**os.environ, "PYTHONPATH": str(code)}
+def run(
+    code: Path, args: list[str], timeout: float = 600, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
+    """``args`` with ``code`` on ``PYTHONPATH`` (and ``env`` on top of this environment); the
+    result's ``peak_rss_mb`` is the command's own peak resident memory (its waited-for children
+    included)."""
+    env = {**os.environ, **(env or {}), "PYTHONPATH": str(code)}
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         process = subprocess.Popen(args, cwd=code, env=env, stdout=out, stderr=err)
         timer = threading.Timer(timeout, process.kill)
@@ -71,12 +73,8 @@ def run(code: Path, args: list[str], timeout: float = 600) -> subprocess.Complet
         process.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
         err.seek(0)
-        result = subprocess.CompletedProcess(
-            args,
-            process.returncode,
-            out.read().decode(errors="replace"),
-            err.read().decode(errors="replace"),
-        )
+        texts = (stream.read().decode(errors="replace") for stream in (out, err))
+        result = subprocess.CompletedProcess(args, process.returncode, *texts)
     result.peak_rss_mb = usage.ru_maxrss / 1024  # type: ignore[attr-defined]
     return result
 

@@ -1,12 +1,11 @@
 """Repeated timings: every timing a benchmark reports is the median of ``REPEATS`` runs, shown
 with its range as ``median (min-max)``.
 
-One implementation for every benchmark. :func:`timed` repeats a call and times it;
-:func:`repeat_runs` repeats a whole measurement that returns a dict and turns its timing fields
-into :class:`Timing` values (the other fields, e.g. accuracy, are the first run's: the runs are
-deterministic). A :class:`Timing` is a float (its median), so reports compute with it as before,
-but a format spec prints the range too: ``f"{t:.1f}"`` gives ``12.3 (11.9-13.0)``. In JSON it is
-its median; the samples are kept beside it under ``"timings"`` (:func:`restore` rebuilds them).
+:func:`timed` repeats a call; :func:`repeat_runs` repeats a measurement that returns a dict and
+folds its timing fields into :class:`Timing` values (the other fields are the first run's: the
+runs are deterministic). A :class:`Timing` is a float (its median) whose format spec prints the
+range too (``f"{t:.1f}"`` gives ``12.3 (11.9-13.0)``); in JSON it is its median, the samples kept
+beside it under ``"timings"`` (:func:`restore` rebuilds them).
 """
 
 from __future__ import annotations
@@ -96,17 +95,17 @@ def _samples(value: Any) -> Any:
     return None if value is None else list(value.samples)
 
 
+def _rebuild(samples: Any) -> Any:
+    if isinstance(samples, dict):
+        return {key: _rebuild(v) for key, v in samples.items()}
+    return None if samples is None else Timing(samples)
+
+
 def restore(result: dict[str, Any]) -> dict[str, Any]:
     """A :func:`repeat_runs` result read back from JSON, with its :class:`Timing` values."""
-
-    def rebuild(samples: Any) -> Any:
-        if isinstance(samples, dict):
-            return {key: rebuild(v) for key, v in samples.items()}
-        return None if samples is None else Timing(samples)
-
     out = dict(result)
     for key, samples in result.get("timings", {}).items():
-        out[key] = rebuild(samples)
+        out[key] = _rebuild(samples)
     return out
 
 

@@ -36,3 +36,16 @@ def write_results(stem: str, results: dict[str, Any], markdown: str) -> None:
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     write_text_atomic(RESULTS_DIR / f"{stem}.json", json.dumps(results, indent=2) + "\n")
     write_text_atomic(RESULTS_DIR / f"{stem}.md", markdown)
+
+
+def table(header: str, rows: Iterable[Iterable[Any]], align: str = "") -> list[str]:
+    """A Markdown table: ``header`` (its cells split at `` | ``), its rule (``align``: one letter
+    per column, ``r`` right-aligned, else left) and one line per row of cells."""
+    names = header.split(" | ")
+    rule = "|".join("---:" if align[i : i + 1] == "r" else "---" for i in range(len(names)))
+    return [f"| {header} |", f"|{rule}|", *("| " + " | ".join(map(str, r)) + " |" for r in rows)]
+
+
+def cm(value_m: float | None, digits: int = 1) -> str:
+    """Metres as centimetres with ``digits`` decimals; ``-`` for a missing value."""
+    return "-" if value_m is None else f"{100 * value_m:.{digits}f}"
