@@ -105,23 +105,28 @@ def error_in_map_frame(map_run: Path, run: Path, first_frame: int) -> dict[str, 
 
 
 def odometry_alone(config_path: str) -> dict[str, float]:
-    """The run's odometry alone on the run's frames (its resolved ``config.yaml``): frames/s."""
-    import torch
-
+    """The run's odometry alone on the run's frames (its resolved ``config.yaml``), counted as
+    the run counts its ``pipeline_s`` and ``pipeline_cpu_s``: built before the clock starts, under
+    the run's thread budget, frames read included, the odometry closed within. frames/s and CPU
+    seconds (this process's and the odometry's child process's)."""
+    from slam.app.runner import run_cpu_s
     from slam.assembly.builders import build_odometry, build_source
     from slam.assembly.config import load_run_config
+    from slam.assembly.threads import apply_thread_budget
 
-    torch.set_num_threads(1)
     cfg = load_run_config(Path(config_path))
+    apply_thread_budget(cfg)
     source = build_source(cfg)
     odometry = build_odometry(cfg, source.sensor)
+    cpu_start = run_cpu_s(odometry)
     count, start = 0, time.perf_counter()
     for frame in source.read_ahead():
         odometry.register(frame)
         count += 1
-    wall = time.perf_counter() - start
     odometry.close()
-    return {"frames": count, "wall_s": wall, "frames_per_s": count / wall}
+    wall = time.perf_counter() - start
+    cpu = run_cpu_s(None) - cpu_start  # the odometry's child was waited for
+    return {"frames": count, "wall_s": wall, "frames_per_s": count / wall, "cpu_s": cpu}
 
 
 def _second_part(spec: Split, work: Path, name: str, continuous: bool, localise: bool):
@@ -155,6 +160,7 @@ def _second_part(spec: Split, work: Path, name: str, continuous: bool, localise:
         "wall_s": wall,
         "peak_rss_mb": rss,
         "frames_per_s": metrics["timing"]["frames_per_s"],
+        "pipeline_cpu_s": metrics["timing"]["pipeline_cpu_s"],
         "map_decode_s": placed["map_decode_seconds"],
         "placed_by_frames": placed.get("submap_frames"),
         "localisation": metrics["localisation"],
@@ -187,6 +193,10 @@ def scenario(name: str, full: bool, work: Path) -> dict[str, Any]:
     return result
 
 
+def _cpu_ms(cpu_s: float | None, frames: int) -> str:
+    return "-" if cpu_s is None else f"{1e3 * cpu_s / max(frames, 1):.0f}"
+
+
 def _rows(r: dict[str, Any]) -> list[list]:
     rows = []
     placement_only = "placement only (`relocalise.continuous=false`)"
@@ -204,6 +214,7 @@ def _rows(r: dict[str, Any]) -> list[list]:
                 f"{100 * loc['fraction_anchored']:.0f} % ({loc['frames_before_placement']} "
                 f"before placement; gaps {gaps})",
                 f"{run['frames_per_s']:.1f}",
+                _cpu_ms(run["pipeline_cpu_s"], loc["frames"]),
                 f"{run['map_decode_s']:.1f}",
                 f"{run['peak_rss_mb']:.0f}",
             ]
@@ -221,7 +232,11 @@ def report(results: dict[str, Any], command: str) -> str:
         "map's own truth onto its poses (the map's ATE is its own, aligned on itself), frames "
         "from the placing submap on. frames/s: the pipeline's rate of the run (the stored "
         "surfaces are decoded before the first frame: `decode` column); odometry alone: the "
-        "same config's odometry on the same frames, in its own process.",
+        "same config's odometry on the same frames, in its own process, timed as the run is (its "
+        "thread budget, frames read and the odometry closed within). CPU: the process's and the "
+        "odometry child's CPU time over those frames (`timing.pipeline_cpu_s`), decode "
+        "excluded: two shared cores cannot run the localisation faster than the odometry once "
+        "the run needs more CPU a frame than the cores left the odometry idle.",
         "",
     ]
     for name, r in results.items():
@@ -233,9 +248,11 @@ def report(results: dict[str, Any], command: str) -> str:
             f"### {name} ({r['note']})", "",
             f"Map: ATE {cm(r['map']['ate_m'])} cm (on itself), peak RSS "
             f"{r['map']['peak_rss_mb']:.0f} MB. Odometry alone on the localised frames: "
-            f"{odo['frames_per_s']:.1f} frames/s ({odo['frames']} frames).", "",
+            f"{odo['frames_per_s']:.1f} frames/s ({odo['frames']} frames), "
+            f"{_cpu_ms(odo.get('cpu_s'), odo['frames'])} ms of CPU a frame.", "",
             *table("run | error in the map's frame, mean / worst frame [cm] | map-anchored "
-                   "frames | frames/s | decode [s] | peak RSS [MB]", _rows(r), "lllrrr"), "",
+                   "frames | frames/s | CPU [ms/frame] | decode [s] | peak RSS [MB]", _rows(r),
+                   "lllrrrr"), "",
             *table("`--map map` (continue mapping) | merged combined ATE [cm] | peak RSS [MB]",
                    ([label, cm(r[key]["combined_ate_m"]), f"{r[key]['peak_rss_mb']:.0f}"]
                     for label, key in (("placement only (before)", "continue_placement_only"),

@@ -64,6 +64,11 @@ class Odometry(ABC):
         results carry (the pipeline calls it when that frame anchors a new submap, so each
         odometry edge of the pose graph gets the covariance of its own motion)."""
 
+    def child_cpu_s(self) -> float:
+        """CPU seconds used so far by a child process the odometry runs in (0: it runs in this
+        process, whose own CPU time counts it)."""
+        return 0.0
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release what the odometry holds outside this object (a child process); no frame may
         follow."""

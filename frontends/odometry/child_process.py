@@ -235,6 +235,9 @@ class ChildProcessOdometry(Odometry):
     def restart_covariance(self) -> None:
         self._call("restart_covariance")
 
+    def child_cpu_s(self) -> float:
+        return self.usage().cpu_s
+
     def usage(self) -> ProcessUsage:
         """CPU time and memory of the child so far."""
         with open(f"/proc/{self.pid}/stat") as stat:

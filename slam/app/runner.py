@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from frontends.errors import DatasetError
+from frontends.odometry.base import Odometry
 from slam.app.signals import Terminated
 from slam.app.summary import summary_lines
 from slam.assembly.config import RunConfig
@@ -41,6 +42,19 @@ def _scale_lidar_config(cfg: RunConfig, source) -> None:
         scale_config(cfg, source[0].points)
     except ValueError as exc:
         raise DatasetError(f"{cfg.source.root}: {exc}; check the recording") from None
+
+
+def run_cpu_s(odometry: Odometry | None) -> float:
+    """CPU seconds of this process and of its children that ended, plus those the odometry's
+    running child process has used so far: the difference of two readings is the run's CPU
+    time between them, the odometry's included, once that child ended."""
+    import resource
+
+    cpu_s = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        usage = resource.getrusage(who)
+        cpu_s += usage.ru_utime + usage.ru_stime
+    return cpu_s + (odometry.child_cpu_s() if odometry is not None else 0.0)
 
 
 def _linger(seconds: float | None, announce) -> None:
@@ -188,6 +202,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     intrinsics = None
     skipped: list[int] = []
     loop_start = time.perf_counter()
+    cpu_start = run_cpu_s(odometry)
     try:
         for frame in source.read_ahead():
             state.frames_done += 1
@@ -236,6 +251,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         pipeline.finish()
         # the rate ends with the final optimisation: the recording's exact final map is after it
         pipeline_s = time.perf_counter() - loop_start
+        pipeline_cpu_s = run_cpu_s(None) - cpu_start  # the odometry's child was waited for
         recorder.finish()
     except BaseException:  # Ctrl-C, SIGTERM, a failed job: stop the workers, skip their queue
         pipeline.abort()
@@ -281,6 +297,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         num_mesh_samples=cfg.output.mesh_samples,
         extra={"dataset": cfg.source.dataset, "sequence": cfg.source.sequence, "sensor": sensor},
     )
+    metrics["timing"]["pipeline_cpu_s"] = pipeline_cpu_s
     metrics["input"] = {
         "frames_total": state.frames_total,
         "frames_processed": state.frames_total - len(skipped),
