@@ -123,6 +123,34 @@ def test_lidar_runs_put_kiss_icp_in_a_child_that_finish_ends() -> None:
         assert isinstance(inline, KissIcpOdometry)
 
 
+def test_a_runs_cpu_time_counts_the_childs_registrations_but_not_its_start() -> None:
+    """``timing.pipeline_cpu_s`` (slam/app/runner.py ``run_cpu_s``): read once the child runs
+    and again after it ended, it holds this process's CPU time and the child's over the frames
+    and its exit, not the child's start (importing KISS-ICP), which came before the first
+    reading."""
+    import resource
+
+    from slam.app.runner import run_cpu_s
+
+    def own_cpu_s() -> float:
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        return usage.ru_utime + usage.ru_stime
+
+    frames = list(_street(186))[:8]
+    child = ChildProcessOdometry("kiss-icp", config=ONE_THREAD)
+    started_s = child.usage().cpu_s
+    start, own_start = run_cpu_s(child), own_cpu_s()
+    for frame in frames:
+        child.register(frame)
+    registered_s = child.usage().cpu_s - started_s
+    own_s = own_cpu_s() - own_start
+    child.close()
+    counted_s = run_cpu_s(None) - start
+    assert registered_s > 0
+    # the child's exit (about 0.15 s) is counted too; its start (about 1 s) is not
+    assert registered_s + own_s - 0.05 <= counted_s < registered_s + own_s + started_s / 2
+
+
 def test_a_hung_child_is_stopped_after_the_reply_timeout() -> None:
     child = ChildProcessOdometry("kiss-icp")
     child.reply_timeout_s = 1.0  # after starting it, which takes longer on a loaded machine
