@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from slam.run_folder.trajectory_io import read_kitti, read_tum
+
 # A short demo: one lap of the generated room in 60 frames with ground-truth odometry (so that a
 # 6-degree step per frame is no problem), small submaps so that the lap closes a loop and the map
 # is meshed several times, and a coarse mesh lattice to keep it fast.
@@ -175,3 +177,14 @@ def positions_along(points, step_m: float, height_m: float) -> np.ndarray:
         parts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
     xy = np.concatenate([*parts, corners[-1:]])
     return np.column_stack([xy, np.full(len(xy), height_m)])
+
+
+def assert_trajectories_complete(folder: Path) -> int:
+    """The four trajectory files hold the same frames, TUM timestamps strictly increasing; their
+    row count."""
+    rows = {len(read_kitti(folder / f"poses_{k}.kitti.txt")) for k in ("odometry", "slam")}
+    stamps = [read_tum(folder / f"poses_{k}.tum.txt")[0] for k in ("odometry", "slam")]
+    assert len(rows) == 1 and len(stamps[0]) == len(stamps[1]) == rows.pop() > 0
+    np.testing.assert_array_equal(stamps[0], stamps[1])
+    assert np.all(np.diff(stamps[0]) > 0)
+    return len(stamps[0])

@@ -24,7 +24,7 @@ import trimesh
 from mapping.map_io import load_map
 from slam.assembly.config import load_run_config
 from slam.run_folder.trajectory_io import read_kitti, read_tum
-from tests.helpers import call_main
+from tests.helpers import assert_trajectories_complete, call_main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RUN_FRAMES = 120
@@ -129,7 +129,16 @@ def test_signal_after_the_first_submap_leaves_complete_files(
     assert {"poses_slam.tum.txt", "recording.rrd", "run_status.json"} <= names
     run_status = json.loads((folder / "run_status.json").read_text())
     assert run_status["state"] == state and 0 < run_status["frames_done"] < RUN_FRAMES
+    # whole trajectory files, no frame the status does not count
+    assert assert_trajectories_complete(folder) <= run_status["frames_done"]
     eval_refuses(folder, f"{state} at frame")
+
+
+def test_a_finished_run_leaves_every_frame_in_its_trajectory_files(lidar_run) -> None:
+    """The final trajectory files hold every frame the run processed, in order."""
+    status = json.loads((lidar_run.folder / "run_status.json").read_text())
+    assert status["state"] == "finished"
+    assert assert_trajectories_complete(lidar_run.folder) == status["frames_done"]
 
 
 def test_sigkill_leaves_only_complete_visible_files(tmp_path: Path) -> None:
