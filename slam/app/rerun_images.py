@@ -37,7 +37,7 @@ def encode_rgb(rgb: np.ndarray, scale: int, jpeg_quality: int) -> object:
     import cv2
     import rerun as rr
 
-    bgr = np.ascontiguousarray(np.asarray(rgb, dtype=np.uint8)[..., ::-1])
+    bgr = cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR)  # beats [::-1]
     bgr = shrink(bgr, scale, cv2.INTER_AREA)
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
     if not ok:
@@ -51,8 +51,8 @@ def encode_depth(depth_m: np.ndarray, scale: int, as_png: bool) -> object:
     import cv2
     import rerun as rr
 
-    depth_m = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0, posinf=0.0)
-    depth_m = shrink(depth_m, scale, cv2.INTER_NEAREST)
+    depth_m = shrink(np.asarray(depth_m, dtype=np.float32), scale, cv2.INTER_NEAREST)
+    depth_m = np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0)
     if as_png:
         depth_mm = np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16)
         ok, png = cv2.imencode(".png", depth_mm)

@@ -213,6 +213,8 @@ class RerunLogger(Logger):
         }[up_axis]
         self.rec.log("world", view, static=True)
         self.rec.log("world/sensor", rr.TransformAxes3D(0.5), static=True)
+        for name in ("turbo", "viridis"):  # import matplotlib before the run, not in its first map
+            colormap(name, np.zeros(0))
 
     # -- time ---------------------------------------------------------------------------------
 
