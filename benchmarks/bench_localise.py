@@ -129,7 +129,7 @@ def odometry_alone(config_path: str) -> dict[str, float]:
     return {"frames": count, "wall_s": wall, "frames_per_s": count / wall, "cpu_s": cpu}
 
 
-def _second_part(spec: Split, work: Path, name: str, continuous: bool, localise: bool):
+def _second_part(spec: Split, work: Path, name: str, *, continuous: bool, localise: bool):
     """The second part on the map in ``work``: localised in it, or (``localise`` False)
     continuing it; with or without the continuous map constraints."""
     out = work / name
@@ -181,14 +181,16 @@ def scenario(name: str, full: bool, work: Path) -> dict[str, Any]:
             "peak_rss_mb": rss,
             "ate_m": own["trajectory"]["slam"]["ate_rmse_m"],
         },
-        "localise": _second_part(spec, work, "localise", True, True),
-        "localise_placement_only": _second_part(spec, work, "localise-placement-only", False, True),
+        "localise": _second_part(spec, work, "localise", continuous=True, localise=True),
+        "localise_placement_only": _second_part(
+            spec, work, "localise-placement-only", continuous=False, localise=True
+        ),
     }
     alone, usage = in_child_measured(odometry_alone, result["localise"]["config"])
     result["odometry_alone"] = {**alone, "peak_rss_mb": usage.peak_rss_mb}
-    result["continue"] = _second_part(spec, work, "continue", True, False)
+    result["continue"] = _second_part(spec, work, "continue", continuous=True, localise=False)
     result["continue_placement_only"] = _second_part(
-        spec, work, "continue-placement-only", False, False
+        spec, work, "continue-placement-only", continuous=False, localise=False
     )
     return result
 
