@@ -18,8 +18,8 @@ from frontends.generate.lidar import LidarConfig, beam_directions, simulate_scan
 from frontends.generate.raycast import Raycaster
 from frontends.generate.street import PERIOD_M, street_scene
 from slam.algorithm.graph.config import PoseGraphConfig
+from slam.algorithm.graph.gtsam_poses import mahalanobis_distance2
 from slam.algorithm.graph.pose_graph import PoseGraph
-from slam.algorithm.loops.ambiguity import mahalanobis_distance2
 from slam.algorithm.loops.config import LidarLoopConfig
 from slam.algorithm.loops.lidar_verify import IcpVerifier
 

@@ -9,19 +9,15 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from common.geometry import orthonormalize, so3_exp
+from common.geometry import so3_exp
 from slam.algorithm.graph.gravity import UpMeasurement
+from slam.algorithm.graph.gtsam_poses import pose3
 
 GRAVITY_KEY = gtsam.symbol("g", 0)
 """Key of the gravity frame ``G`` (never a submap id: those are small integers)."""
 _UNCONSTRAINED_INFORMATION = 1e-8
 """Information given to what a gravity factor does not measure (heading, position), so that its
 noise model stays positive definite."""
-
-
-def pose3(T: np.ndarray) -> gtsam.Pose3:
-    """A 4x4 pose as a ``gtsam.Pose3`` (its rotation re-orthonormalised first)."""
-    return gtsam.Pose3(orthonormalize(T))
 
 
 def rotation_onto_z(v: np.ndarray) -> np.ndarray:

@@ -46,12 +46,8 @@ import numpy as np
 from common.geometry import orthonormalize, rotation_angle_rad
 from slam.algorithm.graph.config import PoseGraphConfig
 from slam.algorithm.graph.gravity import UpMeasurement
-from slam.algorithm.graph.gravity_factors import (
-    GRAVITY_KEY,
-    gravity_factor,
-    gravity_frame_prior,
-    pose3,
-)
+from slam.algorithm.graph.gravity_factors import GRAVITY_KEY, gravity_factor, gravity_frame_prior
+from slam.algorithm.graph.gtsam_poses import pose3, relative_pose_covariance
 
 logger = logging.getLogger(__name__)
 
@@ -420,8 +416,6 @@ class PoseGraph:
         """6x6 marginal covariance (``[rot, trans]``) of ``T_Ai_Aj`` at the current estimate,
         from the chain and the inlier loops: the odometry's accumulated uncertainty between
         the two anchors where no loop ties them yet."""
-        from slam.algorithm.loops.ambiguity import relative_pose_covariance
-
         marginals = gtsam.Marginals(self._inlier_graph(), self._estimate)
         joint = marginals.jointMarginalCovariance(gtsam.KeyVector([i, j])).fullMatrix()
         return relative_pose_covariance(joint, self.pose(i), self.pose(j))

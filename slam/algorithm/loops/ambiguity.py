@@ -12,7 +12,7 @@ gate passed it. Two checks guard against that:
   separate peaks of that profile seeds a re-registration; the candidate is ambiguous when one of
   them converges to a different solution that scores at least ``ambiguity_score_ratio`` of the
   chosen one (a better-scoring one means ICP chose the wrong minimum).
-* :func:`mahalanobis_distance2`: the squared Mahalanobis distance between the registered
+* :func:`graph_gate`: the squared Mahalanobis distance between the registered
   relative pose and the one the pose graph implies, under the graph's marginal covariance of that
   relative pose plus the registration's own; a correction far outside the odometry's accumulated
   uncertainty is rejected.
@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from common.geometry import orthonormalize, relative_motion, transform_points
+from common.geometry import relative_motion, transform_points
+from slam.algorithm.graph.gtsam_poses import mahalanobis_distance2
 
 Aligner = Callable[[np.ndarray], np.ndarray]
 """Re-registers the query from an initial ``T_ref_query`` guess and returns the converged pose."""
@@ -141,37 +142,6 @@ def find_ambiguity(
         if best is None or alt_score > best.score:
             best = Ambiguity(T_alt, alt_score, separation_m, separation_deg)
     return score, best
-
-
-def relative_pose_covariance(
-    joint_covariance: np.ndarray, T_W_Ai: np.ndarray, T_W_Aj: np.ndarray
-) -> np.ndarray:
-    """6x6 covariance of ``T_Ai_Aj = inv(T_W_Ai) @ T_W_Aj`` from the 12x12 joint marginal of the
-    two poses (GTSAM's right perturbation, tangent order ``[rot, trans]``)."""
-    import gtsam
-
-    T_Ai_Aj = gtsam.Pose3(orthonormalize(np.linalg.inv(T_W_Ai) @ T_W_Aj))
-    A = np.hstack([-T_Ai_Aj.inverse().AdjointMap(), np.eye(6)])
-    covariance = A @ joint_covariance @ A.T
-    return 0.5 * (covariance + covariance.T)
-
-
-def mahalanobis_distance2(
-    T_graph: np.ndarray,
-    covariance_graph: np.ndarray,
-    T_registered: np.ndarray,
-    covariance_registered: np.ndarray | None,
-) -> float:
-    """Squared Mahalanobis distance of ``T_registered`` from ``T_graph`` (both ``T_Ai_Aj``),
-    with the sum of the two covariances (``[rot, trans]``, right perturbation)."""
-    import gtsam
-
-    graph_pose = gtsam.Pose3(orthonormalize(T_graph))
-    error = gtsam.Pose3.Logmap(graph_pose.between(gtsam.Pose3(orthonormalize(T_registered))))
-    covariance = np.asarray(covariance_graph, dtype=np.float64).copy()
-    if covariance_registered is not None:
-        covariance = covariance + covariance_registered
-    return float(error @ np.linalg.solve(covariance, error))
 
 
 def graph_gate(

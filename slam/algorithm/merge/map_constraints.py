@@ -12,7 +12,7 @@ a stricter overlap (``LocaliseConfig.min_inlier_fraction``: a submap that sees t
 only in part is pulled by the rest) and a covariance that carries the surfaces' systematic error
 (:func:`registration_covariance`). A registration that passes is checked like a LiDAR loop: for
 ambiguity along the street (:func:`slam.algorithm.loops.ambiguity.find_ambiguity`) and against
-the graph (:func:`slam.algorithm.loops.ambiguity.mahalanobis_distance2` of the registered anchor
+the graph (:func:`slam.algorithm.graph.gtsam_poses.mahalanobis_distance2` of the registered anchor
 pose from the graph's, under the graph's marginal covariance of the anchor plus the
 registration's). The result is a prior on the anchor in the map's frame (the stored map is fixed:
 the live session never bends it), which the pose graph judges by GNC like a loop.

@@ -37,6 +37,7 @@ from common.geometry import orthonormalize, relative_motion, transform_points
 from common.point_to_plane import point_to_plane_hessian, point_to_plane_icp
 from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.graph.gravity_factors import GRAVITY_KEY, gravity_factor, gravity_frame_prior
+from slam.algorithm.graph.gtsam_poses import pose3
 from slam.algorithm.loops.place import PlaceDescriptor, fit_matches, ratio_matches
 from slam.algorithm.merge.config import MergeConfig
 from slam.algorithm.merge.inputs import (
@@ -335,21 +336,21 @@ def _solve(
     first = inputs[0].session
     g0 = ids.of[0][int(first.node_ids[0])]
     prior = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6))
-    graph.add(gtsam.PriorFactorPose3(g0, gtsam.Pose3(orthonormalize(first.T_W_A[0])), prior))
+    graph.add(gtsam.PriorFactorPose3(g0, pose3(first.T_W_A[0]), prior))
     intra: list[tuple[int, int, int]] = []
     for k, item in enumerate(inputs):
         for local, T in item.session.anchor_poses().items():
-            values.insert(ids.of[k][local], gtsam.Pose3(orthonormalize(T_W0_Wk[k] @ T)))
+            values.insert(ids.of[k][local], pose3(T_W0_Wk[k] @ T))
         for edge in item.session.odometry + item.session.loops:
             i, j = ids.of[k][edge.i], ids.of[k][edge.j]
-            measured = gtsam.Pose3(orthonormalize(edge.T_Ai_Aj))
+            measured = pose3(edge.T_Ai_Aj)
             graph.add(gtsam.BetweenFactorPose3(i, j, measured, _noise(edge.covariance)))
         intra += [(k, ids.of[k][e.i], ids.of[k][e.j]) for e in item.session.loops]
     _add_gravity(graph, values, inputs, ids)
     known = graph.size()
     accepted = [c for c in loops if c.accepted]
     for c in accepted:
-        measured = gtsam.Pose3(orthonormalize(c.T_Ai_Aj))
+        measured = pose3(c.T_Ai_Aj)
         graph.add(gtsam.BetweenFactorPose3(c.i, c.j, measured, _noise(c.covariance)))
     params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
     params.setLossType(gtsam.GncLossType.TLS)
@@ -374,7 +375,7 @@ def _add_gravity(
     first, measurement = measured[0]
     prior, T_W_G = gravity_frame_prior(GRAVITY_KEY, values.atPose3(first).matrix(), measurement)
     graph.add(prior)
-    values.insert(GRAVITY_KEY, gtsam.Pose3(T_W_G))
+    values.insert(GRAVITY_KEY, pose3(T_W_G))
     for node, m in measured:
         graph.add(gravity_factor(GRAVITY_KEY, node, T_W_G, values.atPose3(node).matrix(), m))
 
