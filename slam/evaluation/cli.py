@@ -63,6 +63,7 @@ import trimesh
 
 from common.atomic_io import write_problem
 from frontends.errors import DatasetError
+from slam.assembly.error_line import error_line
 from slam.evaluation.run_metrics import CullDistanceTooSmall, observed_face_mask
 from slam.evaluation.run_plots import draw_plots
 from slam.evaluation.summary import length, mesh_lines
@@ -307,15 +308,13 @@ def _require_writable(folder: Path, what: str) -> None:
         raise EvalError(f"{what} ({problem}); copy the run folder to a writable disk")
 
 
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in text:
-        text = f"{exc.filename}: {text}"
-    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        text += "; free some space"
-    elif isinstance(exc, OSError) and exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
-        text += "; copy the run folder to a writable disk"
-    return text
+_OS_HINTS = {
+    errno.ENOSPC: "free some space",
+    errno.EDQUOT: "free some space",
+    errno.EROFS: "copy the run folder to a writable disk",
+    errno.EACCES: "copy the run folder to a writable disk",
+    errno.EPERM: "copy the run folder to a writable disk",
+}
 
 
 def _relative(path: Path, run_dir: Path) -> str:
@@ -451,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     except (EvalError, DatasetError, OSError, ValueError) as exc:
         if args.debug:
             raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        print(f"error: {error_line(exc, _OS_HINTS)}", file=sys.stderr)
         return 1
     for line in summary_lines(metrics):
         print(line)
