@@ -54,6 +54,7 @@ from slam.assembly.config import (
 )
 from slam.assembly.datasets import DATASETS, DatasetEntry
 from slam.assembly.error_line import error_line
+from slam.run_folder.outputs import SESSION_FOLDER
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -322,7 +323,7 @@ def _main(argv: list[str], debug: bool) -> int:
         metrics = execute(
             entry,
             cfg,
-            folder if previous is None or args.localise else folder / "session",
+            folder if previous is None or args.localise else folder / SESSION_FOLDER,
             progress=not args.no_progress,
             announce=lambda line: print(line, file=sys.stderr, flush=True),
             check_config=None if previous is None else _map_check(previous, args.map),
@@ -336,7 +337,7 @@ def _main(argv: list[str], debug: bool) -> int:
             from slam.app.continue_map import merge_into
 
             merged = merge_into(
-                previous, args.map, folder / "session", folder, cfg.viz.mode != "none", cfg
+                previous, args.map, folder / SESSION_FOLDER, folder, cfg.viz.mode != "none", cfg
             )
             metrics["continued_map"] = merged
     except KeyboardInterrupt as exc:
@@ -363,7 +364,7 @@ def _main(argv: list[str], debug: bool) -> int:
         )
         if "combined_ate_rmse_m" in merged:
             line += f", combined ATE {100 * merged['combined_ate_rmse_m']:.2f} cm"
-        print(f"{line}; merged run in {folder} (this run alone in {folder / 'session'})")
+        print(f"{line}; merged run in {folder} (this run alone in {folder / SESSION_FOLDER})")
     return 0
 
 

@@ -39,8 +39,6 @@ from slam.algorithm.merge.inputs import LATENT_STORAGE_FIELDS
 if TYPE_CHECKING:
     from slam.algorithm.merge.relocalise import Relocaliser
 
-SESSION_FOLDER = "session"
-
 
 def load_map_folder(folder: Path, cfg) -> tuple:
     """``(SessionInput, NeuralMap)`` of ``--map``, decoded with the run's own prior and device;

@@ -29,7 +29,6 @@ class FleetProgress:
     live: bool
     done: int = 0
     failed: int = 0
-    reused: int = 0
     running: dict[str, Path] = field(default_factory=dict)
     _watch: dict[str, _Watch] = field(default_factory=dict)
     _bar: object = None
@@ -44,7 +43,6 @@ class FleetProgress:
         self.running[name] = folder
 
     def reuse(self, name: str) -> None:
-        self.reused += 1
         self.done += 1
         self._advance()
         self.say(f"{name}: finished earlier, reused")

@@ -98,6 +98,9 @@ def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
 RUN_STATUS_FILE = "run_status.json"
 """Whether the run finished: ``state`` (running, finished, interrupted, terminated, failed),
 ``frames_done``, ``frames_total`` and, when it stopped early, ``reason``."""
+SESSION_FOLDER = "session"
+"""Sub-folder of a run that continued a stored map (``--map`` without ``--localise``): the
+session's own run folder, beside the merged map in the run folder itself."""
 
 
 def read_run_status(folder: Path) -> dict[str, Any] | None:
