@@ -245,23 +245,46 @@ def test_points_beyond_the_loop_range_are_mapped_but_left_out_of_the_loop_cloud(
     assert 0 < coarse_far_rows.sum() < 0.5 * far.sum()
 
 
+def _closed_submap(cfg: SubmapConfig, views: list[Frame], for_map: bool):
+    decisions, points = KeyframeDecisions(cfg), SubmapPoints(cfg, for_map)
+    for view in views:
+        points.absorb(decisions.decide(view, _pose(0.05 * view.index)), view)
+    final = decisions.decide_finish()
+    assert final is not None
+    return points.absorb(final, None)
+
+
 def test_a_localisation_only_submap_keeps_its_points_without_normals() -> None:
-    """A localisation-only run registers a LiDAR submap's points alone: without normal
-    estimation the closed submap has the same loop cloud and every point the estimation keeps,
-    none with a normal."""
+    """A localisation-only run registers a LiDAR submap's points alone: on its own grid (the
+    map's here) and without normal estimation the closed submap covers every voxel the map's
+    submap covers, and the same loop voxels, with one point a voxel and none with a normal."""
     cfg = _cfg(max_distance_m=1.0, map_voxel_m=0.05, loop_voxel_m=0.1)
     views = [Frame(index=i, timestamp=0.1 * i, points=_wall_view(i).points) for i in range(4)]
-    closed = []
-    for estimate_normals in (True, False):
-        decisions, points = KeyframeDecisions(cfg), SubmapPoints(cfg, estimate_normals)
-        for view in views:
-            points.absorb(decisions.decide(view, _pose(0.05 * view.index)), view)
-        final = decisions.decide_finish()
-        assert final is not None
-        closed.append(points.absorb(final, None))
-    mapped, located = closed
+    mapped, located = (_closed_submap(cfg, views, for_map) for for_map in (True, False))
     assert len(mapped.points_A) > 400
     np.testing.assert_allclose(np.linalg.norm(mapped.normals_A, axis=1), 1.0)
     assert not np.any(located.normals_A)
-    np.testing.assert_array_equal(located.loop_points_A, mapped.loop_points_A)
-    assert {tuple(p) for p in mapped.points_A} <= {tuple(p) for p in located.points_A}
+    located_keys = voxel_keys(located.points_A, 0.05)
+    assert len(np.unique(located_keys)) == len(located_keys)
+    assert set(voxel_keys(mapped.points_A, 0.05)) <= set(located_keys)
+    assert set(voxel_keys(located.loop_points_A, 0.1)) == set(voxel_keys(mapped.loop_points_A, 0.1))
+
+
+def test_a_localisation_only_submap_is_averaged_on_its_own_grid() -> None:
+    """A localisation-only submap is averaged on localise_voxel_m (never encoded, it needs no
+    finer grid), near and far points alike, RGB-D normals still averaged (loop refinement uses
+    them)."""
+    cfg = _cfg(
+        max_distance_m=1.0,
+        map_voxel_m=0.02,
+        loop_voxel_m=0.1,
+        loop_max_range_m=2.5,
+        localise_voxel_m=0.1,
+    )
+    views = [_wall_view(i, half_width_m=2.0) for i in range(4)]
+    mapped, located = (_closed_submap(cfg, views, for_map) for for_map in (True, False))
+    keys = voxel_keys(located.points_A, 0.1)
+    assert len(np.unique(keys)) == len(keys)
+    assert np.linalg.norm(located.points_A, axis=1).max() > 2.6  # far points are kept
+    assert 0 < len(located.points_A) < len(mapped.points_A) / 5
+    np.testing.assert_allclose(located.normals_A, np.tile([0.0, 0.0, -1.0], (len(keys), 1)))
