@@ -218,3 +218,43 @@ def test_a_submap_seeing_the_stored_surface_only_in_part_constrains_nothing(room
     assert merge.min_inlier_fraction <= partial.scores["inlier_fraction"]
     assert partial.scores["inlier_fraction"] < localise.min_inlier_fraction
     assert not partial.accepted and partial.reason.startswith("partial overlap")
+
+
+def test_the_anchors_gravity_is_left_to_the_map_while_it_holds_the_run(room_sessions):
+    """Once placed, while the last closed submap is anchored in the stored map, the map's
+    priors hold the attitude and a new anchor needs no gravity measurement; a submap the map
+    does not cover hands it back to gravity, and ``gravity_while_anchored`` always does."""
+    from slam.algorithm.graph.pose_graph import PoseGraph
+    from slam.algorithm.localisation import NOT_COVERED, MapLocalisation
+    from slam.algorithm.merge.config import LocaliseConfig
+    from slam.algorithm.merge.merge import SurfaceDecoder
+    from slam.algorithm.merge.relocalise import Relocaliser
+    from slam.algorithm.submaps import SubmapRecord
+    from slam.app.continue_map import load_map_folder
+    from slam.assembly.config import load_run_config
+
+    folder = room_sessions["a"]
+    cfg = load_run_config(folder / "config.yaml")
+    stored, stored_map = load_map_folder(folder, cfg)
+    submap = max(
+        (s for s in stored.submaps if s.submap_id in stored.session.descriptors),
+        key=lambda s: len(s.original.keys),
+    )
+    decoder = SurfaceDecoder(stored_map, 20000, 2)
+    surface_A = decoder(("map", submap.submap_id), submap)[0]
+    descriptor = stored.session.descriptors[submap.submap_id]
+    for measure_anyway in (False, True):
+        localise = LocaliseConfig(gravity_while_anchored=measure_anyway)
+        localisation = MapLocalisation(Relocaliser(stored, stored_map, localise=localise))
+        graph = PoseGraph(cfg.pose_graph)
+        graph.add_anchor(0, np.eye(4))
+        assert not localisation.holds_attitude  # not placed yet
+        placing = SubmapRecord(0, [0], np.eye(4), 0.0, points_A=surface_A)
+        placed, _ = localisation.on_submap_closed(placing, graph, descriptor)
+        assert placed is not None and placed.map_submap_id == submap.submap_id
+        assert localisation.holds_attitude is not measure_anyway
+        graph.add_anchor(1, np.eye(4))
+        far = SubmapRecord(1, [1], np.eye(4), 0.0, points_A=surface_A + np.array([500.0, 0.0, 0.0]))
+        localisation.on_submap_closed(far, graph, None)
+        assert localisation.constraints[-1].reason == NOT_COVERED
+        assert not localisation.holds_attitude

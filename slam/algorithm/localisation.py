@@ -49,6 +49,15 @@ class MapLocalisation:
     def continuous(self) -> bool:
         return self.relocaliser.localise.continuous
 
+    @property
+    def holds_attitude(self) -> bool:
+        """The map's priors hold the run's attitude: placed, continuous, and the last closed
+        submap map-anchored (a new anchor then needs no gravity measurement, unless
+        ``gravity_while_anchored``)."""
+        cfg = self.relocaliser.localise
+        placed = self.placement is not None and self.continuous
+        return placed and self._in_map and not cfg.gravity_while_anchored
+
     def on_submap_closed(
         self, record: SubmapRecord, graph: PoseGraph, descriptor: PlaceDescriptor | None
     ) -> tuple[Relocalisation | None, bool]:
