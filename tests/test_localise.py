@@ -258,3 +258,43 @@ def test_the_anchors_gravity_is_left_to_the_map_while_it_holds_the_run(room_sess
         localisation.on_submap_closed(far, graph, None)
         assert localisation.constraints[-1].reason == NOT_COVERED
         assert not localisation.holds_attitude
+
+
+def test_the_maps_surfaces_are_decoded_under_the_runs_thread_budget(room_sessions):
+    """``--localise`` decodes every stored surface before the first frame: under the run's
+    thread budget (torch's default pool spans every core, and on a busy machine its threads
+    wait for each other at every operation), on the threads of the whole-map mesh, each
+    surface what decoding it alone gives."""
+    import torch
+
+    from slam.algorithm.merge.merge import SurfaceDecoder
+    from slam.app.continue_map import continued_map, load_map_folder
+    from slam.assembly.config import load_run_config
+    from slam.assembly.threads import plan_thread_budget
+
+    folder = room_sessions["a"]
+    cfg = load_run_config(folder / "config.yaml")
+    cfg.threads, cfg.map_worker = 2, True
+    budget = plan_thread_budget(cfg.threads, cfg.map_worker)
+    previous = load_map_folder(folder, cfg)
+    before = torch.get_num_threads()
+    torch.set_num_threads(budget.budget + 1)
+    try:
+        relocaliser = continued_map(previous, folder, cfg, localise_only=True).relocaliser
+        assert torch.get_num_threads() == budget.torch < budget.budget + 1
+    finally:
+        torch.set_num_threads(before)
+    assert budget.mesh_threads > 1 and relocaliser.decode_seconds > 0
+    stored, stored_map = previous
+    merge = relocaliser.cfg
+    alone = SurfaceDecoder(stored_map, merge.surface_max_points, merge.surface_subdivisions)
+    poses = stored.session.anchor_poses()
+    decoded = [s for s in stored.submaps if s.submap_id in poses]
+    assert len(decoded) > 1
+    for submap in decoded:
+        key = ("map", submap.submap_id)
+        points, normals = relocaliser.constraints._decoder(key, submap)
+        expected = alone(key, submap)
+        assert len(points) > 100
+        np.testing.assert_allclose(points, expected[0], atol=1e-6)
+        np.testing.assert_allclose(normals, expected[1], atol=1e-6)

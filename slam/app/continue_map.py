@@ -94,11 +94,17 @@ def continued_map(previous: tuple, folder: Path, cfg, localise_only: bool) -> Co
     """The :class:`ContinuedMap` of the loaded map folder ``folder`` for the run config
     ``cfg``."""
     from slam.algorithm.merge.relocalise import Relocaliser
+    from slam.assembly.threads import apply_thread_budget
 
     stored, stored_map = previous
     relocaliser = Relocaliser(stored, stored_map, localise=cfg.relocalise)
     if localise_only:  # every frame's registration then finds the surfaces ready
-        seconds = relocaliser.decode_map()
+        # under the run's thread budget: torch's default pool spans every core, and on a busy
+        # machine its threads wait for each other at every operation (the full-length street
+        # map took 324 s at load 5 that way, 47 s on one thread); the odometry is idle yet, so
+        # the surfaces are decoded on the threads of the whole-map mesh after a run
+        threads = apply_thread_budget(cfg)
+        seconds = relocaliser.decode_map(threads.mesh_threads)
         logging.getLogger("slam.run").info("decoded the map's surfaces in %.1f s", seconds)
     return ContinuedMap(relocaliser, folder / "mesh.ply", localise_only)
 

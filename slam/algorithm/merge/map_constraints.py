@@ -126,11 +126,12 @@ class MapConstraints:
         self._centres = np.array(centres).reshape(-1, 3)
         self._radii = np.array(radii)
 
-    def decode_all(self) -> None:
-        """Decode every stored submap's surface now (before the first frame of a localisation
-        run, so that no frame waits for it)."""
-        for i in self._ids.tolist():
-            self._decoder(("map", i), self._submaps[i])
+    def decode_all(self, threads: int = 1) -> None:
+        """Decode every stored submap's surface now on ``threads`` threads (before the first
+        frame of a localisation run, so that no frame waits for it)."""
+        self._decoder.decode_many(
+            [(("map", i), self._submaps[i]) for i in self._ids.tolist()], threads
+        )
 
     def near(self, points_A: np.ndarray, T_M_A: np.ndarray) -> list[int]:
         """The stored submaps near a live submap (its points in its anchor frame, its estimate

@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -97,7 +98,10 @@ class MergeResult:
 
 
 class SurfaceDecoder:
-    """Surface points with normals of a submap in its anchor frame, decoded from its own latents."""
+    """Surface points with normals of a submap in its anchor frame, decoded from its own latents.
+
+    Each surface is decoded once and cached by its key. :meth:`decode_many` decodes several on
+    a pool of threads (torch releases the GIL), each running torch with its intra-op threads."""
 
     def __init__(self, neural_map: NeuralMap, max_points: int, subdivisions: int) -> None:
         self._cfg = neural_map.cfg.model_copy(update={"mesh_subdivisions": subdivisions})
@@ -107,22 +111,31 @@ class SurfaceDecoder:
 
     def __call__(self, key: tuple[str, int], submap: Submap) -> tuple[np.ndarray, np.ndarray]:
         if key not in self._cache:
-            alone = NeuralMap(self._cfg, self._model)
-            copy = Submap(
-                submap.submap_id, submap.T_W_A_encoded, submap.original, submap.T_W_A_encoded
-            )
-            alone.fuse(copy)
-            mesh = alone.extract_mesh()
-            points = np.asarray(mesh.vertices, dtype=np.float64)
-            normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
-            if len(points) > self._max_points:
-                pick = np.sort(
-                    np.random.default_rng(0).choice(len(points), self._max_points, replace=False)
-                )
-                points, normals = points[pick], normals[pick]
-            T_A_W = np.linalg.inv(submap.T_W_A_encoded)
-            self._cache[key] = (transform_points(T_A_W, points), normals @ T_A_W[:3, :3].T)
+            self._cache[key] = self._decode(submap)
         return self._cache[key]
+
+    def decode_many(self, items: list[tuple[tuple[str, int], Submap]], threads: int) -> None:
+        """Decode and cache every ``(key, submap)`` not cached yet, on ``threads`` threads."""
+        missing = [(key, submap) for key, submap in items if key not in self._cache]
+        with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="decode") as pool:
+            surfaces = pool.map(self._decode, [submap for _, submap in missing])
+            for (key, _), surface in zip(missing, surfaces, strict=True):
+                self._cache[key] = surface
+
+    def _decode(self, submap: Submap) -> tuple[np.ndarray, np.ndarray]:
+        alone = NeuralMap(self._cfg, self._model)
+        copy = Submap(submap.submap_id, submap.T_W_A_encoded, submap.original, submap.T_W_A_encoded)
+        alone.fuse(copy)
+        mesh = alone.extract_mesh()
+        points = np.asarray(mesh.vertices, dtype=np.float64)
+        normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+        if len(points) > self._max_points:
+            pick = np.sort(
+                np.random.default_rng(0).choice(len(points), self._max_points, replace=False)
+            )
+            points, normals = points[pick], normals[pick]
+        T_A_W = np.linalg.inv(submap.T_W_A_encoded)
+        return transform_points(T_A_W, points), normals @ T_A_W[:3, :3].T
 
 
 def icp_covariance(result, cfg: MergeConfig) -> np.ndarray:

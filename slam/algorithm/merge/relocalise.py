@@ -109,10 +109,11 @@ class Relocaliser:
         """Every stored submap's anchor pose in the map's frame, ``{submap_id: T_M_A}``."""
         return self._T_M_A
 
-    def decode_map(self) -> float:
-        """Decode every stored submap's surface ahead (a localisation run); returns seconds."""
+    def decode_map(self, threads: int = 1) -> float:
+        """Decode every stored submap's surface ahead (a localisation run) on ``threads``
+        threads; returns seconds."""
         start = time.perf_counter()
-        self.constraints.decode_all()
+        self.constraints.decode_all(threads)
         self.decode_seconds = time.perf_counter() - start
         return self.decode_seconds
 
