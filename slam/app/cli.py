@@ -312,6 +312,9 @@ def _main(argv: list[str], debug: bool) -> int:
         check_recording_target(cfg, args)
         folder, created = run_folder(cfg, args)
         _setup_logging(folder / "run.log", args.verbose)
+        if continued is not None and continued.localise_only:  # decoded before the run's log
+            seconds = continued.relocaliser.decode_seconds
+            logging.getLogger("slam.run").info("decoded the map's surfaces in %.1f s", seconds)
         if cfg.viz.mode != "none" and rerun_switched_off():
             logging.getLogger("slam.run").warning(
                 "RERUN=%s switches Rerun off: recording nothing, as with --no-viz",

@@ -27,7 +27,6 @@ and no map, mesh or merge is written.
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,8 +103,7 @@ def continued_map(previous: tuple, folder: Path, cfg, localise_only: bool) -> Co
         # map took 324 s at load 5 that way, 47 s on one thread); the odometry is idle yet, so
         # the surfaces are decoded on the threads of the whole-map mesh after a run
         threads = apply_thread_budget(cfg)
-        seconds = relocaliser.decode_map(threads.mesh_threads)
-        logging.getLogger("slam.run").info("decoded the map's surfaces in %.1f s", seconds)
+        relocaliser.decode_map(threads.mesh_threads)
     return ContinuedMap(relocaliser, folder / "mesh.ply", localise_only)
 
 
