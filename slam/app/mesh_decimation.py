@@ -1,10 +1,12 @@
-"""Mesh decimation for display (a viewer needs a bounded face count, not the full mesh)."""
+"""A mesh for display: decimated (a viewer needs a bounded face count, not the full mesh) and
+built as a Rerun ``Mesh3D``."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import trimesh
 
 from common.voxel_keys import KEY_LIMIT, pack_keys
 
@@ -65,3 +67,27 @@ def decimate_mesh(
     remap[used] = np.arange(len(used))
     colors_out = None if new_colors is None else new_colors[used]
     return new_vertices[used], remap[new_faces], colors_out
+
+
+def display_mesh(mesh: trimesh.Trimesh, max_faces: int, albedo: tuple[int, ...]) -> object:
+    """``mesh`` as a Rerun ``Mesh3D``, vertex-clustered to at most ``max_faces`` faces, with
+    vertex normals; its vertex colours, else the ``albedo`` tint."""
+    import rerun as rr
+
+    vertex_colors = None
+    if mesh.visual is not None and mesh.visual.kind == "vertex":
+        vertex_colors = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    vertices, faces, vertex_colors = decimate_mesh(
+        np.asarray(mesh.vertices), np.asarray(mesh.faces), max_faces, vertex_colors
+    )
+    normals = None
+    if len(faces):
+        shown = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+        normals = np.asarray(shown.vertex_normals, dtype=np.float32)
+    return rr.Mesh3D(
+        vertex_positions=vertices.astype(np.float32),
+        triangle_indices=faces.astype(np.uint32),
+        vertex_normals=normals,
+        vertex_colors=vertex_colors,
+        albedo_factor=None if vertex_colors is not None else albedo,
+    )

@@ -43,7 +43,7 @@ import trimesh
 from frontends.frame import Intrinsics
 from slam.algorithm.viz import Logger, Segments
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
-from slam.app.mesh_decimation import decimate_mesh
+from slam.app.mesh_decimation import decimate_mesh, display_mesh
 from slam.app.recording_summary import summarize_recording
 from slam.app.rerun_images import colormap, encode_depth, encode_rgb
 from slam.app.web_viewer import WebViewerServer, check_serve_ports, viewer_executable
@@ -399,29 +399,7 @@ class RerunLogger(Logger):
     def _log_mesh(
         self, entity: str, mesh: trimesh.Trimesh, albedo: tuple[int, ...], static: bool = False
     ) -> None:
-        import rerun as rr
-
-        vertex_colors = None
-        if mesh.visual is not None and mesh.visual.kind == "vertex":
-            vertex_colors = np.asarray(mesh.visual.vertex_colors)[:, :3]
-        vertices, faces, vertex_colors = decimate_mesh(
-            np.asarray(mesh.vertices), np.asarray(mesh.faces), self.mesh_max_faces, vertex_colors
-        )
-        normals = None
-        if len(faces):
-            shown = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-            normals = np.asarray(shown.vertex_normals, dtype=np.float32)
-        self.rec.log(
-            entity,
-            rr.Mesh3D(
-                vertex_positions=vertices.astype(np.float32),
-                triangle_indices=faces.astype(np.uint32),
-                vertex_normals=normals,
-                vertex_colors=vertex_colors,
-                albedo_factor=None if vertex_colors is not None else albedo,
-            ),
-            static=static,
-        )
+        self.rec.log(entity, display_mesh(mesh, self.mesh_max_faces, albedo), static=static)
 
     # -- metrics ------------------------------------------------------------------------------
 
