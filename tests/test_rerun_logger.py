@@ -139,6 +139,46 @@ def test_two_recordings_in_one_process_stay_separate(tmp_path: Path) -> None:
     assert b.rows("metrics/counts/loops") == 1 and "metrics/counts/loops" not in a.entities
 
 
+def _values_by_frame(path: Path, entity: str, component: str) -> dict[int, list]:
+    """``{frame: value}`` of one component of one entity, read back with Rerun's reader."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    values: dict[int, list] = {}
+    for chunk in reader.stream(store=reader.recordings()[0]):
+        batch = chunk.to_record_batch()
+        if chunk.entity_path.lstrip("/") != entity or component not in batch.schema.names:
+            continue
+        frames = batch.column("frame").to_pylist()
+        values.update(zip(frames, batch.column(component).to_pylist(), strict=True))
+    return values
+
+
+def test_rows_sent_as_columns_keep_their_frame_and_values(tmp_path: Path) -> None:
+    """Per-frame rows are held back and sent in columns (several sends, the last on close):
+    each frame's pose and scalar read back at that frame, on all three timelines."""
+    from slam.app.rerun_columns import FLUSH_FRAMES
+
+    path = tmp_path / "rec.rrd"
+    logger = RerunLogger(rrd_path=path)
+    num_frames = 2 * FLUSH_FRAMES + 7
+    for i in range(num_frames):
+        logger.set_time(i, 0.1 * i)
+        T_W_S = np.eye(4)
+        T_W_S[:3, 3] = [i, 2.0 * i, -1.0]
+        logger.log_sensor(T_W_S)
+        logger.log_metrics(odometry_ms=100.0 + i)
+    logger.close()
+    translations = _values_by_frame(path, "world/sensor", "Transform3D:translation")
+    scalars = _values_by_frame(path, metric_entity("odometry_ms"), "Scalars:scalars")
+    assert sorted(translations) == sorted(scalars) == list(range(num_frames))
+    for i in range(num_frames):
+        assert translations[i] == [[i, 2.0 * i, -1.0]]
+        assert scalars[i] == [100.0 + i]
+    timelines = summarize_recording(path).entities["world/sensor"].timelines
+    assert {"frame", "sensor_time", "log_time"} <= timelines
+
+
 def test_long_trajectory_is_throttled_but_moves_and_final_state_are_logged(
     tmp_path: Path,
 ) -> None:

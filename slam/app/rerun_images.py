@@ -1,4 +1,4 @@
-"""Arrays as Rerun components: colour maps, and colour and depth images shrunk and compressed."""
+"""Arrays for Rerun components: colour maps, and colour and depth images shrunk and compressed."""
 
 from __future__ import annotations
 
@@ -32,24 +32,21 @@ def shrink(image: np.ndarray, scale: int, interpolation: int) -> np.ndarray:
     return cv2.resize(image, size, interpolation=interpolation)
 
 
-def encode_rgb(rgb: np.ndarray, scale: int, jpeg_quality: int) -> object:
-    """An RGB image shrunk by ``scale`` as a JPEG ``EncodedImage`` (raw when encoding fails)."""
+def encode_rgb(rgb: np.ndarray, scale: int, jpeg_quality: int) -> bytes | np.ndarray:
+    """An RGB image shrunk by ``scale`` as JPEG bytes; the shrunk BGR pixels when encoding
+    fails."""
     import cv2
-    import rerun as rr
 
     bgr = cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR)  # beats [::-1]
     bgr = shrink(bgr, scale, cv2.INTER_AREA)
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-    if not ok:
-        return rr.Image(bgr, color_model="BGR")
-    return rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg")
+    return jpeg.tobytes() if ok else bgr
 
 
-def encode_depth(depth_m: np.ndarray, scale: int, as_png: bool) -> object:
+def encode_depth(depth_m: np.ndarray, scale: int, as_png: bool) -> bytes | np.ndarray:
     """Depth in metres shrunk by ``scale``: a 16-bit millimetre PNG when ``as_png`` (and it
-    encodes), else a float32 ``DepthImage``; NaN and infinities become 0 (invalid)."""
+    encodes), else float32 metres; NaN and infinities become 0 (invalid)."""
     import cv2
-    import rerun as rr
 
     depth_m = shrink(np.asarray(depth_m, dtype=np.float32), scale, cv2.INTER_NEAREST)
     depth_m = np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0)
@@ -57,5 +54,5 @@ def encode_depth(depth_m: np.ndarray, scale: int, as_png: bool) -> object:
         depth_mm = np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16)
         ok, png = cv2.imencode(".png", depth_mm)
         if ok:
-            return rr.EncodedDepthImage(png.tobytes(), media_type="image/png", meter=1000.0)
-    return rr.DepthImage(depth_m, meter=1.0)
+            return png.tobytes()
+    return depth_m

@@ -26,8 +26,9 @@ Size and time budget: scans and voxel maps are randomly subsampled (own RNG, the
 state is never touched), images are shrunk and compressed, and a growing trajectory of N poses is
 re-logged every ``ceil(N / trajectory_relog_points)`` frames, and at least
 ``TRAJECTORY_MIN_RELOG_FRAMES`` apart (at once when an optimisation moved it), so that a long run
-does not log a quadratic amount of polyline data. Scalars are buffered and sent as columns every
-``METRICS_FLUSH_FRAMES`` frames: one call per entity instead of one per value and frame.
+does not log a quadratic amount of polyline data. The rows of the scan, sensor pose, images,
+scalars and trajectories are held back and sent as columns (:mod:`slam.app.rerun_columns`): one
+call per entity every few frames instead of one per entity and frame.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from slam.algorithm.viz import Logger, Segments
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
 from slam.app.mesh_decimation import decimate_mesh, display_mesh
 from slam.app.recording_summary import summarize_recording
+from slam.app.rerun_columns import ColumnBuffer
 from slam.app.rerun_images import colormap, encode_depth, encode_rgb
 from slam.app.web_viewer import WebViewerServer, check_serve_ports, viewer_executable
 
@@ -64,8 +66,6 @@ UP_AXES = {"+z": 2, "+y": 1, "-y": 1}
 EPOCH_THRESHOLD_S = 1e8
 TRAJECTORY_MIN_RELOG_FRAMES = 5
 """A growing (not moved) trajectory is re-logged at most this often: each log has a fixed cost."""
-METRICS_FLUSH_FRAMES = 10
-"""Buffered scalars are sent at least this often (in frames), and on :meth:`RerunLogger.close`."""
 
 
 def metric_entity(name: str) -> str:
@@ -168,9 +168,6 @@ class RerunLogger(Logger):
         self._rng = np.random.default_rng(seed)
         self._frame = 0
         self._sensor_time_is_epoch: bool | None = None
-        self._sensor_time_s = 0.0
-        self._metrics_buffer: dict[str, list[tuple[int, float, float]]] = {}
-        self._metrics_flushed_frame = 0
         self._sensor_calls = 0
         self._height_range: tuple[float, float] | None = None
         self._intrinsics: Intrinsics | None = None
@@ -183,6 +180,8 @@ class RerunLogger(Logger):
         self._closed = False
 
         self.rec = rr.RecordingStream(application_id)
+        live = spawn or connect_url is not None or serve_port is not None  # a viewer watches
+        self._columns = ColumnBuffer(self.rec, live)
         sinks: list[object] = []
         if self.rrd_path is not None:
             self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
@@ -221,13 +220,14 @@ class RerunLogger(Logger):
     def set_time(self, frame_index: int, timestamp_s: float) -> None:
         self._frame = int(frame_index)
         self.rec.set_time("frame", sequence=self._frame)
-        self._sensor_time_s = float(timestamp_s)
         if self._sensor_time_is_epoch is None:
             self._sensor_time_is_epoch = float(timestamp_s) > EPOCH_THRESHOLD_S
+            self._columns.sensor_time_is_epoch = self._sensor_time_is_epoch
         if self._sensor_time_is_epoch:
             self.rec.set_time("sensor_time", timestamp=float(timestamp_s))
         else:
             self.rec.set_time("sensor_time", duration=float(timestamp_s))
+        self._columns.set_time(self._frame, float(timestamp_s))
 
     # -- per frame ----------------------------------------------------------------------------
 
@@ -243,9 +243,11 @@ class RerunLogger(Logger):
                 point_colors = np.clip(point_colors * 255.0, 0, 255).astype(np.uint8)
         else:
             point_colors = self._height_colors(points)
-        self.rec.log(
+        self._columns.add(
             "world/scan",
-            rr.Points3D(points, colors=point_colors, radii=rr.Radius.ui_points(1.5)),
+            rr.Points3D,
+            {"positions": points, "colors": point_colors},
+            radii=rr.Radius.ui_points(1.5),
         )
 
     def log_sensor(
@@ -258,9 +260,8 @@ class RerunLogger(Logger):
         import rerun as rr
 
         T_W_S = np.asarray(T_W_S, dtype=np.float64)
-        self.rec.log(
-            "world/sensor",
-            rr.Transform3D(translation=T_W_S[:3, 3], mat3x3=T_W_S[:3, :3]),
+        self._columns.add(
+            "world/sensor", rr.Transform3D, translation=T_W_S[:3, 3], mat3x3=T_W_S[:3, :3]
         )
         self._sensor_calls += 1
         if intrinsics is None:
@@ -276,11 +277,25 @@ class RerunLogger(Logger):
             self._camera_view = True
             self.rec.send_blueprint(default_blueprint(with_camera=True))
         if rgb is not None:
-            image = encode_rgb(rgb, self._image_scale, self.jpeg_quality)
-            self.rec.log(f"{CAMERA_ENTITY}/rgb", image)
+            jpeg = encode_rgb(rgb, self._image_scale, self.jpeg_quality)
+            if isinstance(jpeg, bytes):
+                self._columns.add(
+                    f"{CAMERA_ENTITY}/rgb", rr.EncodedImage, blob=jpeg, media_type="image/jpeg"
+                )
+            else:  # encoding failed: the shrunk BGR pixels
+                self.rec.log(f"{CAMERA_ENTITY}/rgb", rr.Image(jpeg, color_model="BGR"))
         if depth_m is not None:
-            image = encode_depth(depth_m, self._depth_scale, self.depth_png)
-            self.rec.log(f"{DEPTH_ENTITY}/depth", image)
+            png = encode_depth(depth_m, self._depth_scale, self.depth_png)
+            if isinstance(png, bytes):
+                self._columns.add(
+                    f"{DEPTH_ENTITY}/depth",
+                    rr.EncodedDepthImage,
+                    blob=png,
+                    media_type="image/png",
+                    meter=1000.0,
+                )
+            else:  # raw (depth_png off, or encoding failed): float32 metres
+                self.rec.log(f"{DEPTH_ENTITY}/depth", rr.DepthImage(png, meter=1.0))
 
     def _log_pinhole(self, entity: str, intrinsics: Intrinsics, max_width: int) -> int:
         """Static pinhole of ``intrinsics`` shrunk to at most ``max_width``; returns the factor."""
@@ -329,11 +344,12 @@ class RerunLogger(Logger):
     def _log_trajectory_now(self, name: str, positions: np.ndarray) -> None:
         import rerun as rr
 
-        color = TRAJECTORY_COLORS.get(name, (255, 255, 255))
-        strips = [positions] if len(positions) >= 2 else []
-        self.rec.log(
+        self._columns.add(
             f"world/trajectory/{name}",
-            rr.LineStrips3D(strips, colors=[color], radii=rr.Radius.ui_points(2.0)),
+            rr.LineStrips3D,
+            {"strips": [positions] if len(positions) >= 2 else []},
+            colors=TRAJECTORY_COLORS.get(name, (255, 255, 255)),
+            radii=rr.Radius.ui_points(2.0),
         )
         self._trajectory_logged_frame[name] = self._frame
         self._trajectory_logged[name] = positions
@@ -412,28 +428,7 @@ class RerunLogger(Logger):
             if name not in self._metric_names:
                 self._metric_names.add(name)
                 self.rec.log(metric_entity(name), rr.SeriesLines(names=[name]), static=True)
-            row = (self._frame, self._sensor_time_s, float(value))
-            self._metrics_buffer.setdefault(name, []).append(row)
-        if self._frame - self._metrics_flushed_frame >= METRICS_FLUSH_FRAMES:
-            self._flush_metrics()
-
-    def _flush_metrics(self) -> None:
-        """Send the buffered scalars, one column chunk per entity, on both timelines."""
-        import rerun as rr
-
-        self._metrics_flushed_frame = self._frame
-        for name, rows in self._metrics_buffer.items():
-            frames, times_s, values = zip(*rows, strict=True)
-            clock = "timestamp" if self._sensor_time_is_epoch else "duration"
-            self.rec.send_columns(
-                metric_entity(name),
-                indexes=[
-                    rr.TimeColumn("frame", sequence=frames),
-                    rr.TimeColumn("sensor_time", **{clock: times_s}),
-                ],
-                columns=rr.Scalars.columns(scalars=values),
-            )
-        self._metrics_buffer.clear()
+            self._columns.add(metric_entity(name), rr.Scalars, scalars=float(value))
 
     def close(self) -> None:
         if self._closed:
@@ -441,7 +436,7 @@ class RerunLogger(Logger):
         self._closed = True
         for name, positions in list(self._trajectory_pending.items()):
             self._log_trajectory_now(name, positions)
-        self._flush_metrics()
+        self._columns.flush()
         with contextlib.ExitStack() as stack:  # each step even when an earlier one failed
             if self._web_viewer is not None:
                 stack.callback(self._web_viewer.close)
