@@ -38,7 +38,7 @@ class CapturingLogger(Logger):
     def set_time(self, frame_index, timestamp_s):
         pass
 
-    def log_scan(self, points_W, colors=None):
+    def log_scan(self, points_W, colors=None, T_W_S=None):
         pass
 
     def log_sensor(self, T_W_S, intrinsics=None, rgb=None, depth_m=None):

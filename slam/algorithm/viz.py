@@ -31,8 +31,15 @@ class Logger(ABC):
         """Set the current time on the ``frame`` and ``sensor_time`` timelines."""
 
     @abstractmethod
-    def log_scan(self, points_W: np.ndarray, colors: np.ndarray | None = None) -> None:
-        """The current (downsampled) scan, already in the world frame."""
+    def log_scan(
+        self,
+        points_W: np.ndarray,
+        colors: np.ndarray | None = None,
+        T_W_S: np.ndarray | None = None,
+    ) -> None:
+        """The current (downsampled) scan in the world frame; with ``T_W_S``, the points are in
+        the sensor frame and the logger places the ones it shows (a logger that subsamples
+        then transforms only those)."""
 
     @abstractmethod
     def log_sensor(
@@ -97,7 +104,7 @@ class NullLogger(Logger):
     def set_time(self, frame_index, timestamp_s):
         pass
 
-    def log_scan(self, points_W, colors=None):
+    def log_scan(self, points_W, colors=None, T_W_S=None):
         pass
 
     def log_sensor(self, T_W_S, intrinsics=None, rgb=None, depth_m=None):

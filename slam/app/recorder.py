@@ -114,7 +114,7 @@ class RunRecorder(Recorder):
             step = max(1, len(points) // SCAN_LOG_MAX_POINTS)
             points = points[::step]
             colors = None if colors is None else np.asarray(colors)[::step]
-            viz.log_scan(transform_points(result.T_W_S, points), colors)
+            viz.log_scan(points, colors, T_W_S=result.T_W_S)
             viz.log_sensor(result.T_W_S, frame.intrinsics, frame.rgb, frame.depth)
         self._log_trajectories()
         viz.log_metrics(

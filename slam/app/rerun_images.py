@@ -22,14 +22,14 @@ def _colormap_table(name: str) -> np.ndarray:
     return np.asarray(colormaps[name](np.linspace(0.0, 1.0, 256), bytes=True))[:, :3]
 
 
-def shrink(image: np.ndarray, scale: int, interpolation: int) -> np.ndarray:
-    """Shrink by the integer ``scale`` (nearest for depth, so invalid zeros never blend)."""
+def shrink(image: np.ndarray, scale: int) -> np.ndarray:
+    """Shrink by the integer ``scale`` with area averaging (colour images)."""
     import cv2
 
     if scale == 1:
         return image
     size = (image.shape[1] // scale, image.shape[0] // scale)
-    return cv2.resize(image, size, interpolation=interpolation)
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
 def encode_rgb(rgb: np.ndarray, scale: int, jpeg_quality: int) -> bytes | np.ndarray:
@@ -38,17 +38,20 @@ def encode_rgb(rgb: np.ndarray, scale: int, jpeg_quality: int) -> bytes | np.nda
     import cv2
 
     bgr = cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR)  # beats [::-1]
-    bgr = shrink(bgr, scale, cv2.INTER_AREA)
+    bgr = shrink(bgr, scale)
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
     return jpeg.tobytes() if ok else bgr
 
 
 def encode_depth(depth_m: np.ndarray, scale: int, as_png: bool) -> bytes | np.ndarray:
-    """Depth in metres shrunk by ``scale``: a 16-bit millimetre PNG when ``as_png`` (and it
-    encodes), else float32 metres; NaN and infinities become 0 (invalid)."""
+    """Depth in metres shrunk by ``scale`` (every ``scale``-th pixel, so invalid zeros never
+    blend): a 16-bit millimetre PNG when ``as_png`` (and it encodes), else float32 metres; NaN
+    and infinities become 0 (invalid)."""
     import cv2
 
-    depth_m = shrink(np.asarray(depth_m, dtype=np.float32), scale, cv2.INTER_NEAREST)
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    height, width = (depth_m.shape[0] // scale) * scale, (depth_m.shape[1] // scale) * scale
+    depth_m = depth_m[:height:scale, :width:scale]  # what cv2.INTER_NEAREST picks, unresampled
     depth_m = np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0)
     if as_png:
         depth_mm = np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16)

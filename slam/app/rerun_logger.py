@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from common.geometry import transform_points
 from frontends.frame import Intrinsics
 from slam.algorithm.viz import Logger, Segments
 from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
@@ -231,12 +232,20 @@ class RerunLogger(Logger):
 
     # -- per frame ----------------------------------------------------------------------------
 
-    def log_scan(self, points_W: np.ndarray, colors: np.ndarray | None = None) -> None:
+    def log_scan(
+        self,
+        points_W: np.ndarray,
+        colors: np.ndarray | None = None,
+        T_W_S: np.ndarray | None = None,
+    ) -> None:
         import rerun as rr
 
         points_W = np.asarray(points_W)
         keep = self._subsample(len(points_W), self.scan_max_points)
-        points = points_W[keep].astype(np.float32)
+        points = points_W[keep]
+        if T_W_S is not None:  # only the points shown are placed
+            points = transform_points(T_W_S, points)
+        points = points.astype(np.float32)
         if colors is not None and len(colors) == len(points_W):
             point_colors = np.asarray(colors)[keep]
             if point_colors.dtype != np.uint8:
