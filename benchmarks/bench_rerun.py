@@ -84,6 +84,7 @@ LOGGER_METHODS = (
     "log_loop_closures",
     "log_map",
     "log_metrics",
+    "flush",
     "close",
 )
 

@@ -179,6 +179,26 @@ def test_rows_sent_as_columns_keep_their_frame_and_values(tmp_path: Path) -> Non
     assert {"frame", "sensor_time", "log_time"} <= timelines
 
 
+def test_flush_sends_the_held_rows_before_the_recording_closes(tmp_path: Path) -> None:
+    """What a served run calls before it lingers: the rows held back reach the sinks (read
+    back from the still open file, which has no footer yet)."""
+    import warnings
+
+    path = tmp_path / "rec.rrd"
+    logger = RerunLogger(rrd_path=path)
+    for i in range(5):
+        logger.set_time(i, 0.1 * i)
+        logger.log_sensor(np.eye(4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the reader's note on a file without its footer
+        logger.rec.flush()
+        assert summarize_recording(path).rows("world/sensor") == 0
+        logger.flush()
+        logger.rec.flush()
+        assert summarize_recording(path).rows("world/sensor") == 5
+    logger.close()
+
+
 def test_long_trajectory_is_throttled_but_moves_and_final_state_are_logged(
     tmp_path: Path,
 ) -> None:

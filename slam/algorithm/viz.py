@@ -94,6 +94,10 @@ class Logger(ABC):
         each map-anchored live submap's anchor to each stored submap its registration was made
         to (anchor positions in the map's frame); the whole set, whenever it changes."""
 
+    def flush(self) -> None:  # noqa: B027 - optional hook
+        """Send what the logger holds back, so that a live viewer shows the run so far (before
+        the run pauses with a viewer open); :meth:`close` does it too."""
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Flush and close the recording."""
 

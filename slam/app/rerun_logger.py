@@ -439,13 +439,17 @@ class RerunLogger(Logger):
                 self.rec.log(metric_entity(name), rr.SeriesLines(names=[name]), static=True)
             self._columns.add(metric_entity(name), rr.Scalars, scalars=float(value))
 
+    def flush(self) -> None:
+        """Send the newest pending trajectories and every held-back row."""
+        for name, positions in list(self._trajectory_pending.items()):
+            self._log_trajectory_now(name, positions)
+        self._columns.flush()
+
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
-        for name, positions in list(self._trajectory_pending.items()):
-            self._log_trajectory_now(name, positions)
-        self._columns.flush()
+        self.flush()
         with contextlib.ExitStack() as stack:  # each step even when an earlier one failed
             if self._web_viewer is not None:
                 stack.callback(self._web_viewer.close)

@@ -323,6 +323,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     )
     outputs.write_status("finished", state.frames_done, state.frames_total)
     if viewer_url:
+        viz.flush()  # the viewer shows the whole run while it is served on
         for line in summary_lines(metrics):
             say(line)
         metrics["summary_announced"] = announce is not None
