@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import trimesh
 
+from common.voxel_keys import unpack_keys
 from mapping.compact_block import CompactBlock
 from mapping.config import MapConfig, resolve_device
 from mapping.encoding import encode_points
@@ -213,9 +214,11 @@ class NeuralMap:
 
     # ------------------------------------------------------------------ inspection
     def voxel_centers(self) -> tuple[np.ndarray, np.ndarray]:
-        """World centres ``(M, 3)`` float64 and weights ``(M,)`` float32 of all voxels."""
-        block = self._store.block()
-        return block.centers(self.voxel_size_m), block.weights.cpu().numpy()
+        """World centres ``(M, 3)`` float64 and weights ``(M,)`` float32 of all voxels (keys and
+        weights only: a viewer's snapshot of the map after every map job copies no latents)."""
+        keys = unpack_keys(self._store.sorted_keys()).cpu().numpy()
+        weights = self._store.weights64().to(torch.float32).cpu().numpy()
+        return (keys.astype(np.float64) + 0.5) * self.voxel_size_m, weights
 
     def voxel_block(self) -> VoxelBlock:
         """All voxels of the global map as a block (a copy, without Jacobians)."""
