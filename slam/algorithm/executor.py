@@ -119,7 +119,6 @@ class MapSnapshot:
         voxel_weights: (V,) fusion weights.
         mesh: the mesh extracted after the latest job that extracted one, or None.
         mesh_job: the job ``mesh`` was extracted after (0: none yet).
-        remap_moved: the job's remapping pass moved a submap.
     """
 
     job: int
@@ -127,7 +126,6 @@ class MapSnapshot:
     voxel_weights: np.ndarray
     mesh: object | None
     mesh_job: int
-    remap_moved: bool
 
 
 class Executor:
@@ -277,7 +275,6 @@ class Executor:
             voxel_weights=np.asarray(weights, dtype=np.float64),
             mesh=self._mesh[0],
             mesh_job=self._mesh[1],
-            remap_moved=moved,
         )
         with self._latest_lock:
             self._latest = snapshot
