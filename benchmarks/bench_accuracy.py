@@ -58,7 +58,7 @@ def _pose_consistency(pipeline, source, gt: np.ndarray, gap: int = 20) -> dict[s
     from slam.algorithm.loops.rgbd_verify import RgbdVerifier
 
     verifier = RgbdVerifier(pipeline.cfg.loop_closure.rgbd)
-    sets = {"gt": gt, "odometry": pipeline.odometry_poses(), "slam": pipeline.slam_poses()}
+    sets = {"gt": gt, "odometry": pipeline.frames.odometry_poses(), "slam": pipeline.slam_poses()}
     values: dict[str, list[float]] = {name: [] for name in sets}
     for k in range(0, len(gt) - gap, gap):
         fa, fb = verifier.features(source[k]), verifier.features(source[k + gap])

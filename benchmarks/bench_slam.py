@@ -82,7 +82,7 @@ def _remapping(pipeline) -> dict[str, Any]:
         "remap_moved": sum(e.num_moved for e in events),
         "move_all_s": list(timed(move_all)["wall_s"].samples),
         "move_all_submaps": len(pipeline.submaps),
-        "move_all_frames": pipeline.num_frames,
+        "move_all_frames": len(pipeline.frames),
         "submap_voxels_mean": float(
             np.mean([s.original.num_voxels for s in pipeline.submaps.values()])
         ),

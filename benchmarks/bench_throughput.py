@@ -199,7 +199,7 @@ def scenario_ours(
     stage = {k: float(sum(v)) for k, v in pipeline.timings_s.items() if k != "frame"}
     stage.update(final_mesh=final_mesh_s, map_save=map_save_s)
     workers = pipeline.executor
-    odometry_poses, slam_poses = pipeline.odometry_poses(), pipeline.slam_poses()
+    odometry_poses, slam_poses = pipeline.frames.odometry_poses(), pipeline.slam_poses()
     return {
         "frames": count,
         "wall_s": wall,

@@ -84,10 +84,10 @@ def _pitch_bias(pipeline, gt: np.ndarray) -> float:
     where no loop ties the stretch."""
     from scipy.spatial.transform import Rotation
 
-    odometry = pipeline.odometry_poses()
+    odometry = pipeline.frames.odometry_poses()
     errors, lengths = [], []
     for i, j in itertools.pairwise(pipeline.graph.node_ids):
-        a, b = pipeline.submap_frames(i)[0], pipeline.submap_frames(j)[0]
+        a, b = pipeline.frames.submap_frames(i)[0], pipeline.frames.submap_frames(j)[0]
         T_true = np.linalg.inv(gt[a]) @ gt[b]
         T_odometry = np.linalg.inv(odometry[a]) @ odometry[b]
         error = np.linalg.inv(T_true) @ T_odometry

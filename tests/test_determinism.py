@@ -61,7 +61,9 @@ def _run(map_worker: bool, folder: Path) -> tuple[bytes, bytes, str, int, str]:
         _frame_digest(frames, pipeline.process(frame))
     pipeline.finish()
     outputs = RunOutputs(folder)
-    outputs.write_poses(pipeline.odometry_poses(), pipeline.slam_poses(), pipeline.timestamps())
+    outputs.write_poses(
+        pipeline.frames.odometry_poses(), pipeline.slam_poses(), pipeline.frames.timestamps()
+    )
     outputs.write_loops(pipeline.loop_candidates)
     return (
         (folder / "poses_slam.kitti.txt").read_bytes(),

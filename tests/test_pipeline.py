@@ -60,7 +60,7 @@ def test_rgbd_loop_is_closed_and_lowers_ate(room, room_run):
     kept = [c for c in pipeline.loop_candidates if c.accepted and c.graph_inlier]
     assert kept, [c.reason for c in pipeline.loop_candidates]
     gt = room.gt_poses
-    ate_odometry = ate_rmse(pipeline.odometry_poses(), gt)
+    ate_odometry = ate_rmse(pipeline.frames.odometry_poses(), gt)
     ate_slam = ate_rmse(pipeline.slam_poses(), gt)
     assert ate_slam < 0.5 * ate_odometry, (ate_slam, ate_odometry)
     # The loop moved the map: submaps were remapped from their original encodings.
@@ -116,7 +116,7 @@ def test_lidar_loop_is_closed_and_lowers_ate():
     kept = [c for c in pipeline.loop_candidates if c.accepted and c.graph_inlier]
     assert kept, [c.reason for c in pipeline.loop_candidates]
     gt = street.gt_poses
-    ate_odometry = ate_rmse(pipeline.odometry_poses(), gt)
+    ate_odometry = ate_rmse(pipeline.frames.odometry_poses(), gt)
     ate_slam = ate_rmse(pipeline.slam_poses(), gt)
     assert ate_slam < 0.5 * ate_odometry, (ate_slam, ate_odometry)
     assert any(e.num_moved for e in pipeline.remapper.events)

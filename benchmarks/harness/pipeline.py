@@ -63,7 +63,8 @@ def run_pipeline(cfg, source, odometry=None) -> tuple[Any, float]:
 
 def anchor_frames(pipeline, loop) -> tuple[int, int]:
     """The anchor frames of a loop's reference and query submaps."""
-    return pipeline.submap_frames(loop.reference_id)[0], pipeline.submap_frames(loop.query_id)[0]
+    frames = pipeline.frames
+    return frames.submap_frames(loop.reference_id)[0], frames.submap_frames(loop.query_id)[0]
 
 
 def loop_errors(pipeline, gt: np.ndarray) -> list[tuple[float, float, bool]]:
@@ -98,9 +99,9 @@ def trajectory_summary(pipeline, gt: np.ndarray, wall_s: float) -> dict[str, Any
     from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse, unaligned_error
 
     errors = loop_errors(pipeline, gt)
-    odometry, slam = pipeline.odometry_poses(), pipeline.slam_poses()
+    odometry, slam = pipeline.frames.odometry_poses(), pipeline.slam_poses()
     return {
-        "frames": pipeline.num_frames,
+        "frames": len(pipeline.frames),
         "submaps": len(pipeline.records),
         "candidates": len(pipeline.loop_candidates),
         "verified": len(errors),
@@ -113,6 +114,6 @@ def trajectory_summary(pipeline, gt: np.ndarray, wall_s: float) -> dict[str, Any
         "ate_xyz_slam_m": ate_per_axis_rmse(slam, gt).tolist(),
         "unaligned_slam": list(astuple(unaligned_error(slam, gt))),
         "wall_s": wall_s,
-        "fps": pipeline.num_frames / wall_s,
+        "fps": len(pipeline.frames) / wall_s,
         "stage_s": {k: float(sum(v)) for k, v in pipeline.timings_s.items()},
     }

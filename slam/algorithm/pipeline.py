@@ -46,6 +46,7 @@ from slam.algorithm.executor import (
     clock,
 )
 from slam.algorithm.frame_result import FrameResult
+from slam.algorithm.frame_track import FrameTrack
 from slam.algorithm.graph.gravity import measure_up
 from slam.algorithm.graph.pose_graph import PoseGraph
 from slam.algorithm.graph_view import GraphSnapshot
@@ -103,12 +104,7 @@ class SlamPipeline:
         self.view = self.executor.view
         self._num_accepted = 0  # the submap worker's
         self._published_inliers: dict[tuple[int, int], bool] = {}  # the submap worker's
-        self._frame_submap: list[int] = []
-        self._frames_of: dict[int, list[int]] = {}
-        self._frame_T_A_S: list[np.ndarray] = []
-        self._odometry_poses: list[np.ndarray] = []
-        self._timestamps: list[float] = []
-        self._gt: list[np.ndarray | None] = []
+        self.frames = FrameTrack()  # the main thread's
         self._closed_count = 0
         self._finished = False
 
@@ -159,12 +155,9 @@ class SlamPipeline:
         if not self.keyframer.decides_from_poses:  # the next decision needs this frame's points
             self._surface_full = job_result(job).surface_full
 
-        self._frame_submap.append(current.submap_id)
-        self._frames_of.setdefault(current.submap_id, []).append(len(self._frame_submap) - 1)
-        self._frame_T_A_S.append(step.T_A_S)
-        self._odometry_poses.append(T_W_S_odometry)
-        self._timestamps.append(float(frame.timestamp))
-        self._record_gt(frame)
+        self.frames.add(
+            current.submap_id, step.T_A_S, T_W_S_odometry, frame.timestamp, frame.T_W_S_gt
+        )
 
         result = FrameResult(
             index=frame.index,
@@ -204,10 +197,6 @@ class SlamPipeline:
         self.executor.submap_timings.book("keyframing", start)
         snapshot = None if closed is None else self._on_submap_closed(closed, frame_index)
         return SubmapJobResult(snapshot, self.submap_points.surface_full)
-
-    def _record_gt(self, frame: Frame) -> None:
-        gt = None if frame.T_W_S_gt is None else np.asarray(frame.T_W_S_gt, dtype=np.float64)
-        self._gt.append(gt)
 
     # --- submap boundaries --------------------------------------------------------------------
 
@@ -326,7 +315,7 @@ class SlamPipeline:
         """Close the last submap, run the final batch optimisation and remap."""
         if self._finished:
             return None
-        last_index = len(self._frame_submap) - 1
+        last_index = len(self.frames) - 1
         step = self.keyframer.decide_finish()
         self.odometry.close()
         if step is not None:
@@ -362,50 +351,10 @@ class SlamPipeline:
         """:meth:`finish` ran (every result is final) or :meth:`abort` did (the run ended)."""
         return self._finished
 
-    @property
-    def num_frames(self) -> int:
-        return len(self._frame_submap)
-
-    def odometry_poses(self) -> np.ndarray:
-        """(N, 4, 4) odometry poses of the frames processed so far."""
-        return np.array(self._odometry_poses).reshape(-1, 4, 4)
-
     def slam_poses(self) -> np.ndarray:
-        """(N, 4, 4) current SLAM estimates of the frames processed so far."""
-        if not self._frame_submap:
-            return np.zeros((0, 4, 4))
-        anchors = self.view.poses()
-        T_W_A = np.array([anchors[s] for s in self._frame_submap])
-        return T_W_A @ np.array(self._frame_T_A_S)
-
-    def frame_anchors(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every frame's submap id ``(N,)`` and pose in its anchor frame ``T_A_S (N, 4, 4)``."""
-        return np.array(self._frame_submap, dtype=np.int64), np.array(self._frame_T_A_S).reshape(
-            -1, 4, 4
-        )
-
-    def submap_frames(self, submap_id: int) -> list[int]:
-        """Indices (processing order) of the frames of a submap."""
-        return self._frames_of.get(submap_id, [])
-
-    def timestamps(self) -> np.ndarray:
-        return np.array(self._timestamps)
-
-    def gt_poses(self) -> np.ndarray | None:
-        """(N, 4, 4) ground truth in its own world frame, or None when any frame lacks it."""
-        if not self._gt or any(g is None for g in self._gt):
-            return None
-        return np.array(self._gt)
-
-    def gt_poses_where_known(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """(N, 4, 4) ground truth with NaN rows where a frame has none, and the (N,) mask of the
-        frames that have one; None when no frame has ground truth."""
-        if not any(g is not None for g in self._gt):
-            return None
-        mask = np.array([g is not None for g in self._gt])
-        poses = np.full((len(self._gt), 4, 4), np.nan)
-        poses[mask] = np.array([g for g in self._gt if g is not None])
-        return poses, mask
+        """(N, 4, 4) current SLAM estimates of the frames processed so far (the main thread's
+        :attr:`view` of the anchors: exact after :meth:`drain` and :meth:`finish`)."""
+        return self.frames.slam_poses(self.view.poses())
 
     def drain(self) -> None:
         """Wait for both workers: the graph view, the loop candidates and the map then reflect
@@ -481,16 +430,16 @@ class SlamPipeline:
 
     def report(self) -> PipelineReport:
         """The results and statistics metrics need (after :meth:`finish`)."""
-        known = self.gt_poses_where_known()
+        known = self.frames.gt_poses_where_known()
         return PipelineReport(
-            num_frames=self.num_frames,
-            odometry_poses=self.odometry_poses(),
+            num_frames=len(self.frames),
+            odometry_poses=self.frames.odometry_poses(),
             slam_poses=self.slam_poses(),
             gt_poses=None if known is None else known[0],
-            timestamps=self.timestamps(),
+            timestamps=self.frames.timestamps(),
             loop_candidates=list(self.loop_candidates),
             remap_events=list(self.remapper.events),
-            submap_frame_counts={i: len(frames) for i, frames in self._frames_of.items()},
+            submap_frame_counts=self.frames.submap_frame_counts(),
             neural_map=self.map,
             submaps=list(self.submaps.values()),
             timings_s=self.timings_s,

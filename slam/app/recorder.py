@@ -214,10 +214,10 @@ class RunRecorder(Recorder):
             scalars["map_voxels"] = float(self.pipeline.map.num_voxels)
         elif snapshot is not None:
             scalars["map_voxels"] = float(len(snapshot.voxel_centers))
-        gt = self.pipeline.gt_poses()
+        gt = self.pipeline.frames.gt_poses()
         if gt is None or len(gt) < 3:
             return scalars
-        scalars["ate_odometry_m"] = ate_rmse(self.pipeline.odometry_poses(), gt)
+        scalars["ate_odometry_m"] = ate_rmse(self.pipeline.frames.odometry_poses(), gt)
         scalars["ate_slam_m"] = ate_rmse(self.pipeline.slam_poses(), gt)
         return scalars
 

@@ -188,9 +188,9 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
 
     def write_poses() -> None:
         outputs.write_poses(
-            source.to_dataset_frame(pipeline.odometry_poses()),
+            source.to_dataset_frame(pipeline.frames.odometry_poses()),
             source.to_dataset_frame(pipeline.slam_poses()),
-            pipeline.timestamps(),
+            pipeline.frames.timestamps(),
             KittiRows(np.asarray(kitti_rows), state.frames_done),
         )
 
@@ -264,11 +264,11 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     mesh = None if localise_only else neural_map.extract_mesh(threads=threads.mesh_threads)
     if mesh is not None and cfg.output.write_mesh:
         outputs.write_mesh(mesh)
-    gt = pipeline.gt_poses()
+    gt = pipeline.frames.gt_poses()
     if gt is not None and len(gt):
         outputs.write_ground_truth(
             source.to_dataset_frame(gt),
-            pipeline.timestamps(),
+            pipeline.frames.timestamps(),
             KittiRows(np.asarray(kitti_rows), state.frames_done),
         )
     if cfg.output.write_map and not localise_only:
@@ -306,7 +306,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         **source.data_choices(),
     }
     if localise_only:  # no submap was encoded: count the closed ones
-        metrics["num_submaps"] = len(np.unique(pipeline.frame_anchors()[0]))
+        metrics["num_submaps"] = len(np.unique(pipeline.frames.anchors()[0]))
     if relocaliser is not None:
         metrics["relocalisation"] = _relocalisation_metrics(pipeline, relocaliser)
         metrics["localisation"] = _localisation(outputs, pipeline, frame_indices, placed_at)
@@ -371,10 +371,12 @@ def _localisation(outputs, pipeline, frame_indices: list[int], placed_at: list[i
         localisation_summary,
     )
 
-    frame_submaps = pipeline.frame_anchors()[0].tolist()
+    frame_submaps = pipeline.frames.anchors()[0].tolist()
     statuses = frame_statuses(frame_submaps, pipeline.map_anchored)
     outputs.write_localisation(
-        localisation_csv(frame_indices, pipeline.timestamps().tolist(), frame_submaps, statuses)
+        localisation_csv(
+            frame_indices, pipeline.frames.timestamps().tolist(), frame_submaps, statuses
+        )
     )
     if not pipeline.finished:
         return {}

@@ -289,7 +289,7 @@ def session_from_pipeline(
     node_ids = np.array(graph.node_ids, dtype=np.int64)
     odometry = [Edge(i, j, T, cov) for i, j, T, cov in graph.odometry_edges()]
     loops = [Edge(e.i, e.j, e.T_Ai_Aj, graph.loop_covariance(e)) for e in graph.loops if e.inlier]
-    frame_submap, frame_T_A_S = pipeline.frame_anchors()
+    frame_submap, frame_T_A_S = pipeline.frames.anchors()
     detector = pipeline.loop_detector
     descriptors = {} if detector is None else dict(detector.descriptors)
     return SessionRecord(
@@ -300,7 +300,7 @@ def session_from_pipeline(
         loops=loops,
         frame_submap=frame_submap,
         frame_T_A_S=frame_T_A_S,
-        timestamps=pipeline.timestamps(),
+        timestamps=pipeline.frames.timestamps(),
         descriptors=descriptors,
         dataset_mirror=np.eye(4) if dataset_mirror is None else np.asarray(dataset_mirror),
         up=dict(graph.up_measurements),
