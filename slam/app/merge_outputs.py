@@ -109,6 +109,8 @@ def write_recording(
     initial alignment) and after the merge, coloured per session, and the inter-session loops."""
     import rerun as rr
 
+    from slam.app.rerun_flush import FLUSH_TIMEOUT_S, flush_recording
+
     rec = rr.RecordingStream("neural-remap-slam-merge")
     rec.save(str(path))
     for k, name in enumerate(names):
@@ -134,4 +136,4 @@ def write_recording(
                 rr.LineStrips3D(segments, colors=[colour]),
                 static=True,
             )
-    rec.flush()
+    flush_recording(rec, FLUSH_TIMEOUT_S, f"the merged recording {path}")

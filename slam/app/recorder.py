@@ -246,6 +246,7 @@ def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
     options: dict[str, Any] = {
         "voxel_size_m": cfg.mapping.voxel_size_m,
         "up_axis": "+z" if sensor == "lidar" else "-y",
+        "flush_timeout_s": viz.flush_timeout_s,
     }
     if viz.mode == "rrd":
         options["rrd_path"] = viz.rrd_path or default_rrd

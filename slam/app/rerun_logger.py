@@ -48,6 +48,7 @@ from slam.app.blueprint import CAMERA_ENTITY, DEPTH_ENTITY, default_blueprint
 from slam.app.mesh_decimation import decimate_mesh, display_mesh
 from slam.app.recording_summary import summarize_recording
 from slam.app.rerun_columns import ColumnBuffer
+from slam.app.rerun_flush import FLUSH_TIMEOUT_S, flush_recording
 from slam.app.rerun_images import colormap, encode_depth, encode_rgb
 from slam.app.web_viewer import WebViewerServer, check_serve_ports, viewer_executable
 
@@ -114,6 +115,7 @@ class RerunLogger(Logger):
         with_camera_view: force the camera view in the blueprint; ``None`` adds it on the first
             image.
         seed: seed of the subsampling RNG.
+        flush_timeout_s: how long :meth:`close` waits for the recording to be written or sent.
     """
 
     def __init__(
@@ -140,6 +142,7 @@ class RerunLogger(Logger):
         trajectory_move_m: float = 1e-3,
         with_camera_view: bool | None = None,
         seed: int = 0,
+        flush_timeout_s: float = FLUSH_TIMEOUT_S,
     ) -> None:
         import rerun as rr
 
@@ -179,6 +182,7 @@ class RerunLogger(Logger):
         self._trajectory_pending: dict[str, np.ndarray] = {}
         self._trajectory_logged: dict[str, np.ndarray] = {}
         self._closed = False
+        self.flush_timeout_s = flush_timeout_s
 
         self.rec = rr.RecordingStream(application_id)
         live = spawn or connect_url is not None or serve_port is not None  # a viewer watches
@@ -453,8 +457,11 @@ class RerunLogger(Logger):
         with contextlib.ExitStack() as stack:  # each step even when an earlier one failed
             if self._web_viewer is not None:
                 stack.callback(self._web_viewer.close)
-            stack.callback(self.rec.disconnect)  # else Rerun retries a dead sink at exit
-            self.rec.flush()
+            what = f"the recording {self.rrd_path}" if self.rrd_path else "the recording"
+            if flush_recording(self.rec, self.flush_timeout_s, what):
+                # else Rerun retries a dead sink at exit; a sink that did not take the data in
+                # time would block the disconnect as it blocked the flush
+                self.rec.disconnect()
 
     def __enter__(self) -> RerunLogger:
         return self

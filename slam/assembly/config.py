@@ -115,6 +115,13 @@ class VizConfig(Strict):
         "that meshing a growing map does not slow the run; 1 extracts every mesh asked for; "
         "the final mesh is always logged",
     )
+    flush_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="seconds the end of a run waits for Rerun to write or send what it still "
+        "holds; a sink that cannot take it (a full disk, a closed viewer) would otherwise keep "
+        "the run from ending: the recording then misses its end, with a warning",
+    )
 
 
 class OutputConfig(Strict):
