@@ -177,7 +177,8 @@ def memory_breakdown(pipeline, baseline_mb: float) -> dict[str, float]:
     if model is not None:
         buffer_bytes(model, seen)  # the network is part of the baseline
     parts["neural_map_store_and_mesh"] = buffer_bytes(pipeline.map, seen) / MB
-    poses = (pipeline._frame_T_A_S, pipeline._odometry_poses, pipeline._gt)
+    frames = pipeline.frames
+    poses = (frames._T_A_S, frames._odometry, frames._gt)
     parts["per_frame_poses"] = sum(map(_list_of_arrays_bytes, poses)) / MB
     parts["pose_graph_and_remap_events"] = (
         buffer_bytes(pipeline.graph, seen) + buffer_bytes(pipeline.remapper.events, seen)
