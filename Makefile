@@ -43,7 +43,7 @@ TEST_WORKERS ?= 2
 
 test: setup
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 $(KISS_SLAM_VENV)/.installed:
 	mkdir -p $(dir $(KISS_SLAM_LOG))

@@ -214,3 +214,31 @@ def saved_map(tmp_path: Path):
     path = tmp_path / "map.npz"
     save_map(nm, path, subs)
     return nm, subs, path
+
+
+LONGEST_FIRST = (
+    "test_fleet.py",
+    "test_localise.py",
+    "test_merge.py",
+    "test_eval.py",
+    "test_determinism.py",
+    "test_rerun_logger.py",
+    "test_command_errors.py",
+    "test_untrusted_maps.py",
+    "test_pipeline.py",
+    "test_odometry.py",
+    "test_loop_closure.py",
+    "test_cli.py",
+    "test_faults.py",
+    "test_lidar_recordings.py",
+    "test_loop_ambiguity.py",
+)
+"""Test files that take longest on 2 cores (``pytest --durations``), longest first. `make test`
+hands whole files to its two workers in collection order (``--dist loadfile
+--no-loadscope-reorder``): starting with these leaves short files for the end, so both workers
+finish together instead of one waiting on a long file started last."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
