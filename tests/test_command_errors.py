@@ -280,33 +280,43 @@ def test_disk_full_marks_the_run_failed_and_ends_with_the_error_line(tmp_path: P
     assert status["state"] == "failed" and "No space left" in status["reason"]
 
 
-def test_a_recording_its_disk_cannot_take_is_closed_with_a_warning(tmp_path: Path, caplog):
+FULL_DISK_RECORDING = """
+import logging, os, sys, time
+import numpy as np
+import rerun as rr
+from slam.app.rerun_flush import flush_recording
+logging.basicConfig(format="%(message)s")
+rec = rr.RecordingStream("full-disk")
+rec.save(sys.argv[1])
+rng = np.random.default_rng(0)
+for frame in range(20):  # about 1 MB of points
+    rec.set_time("frame", sequence=frame)
+    rec.log("points", rr.Points3D(rng.random((5000, 3))))
+start = time.monotonic()
+written = flush_recording(rec, 1.0, "the full recording")
+print(f"written {written} in {time.monotonic() - start:.1f} s", flush=True)
+os._exit(0)  # dropping a stream whose sink is stuck blocks as its flush did
+"""
+
+
+def test_a_recording_its_disk_cannot_take_is_closed_with_a_warning(tmp_path: Path) -> None:
     """Rerun's flush waits for ever by default and never returns while its file sink cannot
-    write; closing the recording must give up after its timeout and say so."""
-    import logging
-
-    import rerun as rr
-
-    from slam.app.rerun_flush import flush_recording
-
+    write; closing the recording must give up after its timeout and say so (in a child: the
+    stuck stream cannot be dropped in this process)."""
     folder = tmp_path / "full"
     if not mount_tmpfs(folder, "64k"):
         pytest.skip("needs root and tmpfs mounts for a size-limited folder")
     try:
-        rec = rr.RecordingStream("full-disk")
-        rec.save(str(folder / "recording.rrd"))
-        rng = np.random.default_rng(0)
-        for frame in range(20):  # about 1 MB of points
-            rec.set_time("frame", sequence=frame)
-            rec.log("points", rr.Points3D(rng.random((5000, 3))))
-        start = time.monotonic()
-        with caplog.at_level(logging.WARNING, logger="slam.app.rerun_flush"):
-            written = flush_recording(rec, 1.0, "the full recording")
-        took_s = time.monotonic() - start
+        result = subprocess.run(
+            [sys.executable, "-c", FULL_DISK_RECORDING, str(folder / "recording.rrd")],
+            capture_output=True, text=True, cwd=REPO_ROOT, timeout=60,
+        )  # fmt: skip
     finally:
         umount(folder)
-    assert not written and took_s < 10
-    assert "the full recording could not be written completely" in caplog.text
+    words = result.stdout.split()
+    assert words[:2] == ["written", "False"], result.stdout + result.stderr[-2000:]
+    assert float(words[3]) < 10
+    assert "the full recording could not be written completely" in result.stderr
 
 
 # -- skipped frames -----------------------------------------------------------------------------
