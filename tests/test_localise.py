@@ -188,7 +188,7 @@ def test_a_submap_seeing_the_stored_surface_only_in_part_constrains_nothing(room
     rejected as a partial overlap."""
     from slam.algorithm.merge.config import LocaliseConfig, MergeConfig
     from slam.algorithm.merge.map_constraints import MapConstraints
-    from slam.algorithm.merge.merge import SurfaceDecoder
+    from slam.algorithm.merge.surface import SurfaceDecoder
     from slam.app.continue_map import load_map_folder
     from slam.assembly.config import load_run_config
 
@@ -227,8 +227,8 @@ def test_the_anchors_gravity_is_left_to_the_map_while_it_holds_the_run(room_sess
     from slam.algorithm.graph.pose_graph import PoseGraph
     from slam.algorithm.localisation import NOT_COVERED, MapLocalisation
     from slam.algorithm.merge.config import LocaliseConfig
-    from slam.algorithm.merge.merge import SurfaceDecoder
     from slam.algorithm.merge.relocalise import Relocaliser
+    from slam.algorithm.merge.surface import SurfaceDecoder
     from slam.algorithm.submaps import SubmapRecord
     from slam.app.continue_map import load_map_folder
     from slam.assembly.config import load_run_config
@@ -267,7 +267,7 @@ def test_the_maps_surfaces_are_decoded_under_the_runs_thread_budget(room_session
     surface what decoding it alone gives."""
     import torch
 
-    from slam.algorithm.merge.merge import SurfaceDecoder
+    from slam.algorithm.merge.surface import SurfaceDecoder
     from slam.app.continue_map import continued_map, load_map_folder
     from slam.assembly.config import load_run_config
     from slam.assembly.threads import plan_thread_budget

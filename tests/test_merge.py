@@ -217,7 +217,7 @@ def test_merge_verification_is_not_pulled_by_surfaces_one_side_lacks():
 
     from common.geometry import relative_motion
     from slam.algorithm.merge.config import MergeConfig
-    from slam.algorithm.merge.merge import verify
+    from slam.algorithm.merge.surface import verify
 
     rng = np.random.default_rng(0)
     reference = _planes(rng, ghost=False)

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from common.voxel_keys import unpack_keys
 from mapping.analytic_prior import planar_prior
 from mapping.config import MapConfig
-from mapping.meshing import lattice_offsets
+from mapping.mesh_lattice import lattice_offsets
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.neural_map import NeuralMap
 

@@ -13,12 +13,8 @@ import trimesh
 
 from frontends.frame import Intrinsics
 from slam.algorithm.viz import Logger, NullLogger
-from slam.app.rerun_logger import (
-    TRAJECTORY_MIN_RELOG_FRAMES,
-    RerunLogger,
-    metric_entity,
-    summarize_recording,
-)
+from slam.app.rerun_logger import RerunLogger, metric_entity, summarize_recording
+from slam.app.rerun_trajectories import TRAJECTORY_MIN_RELOG_FRAMES
 
 NUM_FRAMES = 24
 LOOP_FRAMES = (11, 23)

@@ -197,15 +197,15 @@ def test_points_absorbed_after_every_decision_give_the_same_submaps() -> None:
     assert lagged.decides_from_poses
     expected = [closed for frame, T in frames if (closed := at_once.add(frame, T)[0])]
     expected.append(at_once.finish())
-    steps = [lagged.decide(frame, T) for frame, T in frames]
+    steps = [lagged.decisions.decide(frame, T) for frame, T in frames]
     got = [
         closed
         for step, (frame, _) in zip(steps, frames, strict=True)
-        if (closed := lagged.absorb(step, frame))
+        if (closed := lagged.points.absorb(step, frame))
     ]
-    final = lagged.decide_finish()
+    final = lagged.decisions.decide_finish()
     assert final is not None
-    got.append(lagged.absorb(final, None))
+    got.append(lagged.points.absorb(final, None))
     assert len(expected) >= 3
     assert [r.frame_indices for r in got] == [r.frame_indices for r in expected]
     for a, b in zip(got, expected, strict=True):

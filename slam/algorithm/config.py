@@ -12,7 +12,7 @@ from common.config import Strict
 from slam.algorithm.graph.config import GravityConfig, PoseGraphConfig
 from slam.algorithm.loops.config import LidarLoopConfig, LoopClosureConfig, RgbdLoopConfig
 from slam.algorithm.remap import RemapConfig
-from slam.algorithm.submaps import SubmapConfig
+from slam.algorithm.submap_config import SubmapConfig
 
 __all__ = [
     "GravityConfig",

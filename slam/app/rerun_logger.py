@@ -23,10 +23,8 @@ gives epoch seconds). A recording uses its own :class:`rerun.RecordingStream`, s
 written by one process.
 
 Size and time budget: scans and voxel maps are randomly subsampled (own RNG, the pipeline's random
-state is never touched), images are shrunk and compressed, and a growing trajectory of N poses is
-re-logged every ``ceil(N / trajectory_relog_points)`` frames, and at least
-``TRAJECTORY_MIN_RELOG_FRAMES`` apart (at once when an optimisation moved it), so that a long run
-does not log a quadratic amount of polyline data. The rows of the scan, sensor pose, images,
+state is never touched), images are shrunk and compressed, and a growing trajectory is re-logged
+only now and then (:mod:`slam.app.rerun_trajectories`). The rows of the scan, sensor pose, images,
 scalars and trajectories are held back and sent as columns (:mod:`slam.app.rerun_columns`): one
 call per entity every few frames instead of one per entity and frame.
 """
@@ -50,7 +48,9 @@ from slam.app.recording_summary import summarize_recording
 from slam.app.rerun_columns import ColumnBuffer
 from slam.app.rerun_flush import FLUSH_TIMEOUT_S, flush_recording
 from slam.app.rerun_images import colormap, encode_depth, encode_rgb
-from slam.app.web_viewer import WebViewerServer, check_serve_ports, viewer_executable
+from slam.app.rerun_sinks import open_recording
+from slam.app.rerun_trajectories import TrajectoryThrottle
+from slam.app.web_viewer import check_serve_ports
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +66,6 @@ REJECTED_LOOP_COLOR = (230, 40, 40)
 MAP_ANCHORING_COLOR = (250, 190, 30)
 UP_AXES = {"+z": 2, "+y": 1, "-y": 1}
 EPOCH_THRESHOLD_S = 1e8
-TRAJECTORY_MIN_RELOG_FRAMES = 5
-"""A growing (not moved) trajectory is re-logged at most this often: each log has a fixed cost."""
 
 
 def metric_entity(name: str) -> str:
@@ -166,8 +164,7 @@ class RerunLogger(Logger):
         self._depth_scale = 1
         self.jpeg_quality = jpeg_quality
         self.depth_png = depth_png
-        self.trajectory_relog_points = max(1, trajectory_relog_points)
-        self.trajectory_move_m = trajectory_move_m
+        self._trajectories = TrajectoryThrottle(trajectory_relog_points, trajectory_move_m)
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
         self._rng = np.random.default_rng(seed)
         self._frame = 0
@@ -178,37 +175,22 @@ class RerunLogger(Logger):
         self._camera_view = bool(with_camera_view)
         self._camera_view_auto = with_camera_view is None
         self._metric_names: set[str] = set()
-        self._trajectory_logged_frame: dict[str, int] = {}
-        self._trajectory_pending: dict[str, np.ndarray] = {}
-        self._trajectory_logged: dict[str, np.ndarray] = {}
         self._closed = False
         self.flush_timeout_s = flush_timeout_s
 
-        self.rec = rr.RecordingStream(application_id)
+        self.rec, self._web_viewer = open_recording(
+            application_id,
+            self.rrd_path,
+            spawn,
+            connect_url,
+            serve_port,
+            web_port,
+            serve_bind_ip,
+            default_blueprint(self._camera_view),
+        )
+        self.viewer_url = self._web_viewer.url if self._web_viewer is not None else None
         live = spawn or connect_url is not None or serve_port is not None  # a viewer watches
         self._columns = ColumnBuffer(self.rec, live)
-        sinks: list[object] = []
-        if self.rrd_path is not None:
-            self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(str(self.rrd_path)))
-        if spawn:
-            port = 9876
-            rr.spawn(
-                port=port, connect=False, recording=self.rec, executable_path=viewer_executable()
-            )
-            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
-        if connect_url is not None:
-            sinks.append(rr.GrpcSink(connect_url))
-        self.viewer_url: str | None = None
-        server = None
-        if serve_port is not None:
-            server = rr.GrpcServerSink(bind_ip=serve_bind_ip, port=int(serve_port))
-            sinks.append(server)
-        self.rec.set_sinks(*sinks, default_blueprint=default_blueprint(self._camera_view))
-        self._web_viewer: WebViewerServer | None = None
-        if server is not None:  # not rr.serve_web_viewer: it listens on every interface
-            self._web_viewer = WebViewerServer(serve_bind_ip, int(web_port), server.uri)
-            self.viewer_url = self._web_viewer.url
 
         view = {
             "+z": rr.ViewCoordinates.RIGHT_HAND_Z_UP,
@@ -334,25 +316,8 @@ class RerunLogger(Logger):
 
     def log_trajectory(self, name: str, positions_W: np.ndarray) -> None:
         positions = np.asarray(positions_W, dtype=np.float32).reshape(-1, 3)
-        last = self._trajectory_logged.get(name)
-        if last is None or self._moved(last, positions):
+        if self._trajectories.due(name, positions, self._frame):
             self._log_trajectory_now(name, positions)
-            return
-        last_frame = self._trajectory_logged_frame[name]
-        every = max(
-            TRAJECTORY_MIN_RELOG_FRAMES, math.ceil(len(positions) / self.trajectory_relog_points)
-        )
-        if len(positions) != len(last) and self._frame - last_frame >= every:
-            self._log_trajectory_now(name, positions)
-        elif len(positions) != len(last):
-            self._trajectory_pending[name] = positions
-
-    def _moved(self, logged: np.ndarray, positions: np.ndarray) -> bool:
-        """Whether the already-logged part of a trajectory changed (an optimisation moved it)."""
-        n = min(len(logged), len(positions))
-        if len(positions) < len(logged):
-            return True
-        return n > 0 and float(np.abs(positions[:n] - logged[:n]).max()) > self.trajectory_move_m
 
     def _log_trajectory_now(self, name: str, positions: np.ndarray) -> None:
         import rerun as rr
@@ -364,9 +329,7 @@ class RerunLogger(Logger):
             colors=TRAJECTORY_COLORS.get(name, (255, 255, 255)),
             radii=rr.Radius.ui_points(2.0),
         )
-        self._trajectory_logged_frame[name] = self._frame
-        self._trajectory_logged[name] = positions
-        self._trajectory_pending.pop(name, None)
+        self._trajectories.logged(name, positions, self._frame)
 
     def log_loop_closures(self, accepted: Segments, rejected: Segments = ()) -> None:
         self._log_segments("world/loop_closures", accepted, ACCEPTED_LOOP_COLOR, 2.5)
@@ -445,7 +408,7 @@ class RerunLogger(Logger):
 
     def flush(self) -> None:
         """Send the newest pending trajectories and every held-back row."""
-        for name, positions in list(self._trajectory_pending.items()):
+        for name, positions in list(self._trajectories.pending.items()):
             self._log_trajectory_now(name, positions)
         self._columns.flush()
 

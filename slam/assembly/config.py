@@ -23,7 +23,7 @@ from slam.algorithm.graph.config import PoseGraphConfig
 from slam.algorithm.loops.config import LoopClosureConfig
 from slam.algorithm.merge.config import LocaliseConfig
 from slam.algorithm.remap import RemapConfig
-from slam.algorithm.submaps import SubmapConfig
+from slam.algorithm.submap_config import SubmapConfig
 from slam.assembly.source_config import GeneratedConfig, SourceConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"

@@ -7,7 +7,7 @@ frame) lie near the live submap's centre are the candidates, not the place descr
 submap is registered even where the descriptors would find nothing. The decoded surfaces of the
 ``max_map_submaps`` nearest (their own latents, as the merge decodes them) are put together in the
 map's frame, and the live submap's points are aligned to them by the merge's point-to-plane ICP
-and gates (:func:`slam.algorithm.merge.merge.verify`) from the current estimate ``T_M_A``, with
+and gates (:func:`slam.algorithm.merge.surface.verify`) from the current estimate ``T_M_A``, with
 a stricter overlap (``LocaliseConfig.min_inlier_fraction``: a submap that sees the stored surface
 only in part is pulled by the rest) and a covariance that carries the surfaces' systematic error
 (:func:`registration_covariance`). A registration that passes is checked like a LiDAR loop: for
@@ -32,7 +32,7 @@ from common.voxel_keys import unpack_keys
 from mapping.neural_map import Submap
 from slam.algorithm.loops.ambiguity import find_ambiguity, graph_gate
 from slam.algorithm.merge.config import LocaliseConfig, MergeConfig
-from slam.algorithm.merge.merge import SurfaceDecoder, icp_covariance, verify
+from slam.algorithm.merge.surface import SurfaceDecoder, icp_covariance, verify
 
 AnchorCovariance = Callable[[int], np.ndarray]
 """The graph's 6x6 marginal covariance of an anchor (``[rot, trans]``) in the map's frame."""
@@ -78,7 +78,7 @@ def registration_covariance(
 ) -> np.ndarray:
     """6x6 covariance (``[rot, trans]``) of a registration to the stored map.
 
-    The ICP's (:func:`~slam.algorithm.merge.merge.icp_covariance`) treats the thousands of
+    The ICP's (:func:`~slam.algorithm.merge.surface.icp_covariance`) treats the thousands of
     point residuals as independent, so it claims about a millimetre, floored at the merge's
     1 cm / 0.1 deg. A decoded surface and a live submap differ systematically by about their
     residual spread, over the whole overlap at once: measured on 7-Scenes redkitchen, accepted

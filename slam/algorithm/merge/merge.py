@@ -26,16 +26,13 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
 import numpy as np
-from scipy.spatial import cKDTree
 
-from common.geometry import orthonormalize, relative_motion, transform_points
-from common.point_to_plane import point_to_plane_hessian, point_to_plane_icp
+from common.geometry import orthonormalize, relative_motion
 from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.graph.gravity_factors import GRAVITY_KEY, gravity_factor, gravity_frame_prior
 from slam.algorithm.graph.gtsam_poses import pose3
@@ -48,6 +45,7 @@ from slam.algorithm.merge.inputs import (
     merged_session_id,
 )
 from slam.algorithm.merge.session import Edge, SessionRecord
+from slam.algorithm.merge.surface import SurfaceDecoder, icp_covariance, verify
 
 __all__ = ["MergeError", "SessionInput", "merge_sessions"]
 
@@ -95,125 +93,6 @@ class MergeResult:
     loops: list[InterLoop]
     intra_loops: list[tuple[int, int, int]]
     seconds: dict[str, float]
-
-
-class SurfaceDecoder:
-    """Surface points with normals of a submap in its anchor frame, decoded from its own latents.
-
-    Each surface is decoded once and cached by its key. :meth:`decode_many` decodes several on
-    a pool of threads (torch releases the GIL), each running torch with its intra-op threads."""
-
-    def __init__(self, neural_map: NeuralMap, max_points: int, subdivisions: int) -> None:
-        self._cfg = neural_map.cfg.model_copy(update={"mesh_subdivisions": subdivisions})
-        self._model = neural_map.model
-        self._max_points = max_points
-        self._cache: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
-
-    def __call__(self, key: tuple[str, int], submap: Submap) -> tuple[np.ndarray, np.ndarray]:
-        if key not in self._cache:
-            self._cache[key] = self._decode(submap)
-        return self._cache[key]
-
-    def decode_many(self, items: list[tuple[tuple[str, int], Submap]], threads: int) -> None:
-        """Decode and cache every ``(key, submap)`` not cached yet, on ``threads`` threads."""
-        missing = [(key, submap) for key, submap in items if key not in self._cache]
-        with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="decode") as pool:
-            surfaces = pool.map(self._decode, [submap for _, submap in missing])
-            for (key, _), surface in zip(missing, surfaces, strict=True):
-                self._cache[key] = surface
-
-    def _decode(self, submap: Submap) -> tuple[np.ndarray, np.ndarray]:
-        alone = NeuralMap(self._cfg, self._model)
-        copy = Submap(submap.submap_id, submap.T_W_A_encoded, submap.original, submap.T_W_A_encoded)
-        alone.fuse(copy)
-        mesh = alone.extract_mesh()
-        points = np.asarray(mesh.vertices, dtype=np.float64)
-        normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
-        if len(points) > self._max_points:
-            pick = np.sort(
-                np.random.default_rng(0).choice(len(points), self._max_points, replace=False)
-            )
-            points, normals = points[pick], normals[pick]
-        T_A_W = np.linalg.inv(submap.T_W_A_encoded)
-        return transform_points(T_A_W, points), normals @ T_A_W[:3, :3].T
-
-
-def icp_covariance(result, cfg: MergeConfig) -> np.ndarray:
-    floor = np.array([cfg.loop_min_sigma_rad] * 3 + [cfg.loop_min_sigma_m] * 3) ** 2
-    return result.covariance(cfg.covariance_factor) + np.diag(floor)
-
-
-def _overlap(
-    reference: tuple[np.ndarray, np.ndarray],
-    query: np.ndarray,
-    T: np.ndarray,
-    gate_m: float,
-    tree: cKDTree,
-) -> tuple[float, float]:
-    """Fraction of ``query`` within ``gate_m`` of the reference surface under ``T``, and the
-    robust spread of those points' point-to-plane residuals (the cost seen at ``T``,
-    :func:`~common.point_to_plane.point_to_plane_hessian`)."""
-    if not np.all(np.isfinite(T)):
-        return 0.0, float("inf")
-    seen = point_to_plane_hessian(reference[0], reference[1], query, T, gate_m, tree=tree)
-    return seen.inlier_fraction, seen.robust_sigma_m
-
-
-def verify(
-    reference: tuple[np.ndarray, np.ndarray],
-    query: tuple[np.ndarray, np.ndarray],
-    guess: np.ndarray,
-    voxel_size_m: float,
-    cfg: MergeConfig,
-    tree: cKDTree | None = None,
-):
-    """ICP of decoded surfaces from a guess: ``(accepted, reason, T_ref_query, scores, result)``;
-    ``tree``: a KD-tree of the reference points already built (else one is).
-
-    The ICP's gates narrow down to ``icp_gates_vu[-1]``: a wide last gate lets the parts of two
-    partly overlapping surfaces that do not match pull the pose (measured on 7-Scenes redkitchen:
-    ending at 0.75 voxel, the kept edges were up to 7.3 cm / 2.1 deg off the ground truth and the
-    merged trajectory 1.48 x one run's ATE; ending at 0.25, as the run's own loop refinement does,
-    4.9 cm and 1.19 x). Overlap and residual are judged at ``overlap_gate_vu`` instead, so a
-    finer pose does not change what is accepted."""
-    V = voxel_size_m
-    tree = tree if tree is not None else cKDTree(reference[0])
-    gates = tuple(g * V for g in cfg.icp_gates_vu)
-    result = point_to_plane_icp(
-        reference[0],
-        reference[1],
-        query[0],
-        guess,
-        gates,
-        tolerance=cfg.icp_tolerance_vu * V,
-        tree=tree,
-    )
-    T = result.T_ref_query
-    overlap, residual = _overlap(reference, query[0], T, cfg.overlap_gate_vu * V, tree)
-    correction_m, correction_deg = relative_motion(guess, T)
-    radius = float(np.sqrt(np.mean(np.sum((reference[0] - reference[0].mean(0)) ** 2, axis=1))))
-    eigenvalue = result.normalized_min_eigenvalue(radius)
-    scores = {
-        "inlier_fraction": overlap,
-        "residual_sigma_m": residual,
-        "correction_m": correction_m,
-        "correction_deg": correction_deg,
-        "min_eigenvalue": eigenvalue,
-    }
-    if not np.all(np.isfinite(T)) or not np.isfinite(residual):
-        return False, "icp found no correspondences", guess, scores, result
-    if overlap < cfg.min_inlier_fraction:
-        reason = f"inlier fraction {overlap:.2f} < {cfg.min_inlier_fraction:.2f}"
-        return False, reason, T, scores, result
-    if residual > cfg.max_residual_vu * V:
-        reason = f"residual {residual:.4f} m > {cfg.max_residual_vu * V:.4f} m"
-        return False, reason, T, scores, result
-    if correction_m > cfg.max_correction_vu * V or correction_deg > cfg.max_correction_deg:
-        reason = f"correction {correction_m:.3f} m / {correction_deg:.1f} deg too large"
-        return False, reason, T, scores, result
-    if eigenvalue < cfg.min_eigenvalue:
-        return False, f"degenerate cost: min eigenvalue {eigenvalue:.4f}", T, scores, result
-    return True, "accepted", T, scores, result
 
 
 class _Ids:

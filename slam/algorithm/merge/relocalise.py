@@ -3,7 +3,7 @@
 Every submap the live run closes, until one is placed, is matched against the stored map's
 submaps by place descriptor (:func:`slam.algorithm.merge.merge.rank_matches`, the merge's candidate
 search) and verified by the merge's point-to-plane ICP and gates
-(:func:`slam.algorithm.merge.merge.verify`). The stored side of the registration is the surface
+(:func:`slam.algorithm.merge.surface.verify`). The stored side of the registration is the surface
 decoded from the stored submap's own latents (the stored run's scans are gone); the live side is the
 submap's own points. The first verified match gives ``T_M_W``, the live world frame in the map's
 frame. The pipeline then re-expresses its pose graph in the map's frame
@@ -33,12 +33,8 @@ from slam.algorithm.merge.map_constraints import (
     registration_covariance,
     subsample,
 )
-from slam.algorithm.merge.merge import (
-    SessionInput,
-    SurfaceDecoder,
-    rank_matches,
-    verify,
-)
+from slam.algorithm.merge.merge import SessionInput, rank_matches
+from slam.algorithm.merge.surface import SurfaceDecoder, verify
 
 logger = logging.getLogger(__name__)
 
