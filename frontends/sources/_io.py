@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import re
-from abc import abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -245,19 +244,19 @@ class DepthOptions(BaseModel):
 
 
 @dataclass(frozen=True)
-class RgbdFiles:
-    """The files and timestamp of one RGB-D frame on disk."""
+class RgbdFrames:
+    """The RGB-D frames on disk: per frame a timestamp, a colour and a depth image."""
 
-    depth: Path
-    rgb: Path | None
-    timestamp: float
+    stamps: np.ndarray  # (N,) frame timestamps (seconds)
+    rgb: list[Path]
+    depth: list[Path]
 
 
 class RgbdSource(Source):
     """Shared frame assembly of the RGB-D sources.
 
-    Subclasses set ``depth_scale``/``invalid_depth_values``/``intrinsics`` and implement
-    ``_num_raw_frames``, ``_files(raw_index)`` and optionally ``_raw_gt_poses``.
+    Subclasses set ``depth_scale``/``invalid_depth_values``/``intrinsics`` and their frames
+    with :meth:`_set_frames`.
     """
 
     sensor: ClassVar[SensorKind] = "rgbd"
@@ -271,24 +270,29 @@ class RgbdSource(Source):
         super().__init__(name, frames)
         self.depth_options = DepthOptions.of(depth_options)
 
-    @abstractmethod
-    def _files(self, raw_index: int) -> RgbdFiles:
-        """Files of frame ``raw_index``."""
+    def _set_frames(self, frames: RgbdFrames, gt: np.ndarray | None) -> None:
+        """The frames on disk and their (N, 4, 4) ground-truth poses (None: none)."""
+        self._rgbd_frames = frames
+        self._gt = gt
+
+    def _num_raw_frames(self) -> int:
+        return len(self._rgbd_frames.stamps)
+
+    def _raw_gt_poses(self) -> np.ndarray | None:
+        return self._gt
 
     def _load(self, raw_index: int) -> Frame:
-        files = self._files(raw_index)
-        depth = read_depth_png(files.depth, self.depth_scale, self.invalid_depth_values)
-        self._check_shape(files.depth, depth.shape)
-        rgb = None
-        if files.rgb is not None:
-            rgb = read_rgb(files.rgb)
-            if rgb.shape[:2] != depth.shape:
-                raise fail(
-                    files.rgb,
-                    f"colour image is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
-                    f"{depth.shape[1]}x{depth.shape[0]}",
-                    "use colour and depth images of the same size",
-                )
+        depth_path, rgb_path = self._rgbd_frames.depth[raw_index], self._rgbd_frames.rgb[raw_index]
+        depth = read_depth_png(depth_path, self.depth_scale, self.invalid_depth_values)
+        self._check_shape(depth_path, depth.shape)
+        rgb = read_rgb(rgb_path)
+        if rgb.shape[:2] != depth.shape:
+            raise fail(
+                rgb_path,
+                f"colour image is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
+                f"{depth.shape[1]}x{depth.shape[0]}",
+                "use colour and depth images of the same size",
+            )
         opts = self.depth_options
         cloud = depth_to_points(
             depth,
@@ -303,7 +307,7 @@ class RgbdSource(Source):
         )
         if len(cloud) == 0:
             raise fail(
-                files.depth,
+                depth_path,
                 f"no valid depth in [{opts.min_depth_m}, {opts.max_depth_m}] m",
                 "remove this frame or widen min_depth_m/max_depth_m",
             )
@@ -313,7 +317,7 @@ class RgbdSource(Source):
             T_W_S_gt = None  # this frame has no ground-truth pose
         return Frame(
             index=raw_index,
-            timestamp=files.timestamp,
+            timestamp=float(self._rgbd_frames.stamps[raw_index]),
             points=cloud.points,
             normals=cloud.normals,
             colors=cloud.colors,

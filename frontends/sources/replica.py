@@ -23,7 +23,7 @@ import numpy as np
 from frontends.frame import Intrinsics
 from frontends.sources._io import (
     DepthOptions,
-    RgbdFiles,
+    RgbdFrames,
     RgbdSource,
     fail,
     frame_number,
@@ -117,24 +117,11 @@ class ReplicaSource(RgbdSource):
                 f"{len(table)} poses but frame number {max(depth_numbers)} exists",
                 "use the traj.txt of this scene",
             )
-        self._depth, self._color = depth, color
-        self._numbers = np.asarray(depth_numbers)
-        self._gt = table.reshape(-1, 4, 4)[self._numbers]
-        if not np.all(np.isfinite(self._gt)):
+        numbers = np.asarray(depth_numbers)
+        gt = table.reshape(-1, 4, 4)[numbers]
+        if not np.all(np.isfinite(gt)):
             raise fail(traj_file, "non-finite poses", "use the traj.txt of this scene")
-
-    def _num_raw_frames(self) -> int:
-        return len(self._depth)
-
-    def _files(self, raw_index: int) -> RgbdFiles:
-        return RgbdFiles(
-            depth=self._depth[raw_index],
-            rgb=self._color[raw_index],
-            timestamp=float(self._numbers[raw_index]),
-        )
-
-    def _raw_gt_poses(self) -> np.ndarray:
-        return self._gt
+        self._set_frames(RgbdFrames(numbers.astype(np.float64), color, depth), gt)
 
     @property
     def gt_mesh_path(self) -> Path | None:

@@ -24,7 +24,7 @@ from common.geometry import orthonormalize
 from frontends.frame import Intrinsics
 from frontends.sources._io import (
     DepthOptions,
-    RgbdFiles,
+    RgbdFrames,
     RgbdSource,
     fail,
     frame_number,
@@ -85,48 +85,37 @@ class SevenScenesSource(RgbdSource):
                 fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480
             )
 
-        self._depth = sorted(self.folder.glob("frame-*.depth.png"))
-        if not self._depth:
+        depth = sorted(self.folder.glob("frame-*.depth.png"))
+        if not depth:
             raise fail(self.folder, "no frame-NNNNNN.depth.png files", "extract the sequence here")
-        self._numbers = [frame_number(p, r"frame-(\d+)\.depth\.png") for p in self._depth]
-        self._color: list[Path] = []
-        for path, number in zip(self._depth, self._numbers, strict=True):
+        numbers = [frame_number(p, r"frame-(\d+)\.depth\.png") for p in depth]
+        color: list[Path] = []
+        for path, number in zip(depth, numbers, strict=True):
             stem = self.folder / f"frame-{number:06d}"
-            color = next(
+            found = next(
                 (c for c in (Path(f"{stem}.color.png"), Path(f"{stem}.color.jpg")) if c.is_file()),
                 None,
             )
-            if color is None:
+            if found is None:
                 raise fail(
                     f"{stem}.color.png", "colour image missing for " + path.name, "restore it"
                 )
-            self._color.append(color)
+            color.append(found)
         pose_files = sorted(self.folder.glob("frame-*.pose.txt"))
-        if len(pose_files) != len(self._depth):
+        if len(pose_files) != len(depth):
             raise fail(
                 self.folder,
-                f"{len(pose_files)} pose files for {len(self._depth)} depth images",
+                f"{len(pose_files)} pose files for {len(depth)} depth images",
                 "every frame-NNNNNN.depth.png needs its frame-NNNNNN.pose.txt",
             )
-        self._gt = np.stack(
+        gt = np.stack(
             [
                 _read_pose(require_file(self.folder / f"frame-{n:06d}.pose.txt", "a 4x4 pose"))
-                for n in self._numbers
+                for n in numbers
             ]
         )
-
-    def _num_raw_frames(self) -> int:
-        return len(self._depth)
-
-    def _files(self, raw_index: int) -> RgbdFiles:
-        return RgbdFiles(
-            depth=self._depth[raw_index],
-            rgb=self._color[raw_index],
-            timestamp=self._numbers[raw_index] / FRAME_RATE_HZ,
-        )
-
-    def _raw_gt_poses(self) -> np.ndarray:
-        return self._gt
+        stamps = np.asarray([n / FRAME_RATE_HZ for n in numbers])
+        self._set_frames(RgbdFrames(stamps, color, depth), gt)
 
 
 def _read_pose(path: Path) -> np.ndarray:

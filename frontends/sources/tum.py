@@ -43,7 +43,6 @@ from __future__ import annotations
 import logging
 import os
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +50,7 @@ import numpy as np
 from frontends.frame import Intrinsics
 from frontends.sources._io import (
     DepthOptions,
-    RgbdFiles,
+    RgbdFrames,
     RgbdSource,
     associate,
     fail,
@@ -93,13 +92,6 @@ ICL_INTRINSICS_RAW = Intrinsics(fx=481.2, fy=-480.0, cx=319.5, cy=239.5, width=6
 FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
 
 
-@dataclass(frozen=True)
-class _Pairing:
-    stamps: np.ndarray  # (N,) frame timestamps (colour stamps)
-    rgb: list[Path]
-    depth: list[Path]
-
-
 def _inside(folder: Path, list_file: Path, name: str, allow_outside: bool) -> Path:
     """``folder / name``, refused when a list file's entry leads out of the dataset folder
     (``../`` or an absolute path; links inside the folder are the user's choice) unless
@@ -115,7 +107,7 @@ def _inside(folder: Path, list_file: Path, name: str, allow_outside: bool) -> Pa
     )
 
 
-def read_tum_pairs(folder: Path, max_difference: float, allow_outside: bool = False) -> _Pairing:
+def read_tum_pairs(folder: Path, max_difference: float, allow_outside: bool = False) -> RgbdFrames:
     """Colour/depth pairs of a TUM-layout folder (associations.txt, else rgb.txt + depth.txt,
     else rgb/ and depth/ images whose numeric names are their timestamps). Entries that leave
     ``folder`` are refused unless ``allow_outside``."""
@@ -148,14 +140,14 @@ def read_tum_pairs(folder: Path, max_difference: float, allow_outside: bool = Fa
             dropped,
             max_difference,
         )
-    return _Pairing(
+    return RgbdFrames(
         stamps=np.asarray([rgb_stamps[i] for i, _ in matches]),
         rgb=[_inside(folder, rgb_list, rgb_names[i], allow_outside) for i, _ in matches],
         depth=[_inside(folder, depth_list, depth_names[j], allow_outside) for _, j in matches],
     )
 
 
-def _read_associations(path: Path, allow_outside: bool = False) -> _Pairing:
+def _read_associations(path: Path, allow_outside: bool = False) -> RgbdFrames:
     stamps: list[float] = []
     rgb: list[Path] = []
     depth: list[Path] = []
@@ -177,7 +169,7 @@ def _read_associations(path: Path, allow_outside: bool = False) -> _Pairing:
         depth.append(_inside(path.parent, path, p2, allow_outside))
     if not stamps:
         raise fail(path, "associations file is empty", "regenerate associations.txt")
-    return _Pairing(np.asarray(stamps), rgb, depth)
+    return RgbdFrames(np.asarray(stamps), rgb, depth)
 
 
 def _list_numbered(folder: Path, sub: str) -> tuple[np.ndarray, list[str]]:
@@ -201,11 +193,11 @@ def _is_number(text: str) -> bool:
 
 def pair_with_ground_truth(
     name: str,
-    pairs: _Pairing,
+    pairs: RgbdFrames,
     gt_file: Path | None,
     max_difference: float,
     gt_transform: np.ndarray | None = None,
-) -> tuple[_Pairing, np.ndarray | None]:
+) -> tuple[RgbdFrames, np.ndarray | None]:
     """Attach ground truth to frames by timestamp; every frame is kept, frames without a pose
     within ``max_difference`` get a row of NaN. Returns (pairs, (N, 4, 4) poses or None)."""
     if gt_file is None:
@@ -237,27 +229,13 @@ def pair_with_ground_truth(
 
 
 class _PairedSource(RgbdSource):
-    """An RGB-D source over a list of colour/depth pairs with optional ground truth."""
+    """An RGB-D source over listed colour/depth pairs (each checked to exist)."""
 
-    def _set_pairs(self, pairs: _Pairing, gt: np.ndarray | None) -> None:
+    def _set_pairs(self, pairs: RgbdFrames, gt: np.ndarray | None) -> None:
         for path in (*pairs.depth, *pairs.rgb):
             if not path.is_file():
                 raise fail(path, "listed image not found", "restore it or regenerate the lists")
-        self._pairs = pairs
-        self._gt = gt
-
-    def _num_raw_frames(self) -> int:
-        return len(self._pairs.stamps)
-
-    def _files(self, raw_index: int) -> RgbdFiles:
-        return RgbdFiles(
-            depth=self._pairs.depth[raw_index],
-            rgb=self._pairs.rgb[raw_index],
-            timestamp=float(self._pairs.stamps[raw_index]),
-        )
-
-    def _raw_gt_poses(self) -> np.ndarray | None:
-        return self._gt
+        self._set_frames(pairs, gt)
 
 
 def _find_sequence_folder(root: Path, candidates: list[str], what: str) -> Path:
@@ -442,7 +420,7 @@ def _find_icl_gt(root: Path, folder: Path, sequence: str) -> Path | None:
     return found[0] if len(found) == 1 else None
 
 
-def _read_small_icl(folder: Path) -> tuple[_Pairing, np.ndarray]:
+def _read_small_icl(folder: Path) -> tuple[RgbdFrames, np.ndarray]:
     """color/N.png, depth/N.png and pose.txt rows (image order) -> pairs and F T F poses."""
     color_dir = require_dir(folder / "color", "color/N.png images")
     depth_dir = require_dir(folder / "depth", "depth/N.png images")
@@ -465,4 +443,4 @@ def _read_small_icl(folder: Path) -> tuple[_Pairing, np.ndarray]:
         )
     stamps = np.asarray([float(frame_number(p, r"(\d+)\.png")) for p in depth])
     poses = FLIP_Y @ pose_from_translation_quaternion(table) @ FLIP_Y
-    return _Pairing(stamps, color, depth), poses
+    return RgbdFrames(stamps, color, depth), poses
