@@ -202,7 +202,6 @@ def test_kiss_icp_on_five_consecutive_real_scans() -> None:
         assert abs(step[1, 3]) < 0.15 and abs(step[2, 3]) < 0.05
         assert _angle_deg(step) < 3.0
     assert odometry.voxel_size_m == pytest.approx(1.0)  # max_range / 100, as KISS-ICP does
-    assert len(odometry.last_keypoints) > 1000
 
 
 def test_kiss_icp_recovers_a_known_motion_of_a_synthetic_scene() -> None:

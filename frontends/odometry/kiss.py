@@ -113,8 +113,7 @@ class KissIcpOdometry(Odometry):
     Construct with a :class:`KissIcpConfig` or its sections as keyword arguments, e.g.
     ``KissIcpOdometry(data={"max_range": 80.0})``. A result's ``points`` are the deskewed,
     range-filtered scan (sensor frame) when the frame has per-point times and ``data.deskew`` is
-    on, else None (the frame's own points); after each :meth:`register`, ``last_keypoints`` holds
-    the downsampled points that were registered.
+    on, else None (the frame's own points).
 
     ``start_scans``: KISS-ICP predicts each scan's pose by constant velocity, starting from
     rest, and its point-to-point registration against a local map of one or two scans is pulled
@@ -145,7 +144,6 @@ class KissIcpOdometry(Odometry):
         from kiss_icp.kiss_icp import KissICP
 
         self._kiss = KissICP(self.config.to_kiss())
-        self.last_keypoints: np.ndarray = np.zeros((0, 3))
 
     @property
     def voxel_size_m(self) -> float:
@@ -170,7 +168,7 @@ class KissIcpOdometry(Odometry):
         registered = None
         if self._previous_scan is not None:
             registered = self._register_start(points, times)
-        kept, keypoints = registered or self._kiss.register_frame(points, times)
+        kept, _ = registered or self._kiss.register_frame(points, times)
         # KISS-ICP returns an empty scan for a frame without points in its range (and leaves its
         # pose at the prediction): checked after the fact, which spares a pass over the points
         if len(kept) == 0:
@@ -183,7 +181,6 @@ class KissIcpOdometry(Odometry):
         starting = self._num_registered == 1 or registered is not None
         keep = starting and self._num_registered <= self.start_scans
         self._previous_scan = kept if keep else None
-        self.last_keypoints = np.asarray(keypoints)
         # without per-point times nothing was corrected: the map takes the frame's own points
         # (and applies its own range limits, submaps.min_range_m / max_range_m)
         return OdometryResult(

@@ -43,6 +43,7 @@ from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
 from slam.app.summary import summary_lines
 from slam.assembly.config import (
     ConfigError,
+    OneLineParser,
     RunConfig,
     UsageError,
     default_config_path,
@@ -57,15 +58,8 @@ from slam.assembly.error_line import error_line
 from slam.run_folder.outputs import SESSION_FOLDER
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    """argparse whose errors are a single line (no usage block)."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise UsageError(f"{message} (see python -m slam.run --help)")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _OneLineParser(
+    parser = OneLineParser(
         prog="python -m slam.run",
         description="SLAM with loop closure and a remapped neural implicit map.",
         epilog="datasets: " + ", ".join(DATASETS),

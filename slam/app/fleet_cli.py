@@ -40,7 +40,7 @@ from slam.app.fleet_plan import (
 )
 from slam.app.fleet_progress import FleetProgress
 from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
-from slam.assembly.config import UsageError
+from slam.assembly.config import OneLineParser, UsageError
 from slam.assembly.datasets import DATASETS
 from slam.run_folder.outputs import read_run_status
 
@@ -52,13 +52,8 @@ MERGE_DEFAULT = "global"
 merges in a tree (benchmarks/results/fleet.md), and it is exactly ``slam.merge A B C ...``."""
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise UsageError(f"{message} (see python -m slam.fleet --help)")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _OneLineParser(
+    parser = OneLineParser(
         prog="python -m slam.fleet",
         description="Run many recordings in parallel on Ray and merge them into one map.",
     )

@@ -36,18 +36,13 @@ from mapping.config import MapConfig
 from mapping.errors import MapFileError, WeightsFileError
 from mapping.map_io import load_map, load_session, read_map_file
 from slam.app.signals import Terminated, handle_sigterm, restore_sigterm
-from slam.assembly.config import UsageError
+from slam.assembly.config import OneLineParser, UsageError
 
 logger = logging.getLogger("slam.merge")
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise UsageError(f"{message} (see python -m slam.merge --help)")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _OneLineParser(
+    parser = OneLineParser(
         prog="python -m slam.merge",
         description="Merge separate runs into one loop-closed neural map (no raw data needed).",
     )

@@ -7,6 +7,7 @@ errors into a one-line :class:`ConfigError`.
 
 from __future__ import annotations
 
+import argparse
 import difflib
 import re
 from pathlib import Path
@@ -198,6 +199,14 @@ class RunConfig(Strict):
 
 class UsageError(ValueError):
     """Bad command-line input (exit status 2)."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose errors are a :class:`UsageError` of one line (no usage block) that points
+    to the command's ``--help``."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{message} (see {self.prog} --help)")
 
 
 def set_nested(target: dict[str, Any], dotted: str, value: Any) -> None:

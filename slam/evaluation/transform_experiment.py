@@ -189,12 +189,13 @@ def write_outputs(
     """``results.json``, ``summary.md`` and ``transform_distributions.png`` in ``out_dir``."""
     from common.atomic_io import write_text_atomic
     from slam.evaluation import plots
+    from slam.run_folder.outputs import json_safe
 
     out_dir = Path(out_dir)
     summary = summarize(rows, variants)
     results_path = out_dir / "results.json"
     payload = {"command": command, "frames": rows, "summary": summary}
-    write_text_atomic(results_path, json.dumps(_json_safe(payload), indent=2) + "\n")
+    write_text_atomic(results_path, json.dumps(json_safe(payload), indent=2) + "\n")
     summary_path = out_dir / "summary.md"
     write_text_atomic(summary_path, summary_markdown(summary, command))
     groups = {
@@ -210,19 +211,6 @@ def write_outputs(
         title=f"Encode-transform (moved map) vs transform-encode over {len(rows)} frames",
     )
     return {"results": results_path, "summary": summary_path, "plot": figure}
-
-
-def _json_safe(value: Any) -> Any:
-    """Copy with non-finite floats as ``None`` (JSON has no nan/inf)."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -52,18 +52,20 @@ LOOP_COLUMNS = (
 )
 
 
-def _json_safe(value: Any) -> Any:
+def json_safe(value: Any) -> Any:
+    """A copy JSON can hold: non-finite floats as ``None`` (JSON has no nan/inf), numpy scalars
+    and arrays as Python numbers and lists, paths as strings."""
     if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, (np.floating, float)):
         value = float(value)
         return value if math.isfinite(value) else None
     if isinstance(value, np.integer):
         return int(value)
     if isinstance(value, np.ndarray):
-        return _json_safe(value.tolist())
+        return json_safe(value.tolist())
     if isinstance(value, Path):
         return str(value)
     return value
@@ -239,5 +241,5 @@ class RunOutputs:
         write_text_atomic(self.path(LOCALISATION_FILE), text)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
-        text = json.dumps(_json_safe(metrics), indent=2, sort_keys=False) + "\n"
+        text = json.dumps(json_safe(metrics), indent=2, sort_keys=False) + "\n"
         write_text_atomic(self.path("metrics.json"), text)
