@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.algorithm.merge.merge import MergeResult
+from slam.run_folder.outputs import pose_columns
 
 LOOP_COLUMNS = (
     "kind",
@@ -46,13 +47,6 @@ def sessions_csv(names: list[str], rows: list[int]) -> str:
     return buffer.getvalue()
 
 
-def _pose_columns(T: np.ndarray | None) -> list[str]:
-    if T is None:
-        return ["", "", "", ""]
-    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return [f"{v:.4f}" for v in T[:3, 3]] + [f"{np.degrees(np.arccos(cos)):.3f}"]
-
-
 def merge_loops_csv(result: MergeResult) -> str:
     """Stored (intra-session) loop factors and every inter-session candidate, global submap ids."""
     buffer = io.StringIO()
@@ -60,9 +54,7 @@ def merge_loops_csv(result: MergeResult) -> str:
     writer.writerow(LOOP_COLUMNS)
     for k, i, j in result.intra_loops:
         T = np.linalg.inv(result.T_W_A[i]) @ result.T_W_A[j]
-        writer.writerow(
-            ["intra", k, k, i, j, "accepted", "stored", "true", *_pose_columns(T), "{}"]
-        )
+        writer.writerow(["intra", k, k, i, j, "accepted", "stored", "true", *pose_columns(T), "{}"])
     for c in result.loops:
         inlier = "" if c.graph_inlier is None else str(bool(c.graph_inlier)).lower()
         scores = json.dumps({key: round(float(v), 4) for key, v in c.scores.items()})
@@ -76,7 +68,7 @@ def merge_loops_csv(result: MergeResult) -> str:
                 "accepted" if c.accepted else "rejected",
                 c.reason,
                 inlier,
-                *_pose_columns(c.T_Ai_Aj),
+                *pose_columns(c.T_Ai_Aj),
                 scores,
             ]
         )

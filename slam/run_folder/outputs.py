@@ -71,23 +71,21 @@ def json_safe(value: Any) -> Any:
     return value
 
 
+def pose_columns(T: np.ndarray | None) -> list[str]:
+    """The ``tx, ty, tz, rotation_deg`` CSV fields of a relative pose (empty without one)."""
+    if T is None:
+        return ["", "", "", ""]
+    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return [f"{v:.4f}" for v in T[:3, 3]] + [f"{np.degrees(np.arccos(cos)):.3f}"]
+
+
 def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
     """The loop candidates as CSV text (one row each, header first)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(LOOP_COLUMNS)
     for c in candidates:
-        if c.T_Ai_Aj is not None:
-            t = c.T_Ai_Aj[:3, 3]
-            cos = np.clip((np.trace(c.T_Ai_Aj[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-            pose = [
-                f"{t[0]:.4f}",
-                f"{t[1]:.4f}",
-                f"{t[2]:.4f}",
-                f"{np.degrees(np.arccos(cos)):.3f}",
-            ]
-        else:
-            pose = ["", "", "", ""]
+        pose = pose_columns(c.T_Ai_Aj)
         inlier = "" if c.graph_inlier is None else str(bool(c.graph_inlier)).lower()
         scores = json.dumps({k: round(float(v), 4) for k, v in c.scores.items()})
         status = "accepted" if c.accepted else "rejected"
