@@ -82,7 +82,7 @@ def test_translation_error_plot_draws_each_error_over_time(tmp_path: Path) -> No
         np.testing.assert_allclose(line.get_xdata(), times)
         np.testing.assert_allclose(line.get_ydata(), error)
         assert to_rgb(line.get_color()) == to_rgb(plots.TRAJECTORY_STYLES[name]["color"])
-    path = plots.plot_translation_error(tmp_path / "err.png", times, errors)
+    path = plots.save_png(figure, tmp_path / "err.png")
     assert_png_shows(path, plots.translation_error_figure(times, errors))
 
 
@@ -101,7 +101,7 @@ def test_error_histogram_counts_every_sample_and_marks_the_threshold(tmp_path: P
     assert heights[int(0.01 // width)] == 150 and heights[int(0.03 // width)] == 50
     (threshold,) = [line for line in axes.lines if line.get_linestyle() == ":"]
     np.testing.assert_allclose(threshold.get_xdata(), [0.05, 0.05])
-    path = plots.plot_error_histogram(tmp_path / "hist.png", distances, threshold_m=0.05)
+    path = plots.save_png(figure, tmp_path / "hist.png")
     assert_png_shows(path, plots.error_histogram_figure(distances, threshold_m=0.05))
 
 
@@ -127,7 +127,7 @@ def test_distribution_plot_has_one_panel_per_group_and_one_box_per_series(tmp_pa
             assert {round(float(v), 6) for v in (cm.min(), np.median(cm), cm.max())} <= strokes
             means = [line for line in axes.lines if list(line.get_xdata()) == [position]]
             assert means and np.isclose(means[0].get_ydata()[0], cm.mean())
-    path = plots.plot_distributions(tmp_path / "box.png", groups)
+    path = plots.save_png(figure, tmp_path / "box.png")
     assert_png_shows(path, plots.distributions_figure(groups))
 
 

@@ -35,7 +35,8 @@ def _new_figure(width_in: float = 7.0, height_in: float = 5.0) -> Figure:
     return figure
 
 
-def _save(figure: Figure, path: Path) -> Path:
+def save_png(figure: Figure, path: Path) -> Path:
+    """Write ``figure`` as a PNG at ``path`` (atomically); returns the path."""
     path = Path(path)
     with atomic_path(path) as tmp:
         figure.savefig(tmp, format="png")
@@ -68,7 +69,7 @@ def plot_trajectories_top_down(
     figure = trajectories_figure(
         trajectories, loop_edges=loop_edges, title=title, size_in=size_in, dpi=dpi
     )
-    return _save(figure, path)
+    return save_png(figure, path)
 
 
 def trajectories_figure(
@@ -112,20 +113,6 @@ def trajectories_figure(
     return figure
 
 
-def plot_translation_error(
-    path: Path,
-    times: np.ndarray,
-    errors_m: Mapping[str, np.ndarray],
-    *,
-    time_label: str = "time [s]",
-    title: str = "",
-) -> Path:
-    """:func:`translation_error_figure` saved as a PNG at ``path``."""
-    return _save(
-        translation_error_figure(times, errors_m, time_label=time_label, title=title), path
-    )
-
-
 def translation_error_figure(
     times: np.ndarray,
     errors_m: Mapping[str, np.ndarray],
@@ -149,18 +136,6 @@ def translation_error_figure(
     axes.legend(loc="best", fontsize=8)
     axes.set_title(title or "Absolute translation error (SE(3)-aligned)")
     return figure
-
-
-def plot_error_histogram(
-    path: Path,
-    distances_m: Mapping[str, np.ndarray],
-    *,
-    threshold_m: float | None = 0.05,
-    title: str = "",
-) -> Path:
-    """:func:`error_histogram_figure` saved as a PNG at ``path``."""
-    figure = error_histogram_figure(distances_m, threshold_m=threshold_m, title=title)
-    return _save(figure, path)
 
 
 def error_histogram_figure(
@@ -193,19 +168,6 @@ def error_histogram_figure(
     axes.legend(loc="best", fontsize=8)
     axes.set_title(title or "Mesh error distribution")
     return figure
-
-
-def plot_distributions(
-    path: Path,
-    groups: Mapping[str, Mapping[str, Sequence[float]]],
-    *,
-    ylabel: str = "distance [cm]",
-    scale: float = 100.0,
-    title: str = "",
-) -> Path:
-    """:func:`distributions_figure` saved as a PNG at ``path``."""
-    figure = distributions_figure(groups, ylabel=ylabel, scale=scale, title=title)
-    return _save(figure, path)
 
 
 def distributions_figure(
@@ -351,7 +313,7 @@ def render_mesh(
     if title:
         axes.set_title(title, fontsize=9)
     figure.set_dpi(dpi)
-    return _palette_png(_save(figure, path))
+    return _palette_png(save_png(figure, path))
 
 
 def _palette_png(path: Path, colors: int = 256) -> Path:

@@ -90,7 +90,8 @@ def draw_plots(
             for name in ("odometry", "slam")
             if name in named
         }
-        written.append(plots.plot_translation_error(out / "translation_error.png", times, errors))
+        figure = plots.translation_error_figure(times, errors)
+        written.append(plots.save_png(figure, out / "translation_error.png"))
     if mesh is not None and gt_mesh is not None and len(mesh.faces):
         pred = mesh.copy()
         pred.apply_transform(T_gt_W)
@@ -103,11 +104,8 @@ def draw_plots(
             "accuracy (mesh -> GT)": surface_distances(samples, gt_mesh),
             "completion (GT -> mesh)": surface_distances(gt_samples, pred),
         }
-        written.append(
-            plots.plot_error_histogram(
-                out / "mesh_error_histogram.png", distances, threshold_m=threshold_m
-            )
-        )
+        figure = plots.error_histogram_figure(distances, threshold_m=threshold_m)
+        written.append(plots.save_png(figure, out / "mesh_error_histogram.png"))
         vertex_distances = surface_distances(pred.vertices, gt_mesh)
         written.append(
             plots.write_error_colored_mesh(

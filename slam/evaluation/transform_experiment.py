@@ -205,10 +205,9 @@ def write_outputs(
             ("completion: re-encoded -> moved", "completion_m"),
         )
     }
-    figure = plots.plot_distributions(
-        out_dir / "transform_distributions.png",
-        groups,
-        title=f"Encode-transform (moved map) vs transform-encode over {len(rows)} frames",
+    title = f"Encode-transform (moved map) vs transform-encode over {len(rows)} frames"
+    figure = plots.save_png(
+        plots.distributions_figure(groups, title=title), out_dir / "transform_distributions.png"
     )
     return {"results": results_path, "summary": summary_path, "plot": figure}
 
