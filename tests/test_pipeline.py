@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from frontends.frame import Frame
+from frontends.odometry.ground_truth import GroundTruthOdometry
 from frontends.sources import make_source
 from slam.algorithm.loops.registry import make_loop_detector
 from slam.assembly.builders import build_map
@@ -145,6 +146,18 @@ def test_gravity_factors_take_out_a_pitch_drift():
     assert xyz_off[2] > 0.1, xyz_off
     assert xyz_on[2] < 0.5 * xyz_off[2], (xyz_on, xyz_off)
     assert np.hypot(*xyz_on[:2]) <= 1.2 * np.hypot(*xyz_off[:2]) + 0.02, (xyz_on, xyz_off)
+
+
+def test_ground_truth_odometry_keeps_the_true_poses():
+    """Exact poses get no up-direction factor: one would only tilt them by its own error."""
+    street = make_source("generated", **STREET, frames=slice(0, 40))
+    cfg = street_config()
+    cfg.pose_graph.gravity.enabled = True
+    pipeline = run(cfg, street, GroundTruthOdometry())
+    assert len(pipeline.graph.node_ids) >= 2
+    assert not pipeline.graph.up_measurements
+    error_m = np.linalg.norm(pipeline.slam_poses()[:, :3, 3] - street.gt_poses[:, :3, 3], axis=1)
+    assert error_m.max() < 1e-3, error_m.max()
 
 
 def test_frames_wait_for_the_submap_worker_without_their_images() -> None:

@@ -14,6 +14,8 @@ class GroundTruthOdometry(Odometry):
     """Returns ``Frame.T_W_S_gt`` expressed relative to the first frame's ground truth, so that
     W is the first sensor frame as for every other odometry."""
 
+    drifts = False
+
     def __init__(self) -> None:
         self._T_S0_Wgt: np.ndarray | None = None
 

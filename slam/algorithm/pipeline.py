@@ -190,7 +190,8 @@ class SlamPipeline:
             self.graph.add_anchor(current.submap_id, current.T_W_A_odometry, covariance)
             gravity = self.cfg.pose_graph.gravity
             anchored = self.localisation is not None and self.localisation.holds_attitude
-            if gravity.enabled and frame is not None and not anchored:  # the anchor's scan
+            measure = gravity.enabled and self.odometry.drifts and not anchored
+            if measure and frame is not None:  # the anchor's scan
                 up = measure_up(frame, self.graph.up_in(current.submap_id), gravity)
                 if up is not None:
                     self.graph.add_gravity(current.submap_id, up)
