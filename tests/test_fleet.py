@@ -66,12 +66,20 @@ def _serial(base: Path) -> None:
     assert result.returncode == 0, result.stderr[-2000:]
 
 
-def _python(*args: str, **kwargs) -> subprocess.Popen:
+def _python(*args: str) -> subprocess.Popen:
+    """``python ARGS``, which SIGINT interrupts however pytest was started: a shell starts a
+    background job (``pytest &``) with SIGINT ignored, children inherit that, and the fleet would
+    run on to the end. A handled signal is reset to its default in a child at exec, so SIGINT is
+    handled here while the child starts."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen(
-        [sys.executable, *args], cwd=ROOT, env=env, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kwargs,
-    )  # fmt: skip
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen(
+            [sys.executable, *args], cwd=ROOT, env=env, text=True,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        )  # fmt: skip
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _finished(folder: Path) -> bool:
