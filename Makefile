@@ -41,9 +41,14 @@ demo: setup
 # pytest-xdist: one test file per worker (module fixtures are built once); CI has 2 cores.
 TEST_WORKERS ?= 2
 
+# Each test process (the two workers, every command a test starts, every Ray task of the fleet
+# tests) imports torch and the product afresh. Where PYTHONDONTWRITEBYTECODE is set (some shells
+# and containers set it) nothing compiled is cached and each of them compiled it all again: about
+# 3 s of CPU apiece. Unset, the first process to import a module caches its bytecode for the rest.
 test: setup
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
+	env -u PYTHONDONTWRITEBYTECODE \
+		$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 $(KISS_SLAM_VENV)/.installed:
 	mkdir -p $(dir $(KISS_SLAM_LOG))
