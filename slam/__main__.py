@@ -1,7 +1,6 @@
 """``python -m slam ...`` is ``python -m slam.run ...``."""
 
-import sys
-
 from slam.app.cli import main
+from slam.app.rerun_flush import exit_process
 
-sys.exit(main())
+exit_process(main())

@@ -1,8 +1,7 @@
 """``python -m slam.merge RUN_DIR RUN_DIR ... --out DIR`` (see :mod:`slam.app.merge_cli`)."""
 
-import sys
-
 from slam.app.merge_cli import main
+from slam.app.rerun_flush import exit_process
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_process(main())

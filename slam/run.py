@@ -1,8 +1,7 @@
 """``python -m slam.run DATASET [SEQUENCE] ...``: the run command (see :mod:`slam.app.cli`)."""
 
-import sys
-
 from slam.app.cli import main
+from slam.app.rerun_flush import exit_process
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_process(main())

@@ -284,7 +284,7 @@ FULL_DISK_RECORDING = """
 import logging, os, sys, time
 import numpy as np
 import rerun as rr
-from slam.app.rerun_flush import flush_recording
+from slam.app.rerun_flush import exit_process, flush_recording
 logging.basicConfig(format="%(message)s")
 rec = rr.RecordingStream("full-disk")
 rec.save(sys.argv[1])
@@ -295,14 +295,16 @@ for frame in range(20):  # about 1 MB of points
 start = time.monotonic()
 written = flush_recording(rec, 1.0, "the full recording")
 print(f"written {written} in {time.monotonic() - start:.1f} s", flush=True)
-os._exit(0)  # dropping a stream whose sink is stuck blocks as its flush did
+del rec  # the stream stays kept: dropping it would block as its flush did
+exit_process(3)  # without Rerun's clean-up at exit, which would block too
 """
 
 
 def test_a_recording_its_disk_cannot_take_is_closed_with_a_warning(tmp_path: Path) -> None:
     """Rerun's flush waits for ever by default and never returns while its file sink cannot
-    write; closing the recording must give up after its timeout and say so (in a child: the
-    stuck stream cannot be dropped in this process)."""
+    write; closing the recording must give up after its timeout and say so, and the command
+    must still end with its status (in a child: the stuck stream cannot be dropped in this
+    process)."""
     folder = tmp_path / "full"
     if not mount_tmpfs(folder, "64k"):
         pytest.skip("needs root and tmpfs mounts for a size-limited folder")
@@ -314,6 +316,7 @@ def test_a_recording_its_disk_cannot_take_is_closed_with_a_warning(tmp_path: Pat
     finally:
         umount(folder)
     words = result.stdout.split()
+    assert result.returncode == 3, result.stdout + result.stderr[-2000:]
     assert words[:2] == ["written", "False"], result.stdout + result.stderr[-2000:]
     assert float(words[3]) < 10
     assert "the full recording could not be written completely" in result.stderr

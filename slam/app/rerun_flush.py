@@ -1,11 +1,22 @@
 """Closing a Rerun recording without hanging: Rerun's ``flush`` waits for ever by default, and a
-sink that cannot take the data (a full disk, a viewer gone) never confirms it."""
+sink that cannot take the data (a full disk, a viewer gone) never confirms it.
+
+Dropping such a stream, disconnecting it, or Rerun's own clean-up at the interpreter's exit wait
+on the same sink. So a stream whose flush gave up is kept here, never dropped, and a command
+ends through :func:`exit_process`, which then leaves without that clean-up.
+"""
 
 from __future__ import annotations
 
 import logging
+import os
+import sys
+from typing import NoReturn
 
 log = logging.getLogger(__name__)
+
+_GIVEN_UP: list = []
+"""Streams whose sink did not take their data in time (see the module docstring)."""
 
 FLUSH_TIMEOUT_S = 10.0
 """Default wait for a recording to be written or sent when it is closed."""
@@ -21,5 +32,18 @@ def flush_recording(rec, timeout_s: float, what: str) -> bool:
     except RuntimeError as exc:  # a timeout, or a sink that gave up (Rerun says which)
         reason = " ".join(str(exc).split())
         log.warning("%s could not be written completely (%s); it may miss its end", what, reason)
+        _GIVEN_UP.append(rec)
         return False
     return True
+
+
+def exit_process(status: int) -> NoReturn:
+    """End a command with ``status``. Where a recording was given up, the process leaves at
+    once (``os._exit``, after flushing the logs and the standard streams): every other output is
+    already on disk, and the interpreter's clean-up would wait for ever on that stream's sink."""
+    if not _GIVEN_UP:
+        sys.exit(status)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
