@@ -7,6 +7,7 @@ import io
 import itertools
 import logging
 import os
+import signal
 import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -188,3 +189,15 @@ def assert_trajectories_complete(folder: Path) -> int:
     np.testing.assert_array_equal(stamps[0], stamps[1])
     assert np.all(np.diff(stamps[0]) > 0)
     return len(stamps[0])
+
+
+def popen_interruptible(command: list[str], **kwargs) -> subprocess.Popen:
+    """``subprocess.Popen(command, **kwargs)`` for a child the test interrupts with SIGINT,
+    however pytest was started: a shell starts a background job (``pytest &``) with SIGINT
+    ignored, and children inherit that. A handled signal is reset to its default in a child at
+    exec, so SIGINT is handled here while the child starts."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen(command, **kwargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)

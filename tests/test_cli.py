@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from slam.app.cli import UsageError, main, parse_frames
-from tests.helpers import CommandResult, assert_error_line, call_main
+from tests.helpers import CommandResult, assert_error_line, call_main, popen_interruptible
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -158,7 +158,7 @@ def test_serve_streams_to_the_web_viewer_and_stops_cleanly(tmp_path: Path):
         "--set", "output.write_map=false", "--set", "viz.mesh_every_submaps=1000",
         "--set", "output.mesh_samples=1000",
     ]  # fmt: skip
-    process = subprocess.Popen(
+    process = popen_interruptible(
         command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     try:

@@ -24,7 +24,7 @@ import trimesh
 from mapping.map_io import load_map
 from slam.assembly.config import load_run_config
 from slam.run_folder.trajectory_io import read_kitti, read_tum
-from tests.helpers import assert_trajectories_complete, call_main
+from tests.helpers import assert_trajectories_complete, call_main, popen_interruptible
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RUN_FRAMES = 120
@@ -82,7 +82,7 @@ def assert_complete(folder: Path, allow_temporaries: bool = False) -> set[str]:
 
 def run_until(folder: Path, trigger: str, sig: int) -> subprocess.CompletedProcess:
     """Start a demo run into ``folder``, send ``sig`` once ``trigger`` exists there."""
-    process = subprocess.Popen(
+    process = popen_interruptible(
         [sys.executable, "-m", "slam.run", *RUN_ARGS, "--rrd", str(folder / "recording.rrd"),
          "--out", str(folder)],
         cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -27,7 +27,7 @@ from slam.app.fleet_manifest import FleetRun, Sweep, load_manifest
 from slam.app.fleet_plan import merge_levels, run_argv, run_memory_mb, thread_share
 from slam.app.fleet_sweep import metric_row, sweep_csv
 from slam.run_folder.outputs import read_run_status
-from tests.helpers import call_main
+from tests.helpers import call_main, popen_interruptible
 
 ray = pytest.importorskip("ray")
 
@@ -67,19 +67,12 @@ def _serial(base: Path) -> None:
 
 
 def _python(*args: str) -> subprocess.Popen:
-    """``python ARGS``, which SIGINT interrupts however pytest was started: a shell starts a
-    background job (``pytest &``) with SIGINT ignored, children inherit that, and the fleet would
-    run on to the end. A handled signal is reset to its default in a child at exec, so SIGINT is
-    handled here while the child starts."""
+    """``python ARGS``, which SIGINT interrupts however pytest was started."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        return subprocess.Popen(
-            [sys.executable, *args], cwd=ROOT, env=env, text=True,
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        )  # fmt: skip
-    finally:
-        signal.signal(signal.SIGINT, previous)
+    return popen_interruptible(
+        [sys.executable, *args], cwd=ROOT, env=env, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
 
 
 def _finished(folder: Path) -> bool:
