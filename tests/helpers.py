@@ -191,13 +191,21 @@ def assert_trajectories_complete(folder: Path) -> int:
     return len(stamps[0])
 
 
-def popen_interruptible(command: list[str], **kwargs) -> subprocess.Popen:
-    """``subprocess.Popen(command, **kwargs)`` for a child the test interrupts with SIGINT,
-    however pytest was started: a shell starts a background job (``pytest &``) with SIGINT
-    ignored, and children inherit that. A handled signal is reset to its default in a child at
-    exec, so SIGINT is handled here while the child starts."""
+@contextlib.contextmanager
+def python_sigint():
+    """Python's own SIGINT handler (a ``KeyboardInterrupt``) for the block, however pytest was
+    started: a shell starts a background job (``pytest &``) with SIGINT ignored. A handled
+    signal is reset to its default in a child at exec, so a child started in the block gets
+    SIGINT at its default too, where it would have inherited the ignored one."""
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        return subprocess.Popen(command, **kwargs)
+        yield
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def popen_interruptible(command: list[str], **kwargs) -> subprocess.Popen:
+    """``subprocess.Popen(command, **kwargs)`` for a child the test interrupts with SIGINT
+    (:func:`python_sigint`)."""
+    with python_sigint():
+        return subprocess.Popen(command, **kwargs)

@@ -15,6 +15,7 @@ import pytest
 from slam.algorithm.executor import Executor, MapSnapshotRequest, SubmapJobResult, clock
 from slam.algorithm.graph_view import GraphSnapshot
 from slam.algorithm.map_worker import MapWorker
+from tests.helpers import python_sigint
 
 WAIT_S = 5.0
 """Longest a test waits for something that should happen at once."""
@@ -77,18 +78,13 @@ def test_ctrl_c_while_waiting_on_a_full_queue_stops_without_running_the_queue() 
         ran.append(i)
         return SubmapJobResult(None, False)
 
-    # Python's own SIGINT handler, as a command has it (a background job may start pytest with
-    # SIGINT ignored)
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
-    start = time.perf_counter()
-    try:
+    with python_sigint():
+        timer.start()
+        start = time.perf_counter()
         with pytest.raises(KeyboardInterrupt):
             for i in range(100):  # the queue holds 32: submit blocks long before the end
                 executor.submit_frame(job, i, closes=False)
-    finally:
-        signal.signal(signal.SIGINT, previous)
     assert time.perf_counter() - start < WAIT_S
     release.set()
     executor.abort()
