@@ -284,7 +284,7 @@ FULL_DISK_RECORDING = """
 import logging, os, sys, time
 import numpy as np
 import rerun as rr
-from slam.app.rerun_flush import exit_process, flush_recording
+from slam.app.rerun_flush import exit_process, flush_recording, leave_at_exit_if_given_up
 logging.basicConfig(format="%(message)s")
 rec = rr.RecordingStream("full-disk")
 rec.save(sys.argv[1])
@@ -296,27 +296,35 @@ start = time.monotonic()
 written = flush_recording(rec, 1.0, "the full recording")
 print(f"written {written} in {time.monotonic() - start:.1f} s", flush=True)
 del rec  # the stream stays kept: dropping it would block as its flush did
-exit_process(3)  # without Rerun's clean-up at exit, which would block too
+if sys.argv[2] == "exit_process":
+    exit_process(3)  # without Rerun's clean-up at exit, which would block too
+leave_at_exit_if_given_up()  # as a Ray worker does: Ray ends its process after the task
+sys.exit(3)
 """
 
 
-def test_a_recording_its_disk_cannot_take_is_closed_with_a_warning(tmp_path: Path) -> None:
+@pytest.mark.parametrize("ending", ["exit_process", "interpreter_exit"])
+def test_a_recording_its_disk_cannot_take_is_closed_with_a_warning(
+    tmp_path: Path, ending: str
+) -> None:
     """Rerun's flush waits for ever by default and never returns while its file sink cannot
-    write; closing the recording must give up after its timeout and say so, and the command
-    must still end with its status (in a child: the stuck stream cannot be dropped in this
-    process)."""
+    write; closing the recording must give up after its timeout and say so, and the process
+    must still end: a command with its status, a Ray worker (which ends through the
+    interpreter's exit) with 0. In a child: the stuck stream cannot be dropped in this
+    process."""
     folder = tmp_path / "full"
     if not mount_tmpfs(folder, "64k"):
         pytest.skip("needs root and tmpfs mounts for a size-limited folder")
     try:
         result = subprocess.run(
-            [sys.executable, "-c", FULL_DISK_RECORDING, str(folder / "recording.rrd")],
+            [sys.executable, "-c", FULL_DISK_RECORDING, str(folder / "recording.rrd"), ending],
             capture_output=True, text=True, cwd=REPO_ROOT, timeout=60,
         )  # fmt: skip
     finally:
         umount(folder)
     words = result.stdout.split()
-    assert result.returncode == 3, result.stdout + result.stderr[-2000:]
+    status = 3 if ending == "exit_process" else 0
+    assert result.returncode == status, result.stdout + result.stderr[-2000:]
     assert words[:2] == ["written", "False"], result.stdout + result.stderr[-2000:]
     assert float(words[3]) < 10
     assert "the full recording could not be written completely" in result.stderr

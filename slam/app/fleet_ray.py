@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from slam.app.rerun_flush import leave_at_exit_if_given_up
 from slam.assembly.config import UsageError
 from slam.assembly.threads import machine_cores
 
@@ -121,6 +122,9 @@ def call_logged(module: str, argv: list[str], log: str) -> tuple[int, str]:
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
+            # Ray ends this worker after the task (one call each): a recording that was given
+            # up would hold that exit for ever
+            leave_at_exit_if_given_up()
     with path.open("rb") as handle:
         handle.seek(start)
         lines = handle.read().decode(errors="replace").splitlines()

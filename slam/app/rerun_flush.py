@@ -3,11 +3,14 @@ sink that cannot take the data (a full disk, a viewer gone) never confirms it.
 
 Dropping such a stream, disconnecting it, or Rerun's own clean-up at the interpreter's exit wait
 on the same sink. So a stream whose flush gave up is kept here, never dropped, and a command
-ends through :func:`exit_process`, which then leaves without that clean-up.
+ends through :func:`exit_process`, which then leaves without that clean-up. A process that ends
+otherwise (a Ray worker, whose exit Ray starts after the task returned) calls
+:func:`leave_at_exit_if_given_up`.
 """
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 import sys
@@ -43,6 +46,19 @@ def exit_process(status: int) -> NoReturn:
     already on disk, and the interpreter's clean-up would wait for ever on that stream's sink."""
     if not _GIVEN_UP:
         sys.exit(status)
+    _leave(status)
+
+
+def leave_at_exit_if_given_up() -> None:
+    """Where a recording was given up, the interpreter's exit (with status 0) leaves at once
+    instead of waiting for ever in Rerun's clean-up: exit hooks run last registered first, so
+    this one runs before Rerun's. For a process that cannot end through :func:`exit_process`."""
+    if _GIVEN_UP:
+        atexit.unregister(_leave)
+        atexit.register(_leave, 0)
+
+
+def _leave(status: int) -> NoReturn:
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
