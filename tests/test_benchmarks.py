@@ -6,7 +6,9 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import os
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -192,6 +194,50 @@ def test_command_peak_memory_is_the_childs(tmp_path):
         [sys.executable, "-c", "print('said'); raise SystemExit(3)"], cwd=tmp_path
     )
     assert failing.returncode == 3 and "said" in failing.stdout
+
+    with pytest.raises(FileNotFoundError):
+        run_command([str(tmp_path / "missing")], cwd=tmp_path)
+
+
+HOLDING_300_MB = """
+import json, os, subprocess, sys
+from benchmarks.harness.child import run_command
+from benchmarks.harness.reliability import run
+
+held = bytearray(b"x") * (300 << 20)
+tiny = [sys.executable, "-c", "import os, time; print(os.getpid()); time.sleep(0.3)"]
+plain = subprocess.Popen(tiny, stdout=subprocess.DEVNULL)
+_, _, usage = os.wait4(plain.pid, 0)
+polled = []
+command = run_command(tiny, cwd=".", on_poll=polled.append)
+stopped = run_command([sys.executable, "-c", "import time; time.sleep(60)"], cwd=".", timeout_s=0)
+print(json.dumps({
+    "plain_mb": usage.ru_maxrss / 1024,
+    "command_mb": command.usage.peak_rss_mb,
+    "reliability_mb": run(".", tiny).peak_rss_mb,
+    "printed_pid": int(command.stdout),
+    "polled": polled,
+    "stopped": [stopped.returncode, stopped.usage.wall_s],
+}))
+"""
+"""A process holding 300 MB measures a tiny command. Linux carries the forking
+process's high-water mark across exec, so a plain ``wait4`` reports at least 300 MB."""
+
+
+def test_a_large_parent_measures_a_commands_own_peak_memory():
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    said = subprocess.run(
+        [sys.executable, "-c", HOLDING_300_MB], cwd=REPO, env=env, capture_output=True, text=True
+    )
+    assert said.returncode == 0, said.stderr
+    measured = json.loads(said.stdout)
+    assert measured["plain_mb"] >= 300
+    for key in ("command_mb", "reliability_mb"):
+        assert 5 < measured[key] < 150, (key, measured)
+    # on_poll samples the command itself, and a timeout kills the command itself
+    assert measured["polled"] and set(measured["polled"]) == {measured["printed_pid"]}
+    returncode, wall_s = measured["stopped"]
+    assert returncode == -9 and wall_s < 10
 
 
 def test_missing_kiss_slam_environment_gives_a_reason(tmp_path, monkeypatch):

@@ -8,7 +8,7 @@ and voxel size out of bounds, a weights file or device chosen by the file, deep 
 broken sessions (NaN anchors, an edge to an unknown anchor, descriptors of another width, short
 timestamps, NaN descriptors, malformed parts). Most cases load in this process (time and
 ``tracemalloc`` peak measured); a few run ``slam.merge`` as a user would, in parallel, their
-peak RSS from ``wait4``.
+own peak RSS measured (``MeasuredCommand``).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.harness.child import MeasuredCommand
 from benchmarks.harness.crafted_maps import CRAFTED, header_edit, rewritten
 from common.atomic_folder import FolderBusyError, atomic_folder
 from mapping.config import MapConfig
@@ -231,18 +232,6 @@ def test_output_folder_is_claimed_and_appears_whole(tmp_path: Path):
     assert (tmp_path / "late" / "b.txt").is_file() and not (tmp_path / ".late.claim").exists()
 
 
-PEAK_RSS = """
-import os, subprocess, sys
-child = subprocess.Popen([sys.executable, *sys.argv[1:]], stdout=subprocess.DEVNULL)
-_, status, usage = os.wait4(child.pid, 0)
-print(usage.ru_maxrss)
-sys.exit(os.waitstatus_to_exitcode(status))
-"""
-"""``python -c PEAK_RSS ARGS``: runs ``python ARGS`` and prints its peak RSS (KiB). Measured from
-this small process: a child forked from the large pytest worker counts the worker's own peak in
-its ``ru_maxrss`` (Linux carries the forking process's high-water mark across exec)."""
-
-
 def test_cli_cases_end_in_one_line(good: Path, tmp_path: Path):
     """A few cases as a user meets them, in parallel: one ``error:`` line, nothing written,
     peak RSS of the command itself under 1 GB. ``--map`` refuses a map of another sensor or
@@ -264,18 +253,19 @@ def test_cli_cases_end_in_one_line(good: Path, tmp_path: Path):
     for name, (module, *args) in commands.items():
         if "--out" not in args:
             args += ["--out", str(tmp_path / f"out-{name}")]
-        running[name] = subprocess.Popen(
-            [sys.executable, "-c", PEAK_RSS, "-m", module, *args],
-            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        running[name] = MeasuredCommand(
+            [sys.executable, "-m", module, *args],
+            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
     needles = {"sensor": "sensor", "no-descriptors": "no place descriptors", "claimed": "pid"}
-    for name, process in running.items():
-        peak_kib, stderr = process.communicate()
+    for name, command in running.items():
+        _, stderr = command.process.communicate()
+        finished = command.wait()
         lines = [line for line in stderr.splitlines() if line.strip()]
-        assert process.returncode in (1, 2), (name, stderr)
+        assert finished.returncode in (1, 2), (name, stderr)
         assert len(lines) == 1 and lines[0].startswith("error: "), (name, stderr)
         assert needles.get(name, "map.npz") in lines[0], (name, lines[0])
-        assert int(peak_kib) * 1024 < MAX_BYTES, (name, peak_kib)
+        assert finished.peak_rss_mb * 2**20 < MAX_BYTES, (name, finished.peak_rss_mb)
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == sorted([".busy.claim", *(f.name for f in crafted.values())]), left
 

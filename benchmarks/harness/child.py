@@ -1,7 +1,10 @@
 """Measured child processes: a Python function in a fresh interpreter, or a command.
 
 Each measurement runs in its own process so that its peak resident memory is its own. Both
-report wall time, CPU time (user + system, all threads) and peak RSS of the child alone.
+report wall time, CPU time (user + system, all threads) and peak RSS of the child alone: on
+Linux a process's ``ru_maxrss`` includes the high-water mark of the process that forked it
+(carried across fork and exec), so a command is started by a small wrapper process
+(:class:`MeasuredCommand`).
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ import concurrent.futures
 import multiprocessing
 import os
 import resource
+import signal
 import subprocess
 import sys
 import time
@@ -82,6 +86,106 @@ def in_child(fn, *args, code: Path | None = None) -> Any:
     return in_child_measured(fn, *args, code=code)[0]
 
 
+_WRAPPER = """
+import os, signal, subprocess, sys
+result = os.fdopen(int(sys.argv[1]), "w", buffering=1)
+try:
+    command = subprocess.Popen(sys.argv[2:])
+except OSError as error:
+    print("error", error.errno, file=result)
+    sys.exit(1)
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+print(command.pid, file=result)
+_, status, usage = os.wait4(command.pid, 0)
+print(status, usage.ru_maxrss, usage.ru_utime + usage.ru_stime, file=result)
+"""
+"""``python -I -c _WRAPPER FD COMMAND...``: starts ``COMMAND`` (which inherits its streams), writes
+the command's pid to file descriptor ``FD``, waits for it and writes its wait status, peak RSS
+(KiB) and CPU seconds. It imports nothing but a few standard modules, so its high-water mark,
+which the command inherits, is small. Ctrl-C reaches the command itself; the wrapper waits."""
+
+
+@dataclass
+class Finished:
+    """How a measured command ended: exit code (negative: the signal that ended it), CPU time
+    (user + system, its waited-for children included) and its own peak RSS."""
+
+    returncode: int
+    cpu_s: float
+    peak_rss_mb: float
+
+
+class MeasuredCommand:
+    """``command`` started through :data:`_WRAPPER`, so that the peak RSS measured is its own,
+    not that of this (possibly large) process. ``streams`` (``stdin``, ``stdout``, ``stderr``,
+    ``text``) are ``subprocess.Popen``'s and reach the command unchanged; ``process`` is the
+    wrapper (its ``stdout``/``stderr`` pipes are the command's), ``pid`` the command's own."""
+
+    def __init__(
+        self, command: list[str], *, cwd: Path, env: dict[str, str] | None = None, **streams
+    ):
+        read_fd, write_fd = os.pipe()
+        try:
+            self.process = subprocess.Popen(
+                [sys.executable, "-I", "-c", _WRAPPER, str(write_fd), *command],
+                cwd=cwd,
+                env=env,
+                pass_fds=(write_fd,),
+                **streams,
+            )
+        except BaseException:
+            os.close(read_fd)
+            raise
+        finally:
+            os.close(write_fd)
+        self.command = command
+        self.finished: Finished | None = None
+        self._result = os.fdopen(read_fd)
+        started = self._said()
+        if started[0] == "error":
+            self.process.wait()
+            self._result.close()
+            errno = int(started[1])
+            raise OSError(errno, os.strerror(errno), command[0])
+        self.pid = int(started[0])
+
+    def poll(self) -> Finished | None:
+        """How the command ended, or None while it runs."""
+        if self.finished is None and self.process.poll() is not None:
+            status, peak_kib, cpu_s = self._said()
+            self._result.close()
+            self.finished = Finished(
+                os.waitstatus_to_exitcode(int(status)), float(cpu_s), int(peak_kib) / 1024
+            )
+        return self.finished
+
+    def wait(self) -> Finished:
+        """Wait for the command to end; how it ended."""
+        self.process.wait()
+        return self.poll()
+
+    def kill(self) -> None:
+        """SIGKILL the command itself (it ends with -9), unless it has already been waited for
+        (its wrapper, which reaps it, then exits at once)."""
+        if self.process.poll() is None:
+            try:
+                os.kill(self.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+    def _said(self) -> list[str]:
+        """The wrapper's next line, split; a wrapper that ended without writing it is an
+        error."""
+        said = self._result.readline().split()
+        if not said:
+            self._result.close()
+            raise RuntimeError(
+                f"the process measuring {self.command[0]} ended ({self.process.wait()}) "
+                "without saying how the command did; see its stderr"
+            )
+        return said
+
+
 @dataclass
 class CommandResult:
     """A finished command: exit status, its output (or log file) and its :class:`Usage`."""
@@ -100,32 +204,28 @@ def run_command(
     log_file: Path | None = None,
     on_poll=None,
 ) -> CommandResult:
-    """Run ``command``, measured with ``wait4``; its output goes to ``log_file`` (else it is
-    captured), ``on_poll(pid)`` is called about once a second, and past ``timeout_s`` it is
-    killed (status -9)."""
+    """Run ``command`` as a :class:`MeasuredCommand`; its output goes to ``log_file`` (else it
+    is captured), ``on_poll(pid)`` is called with the command's pid about once a second, and
+    past ``timeout_s`` it is killed (status -9)."""
     start = time.perf_counter()
     stream = open(log_file, "w") if log_file is not None else subprocess.PIPE
     try:
-        child = subprocess.Popen(
+        child = MeasuredCommand(
             command, cwd=cwd, env=env, stdout=stream, stderr=subprocess.STDOUT, text=True
         )
         if log_file is None:
-            # a reader thread keeps the pipe drained; wait4 below still gets the rusage
+            # a reader thread keeps the pipe drained while the command is polled
             output: list[str] = []
             import threading
 
-            reader = threading.Thread(target=lambda: output.append(child.stdout.read()))
+            reader = threading.Thread(target=lambda: output.append(child.process.stdout.read()))
             reader.start()
-        while True:
-            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
-            if pid:
-                break
+        while (finished := child.poll()) is None:
             if time.perf_counter() - start > timeout_s:
                 child.kill()
             if on_poll is not None:
                 on_poll(child.pid)
             time.sleep(0.5)
-        child.returncode = os.waitstatus_to_exitcode(status)
         text = ""
         if log_file is None:
             reader.join()
@@ -133,10 +233,8 @@ def run_command(
     finally:
         if log_file is not None:
             stream.close()
-    cost = Usage(
-        time.perf_counter() - start, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
-    )
-    return CommandResult(child.returncode, text, cost)
+    cost = Usage(time.perf_counter() - start, finished.cpu_s, finished.peak_rss_mb)
+    return CommandResult(finished.returncode, text, cost)
 
 
 def run_module(module: str, args: list[str], log_file: Path) -> tuple[float, float]:

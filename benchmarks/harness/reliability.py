@@ -1,6 +1,6 @@
 """What a reliability case is and how it is run (``benchmarks/bench_reliability.py``): a command
 run as a user would, its exit code, the line that tells the user what happened, what a probe
-saw, and the command's own peak RSS (``wait4``)."""
+saw, and the command's own peak RSS (:class:`~benchmarks.harness.child.MeasuredCommand`)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+from benchmarks.harness.child import MeasuredCommand
 
 PY = sys.executable
 
@@ -63,19 +65,18 @@ def run(
     included)."""
     env = {**os.environ, **(env or {}), "PYTHONPATH": str(code)}
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        process = subprocess.Popen(args, cwd=code, env=env, stdout=out, stderr=err)
-        timer = threading.Timer(timeout, process.kill)
+        command = MeasuredCommand(args, cwd=code, env=env, stdout=out, stderr=err)
+        timer = threading.Timer(timeout, command.kill)
         timer.start()
         try:
-            _, status, usage = os.wait4(process.pid, 0)
+            finished = command.wait()
         finally:
             timer.cancel()
-        process.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
         err.seek(0)
         texts = (stream.read().decode(errors="replace") for stream in (out, err))
-        result = subprocess.CompletedProcess(args, process.returncode, *texts)
-    result.peak_rss_mb = usage.ru_maxrss / 1024  # type: ignore[attr-defined]
+        result = subprocess.CompletedProcess(args, finished.returncode, *texts)
+    result.peak_rss_mb = finished.peak_rss_mb  # type: ignore[attr-defined]
     return result
 
 
