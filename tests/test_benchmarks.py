@@ -200,8 +200,8 @@ def test_command_peak_memory_is_the_childs(tmp_path):
 
 
 HOLDING_300_MB = """
-import json, os, subprocess, sys
-from benchmarks.harness.child import run_command
+import json, math, os, subprocess, sys
+from benchmarks.harness.child import in_child_measured, run_command
 from benchmarks.harness.reliability import run
 
 held = bytearray(b"x") * (300 << 20)
@@ -215,12 +215,13 @@ print(json.dumps({
     "plain_mb": usage.ru_maxrss / 1024,
     "command_mb": command.usage.peak_rss_mb,
     "reliability_mb": run(".", tiny).peak_rss_mb,
+    "function_mb": in_child_measured(math.factorial, 12)[1].peak_rss_mb,
     "printed_pid": int(command.stdout),
     "polled": polled,
     "stopped": [stopped.returncode, stopped.usage.wall_s],
 }))
 """
-"""A process holding 300 MB measures a tiny command. Linux carries the forking
+"""A process holding 300 MB measures a tiny command and function. Linux carries the forking
 process's high-water mark across exec, so a plain ``wait4`` reports at least 300 MB."""
 
 
@@ -232,7 +233,7 @@ def test_a_large_parent_measures_a_commands_own_peak_memory():
     assert said.returncode == 0, said.stderr
     measured = json.loads(said.stdout)
     assert measured["plain_mb"] >= 300
-    for key in ("command_mb", "reliability_mb"):
+    for key in ("command_mb", "reliability_mb", "function_mb"):
         assert 5 < measured[key] < 150, (key, measured)
     # on_poll samples the command itself, and a timeout kills the command itself
     assert measured["polled"] and set(measured["polled"]) == {measured["printed_pid"]}

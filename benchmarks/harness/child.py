@@ -3,8 +3,8 @@
 Each measurement runs in its own process so that its peak resident memory is its own. Both
 report wall time, CPU time (user + system, all threads) and peak RSS of the child alone: on
 Linux a process's ``ru_maxrss`` includes the high-water mark of the process that forked it
-(carried across fork and exec), so a command is started by a small wrapper process
-(:class:`MeasuredCommand`).
+(carried across fork and exec), so a function's peak is read from its own address space
+(``VmHWM``) and a command is started by a small wrapper process (:class:`MeasuredCommand`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ from __future__ import annotations
 import concurrent.futures
 import multiprocessing
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -21,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmarks.harness.machine import proc_memory_kib
 from benchmarks.harness.paths import REPO
 
 CODE_UNDER_TEST = ("slam", "frontends", "mapping", "common")
@@ -58,7 +58,7 @@ def _measured(fn, args: tuple) -> tuple[Any, Usage]:
     start, cpu_start = time.perf_counter(), time.process_time()
     result = fn(*args)
     wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_mb = proc_memory_kib()["VmHWM"] / 1024
     return result, Usage(wall, cpu, peak_mb)
 
 
