@@ -39,14 +39,22 @@ def main(argv: list[str] | None = None) -> int:
     lidar.add_argument("--step", type=int, default=1, help="KITTI frame step")
     lidar.add_argument("--azimuth-steps", type=int, default=2048, help="firings per revolution")
     lidar.add_argument(
-        "--terrain-relief", type=float, default=0.0, help="height (m) of hills beside the road"
+        "--terrain-relief",
+        dest="terrain_relief_m",
+        type=float,
+        default=0.0,
+        help="height (m) of hills beside the road",
     )
+    lidar.set_defaults(generate=generate_lidar_sequence)
     rgbd = sub.add_parser("rgbd", help="RGB-D room sequence in TUM RGB-D layout")
     rgbd.add_argument("root", type=Path, help="sequence folder to create")
     rgbd.add_argument("--width", type=int, default=640)
     rgbd.add_argument("--height", type=int, default=480)
+    rgbd.set_defaults(generate=generate_rgbd_sequence)
     for p in (lidar, rgbd):
-        p.add_argument("--frames", type=int, required=True, help="number of frames")
+        p.add_argument(
+            "--frames", dest="num_frames", type=int, required=True, help="number of frames"
+        )
         p.add_argument("--seed", type=int, default=0)
         p.add_argument("--workers", type=int, default=None, help="processes (default: up to 2)")
         p.add_argument("--overwrite", action="store_true", help="replace an existing sequence")
@@ -54,37 +62,14 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     t0 = time.perf_counter()
+    options = vars(args)
+    del options["kind"]
     try:
-        if args.kind == "lidar":
-            out = generate_lidar_sequence(
-                args.root,
-                sequence=args.sequence,
-                num_frames=args.frames,
-                trajectory=args.trajectory,
-                kitti_poses=args.kitti_poses,
-                kitti_calib=args.kitti_calib,
-                start=args.start,
-                step=args.step,
-                seed=args.seed,
-                azimuth_steps=args.azimuth_steps,
-                terrain_relief_m=args.terrain_relief,
-                overwrite=args.overwrite,
-                workers=args.workers,
-            )
-        else:
-            out = generate_rgbd_sequence(
-                args.root,
-                num_frames=args.frames,
-                seed=args.seed,
-                width=args.width,
-                height=args.height,
-                overwrite=args.overwrite,
-                workers=args.workers,
-            )
+        out = options.pop("generate")(**options)
     except DatasetError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print(f"wrote {args.frames} frames to {out} in {time.perf_counter() - t0:.1f} s")
+    print(f"wrote {args.num_frames} frames to {out} in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
