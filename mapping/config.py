@@ -170,14 +170,13 @@ class MapConfig(BaseModel):
         return nodes
 
 
-def resolve_device(device: str) -> torch.device:
-    """Map ``auto``/``cpu``/``cuda`` to a torch device; asking for CUDA without one is an error."""
+def resolve_device(device: str, setting: str = "mapping.device") -> torch.device:
+    """Map ``auto``/``cpu``/``cuda`` to a torch device; asking for CUDA without one is an error
+    that names ``setting`` (the config key or option the device came from)."""
     import torch  # here, not at the top: reading a config must not cost torch's import
 
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cuda" and not torch.cuda.is_available():
-        raise ValueError(
-            "mapping.device is 'cuda' but no CUDA device is available; use 'auto' or 'cpu'"
-        )
+        raise ValueError(f"{setting} is 'cuda' but no CUDA device is available; use auto or cpu")
     return torch.device(device)

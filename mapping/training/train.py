@@ -31,6 +31,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from common.atomic_io import write_bytes_atomic
+from mapping.config import resolve_device
 from mapping.networks import ModelConfig, PriorModel
 from mapping.training.patches import PatchBatch, PatchConfig, generate_patches
 
@@ -190,14 +191,6 @@ def _resumable(config: dict) -> dict:
     return {k: v for k, v in config.items() if k != "steps"}
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: no CUDA device is available; use --device cpu or auto")
-    return torch.device(name)
-
-
 def machine_description(device: torch.device) -> str:
     if device.type == "cuda":
         return f"{torch.cuda.get_device_name(device)} (CUDA), {platform.machine()}"
@@ -352,7 +345,10 @@ def main(argv: list[str] | None = None) -> None:
     cfg = load_config(args.config)
     if args.steps is not None:
         cfg = cfg.model_copy(update={"steps": args.steps})
-    device = resolve_device(args.device)
+    try:
+        device = resolve_device(args.device, "--device")
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     arguments = argv if argv is not None else sys.argv[1:]
     command = "python -m mapping.training.train " + " ".join(arguments)
     _, metadata = train(cfg, args.out, device, args.resume, not args.no_progress, command.strip())
