@@ -63,6 +63,7 @@ import trimesh
 
 from common.atomic_io import write_problem
 from frontends.errors import DatasetError
+from slam.assembly.config import OneLineParser, UsageError
 from slam.assembly.error_line import error_line
 from slam.evaluation.run_metrics import CullDistanceTooSmall, observed_face_mask
 from slam.evaluation.run_plots import draw_plots
@@ -356,14 +357,6 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
     return lines
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    """argparse whose errors are one ``error:`` line (exit status 2), as ``slam.run``'s."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        print(f"error: {message} (see python -m slam.eval --help)", file=sys.stderr)
-        sys.exit(2)
-
-
 MAX_SAMPLES = 10_000_000
 """``--samples`` bound, as ``output.mesh_samples``'s (about 1 GB of distances per mesh)."""
 
@@ -389,7 +382,7 @@ def _distance_m(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _OneLineParser(
+    parser = OneLineParser(
         prog="python -m slam.eval",
         description="Recompute the metrics of a finished run and draw its plots "
         "(or: python -m slam.eval transform --help).",
@@ -434,7 +427,11 @@ def main(argv: list[str] | None = None) -> int:
         from slam.evaluation.transform_experiment import main as transform_main
 
         return transform_main(argv[1:])
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as exc:  # one line naming the option, exit status 2, as slam.run's
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         metrics = evaluate_run(
