@@ -43,19 +43,16 @@ def encode_rgb(rgb: np.ndarray, scale: int, jpeg_quality: int) -> bytes | np.nda
     return jpeg.tobytes() if ok else bgr
 
 
-def encode_depth(depth_m: np.ndarray, scale: int, as_png: bool) -> bytes | np.ndarray:
+def encode_depth(depth_m: np.ndarray, scale: int) -> bytes | np.ndarray:
     """Depth in metres shrunk by ``scale`` (every ``scale``-th pixel, so invalid zeros never
-    blend): a 16-bit millimetre PNG when ``as_png`` (and it encodes), else float32 metres; NaN
-    and infinities become 0 (invalid)."""
+    blend): a 16-bit millimetre PNG, or float32 metres when that does not encode; NaN and
+    infinities become 0 (invalid)."""
     import cv2
 
     depth_m = np.asarray(depth_m, dtype=np.float32)
     height, width = (depth_m.shape[0] // scale) * scale, (depth_m.shape[1] // scale) * scale
     depth_m = depth_m[:height:scale, :width:scale]  # what cv2.INTER_NEAREST picks, unresampled
     depth_m = np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0)
-    if as_png:
-        depth_mm = np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16)
-        ok, png = cv2.imencode(".png", depth_mm)
-        if ok:
-            return png.tobytes()
-    return depth_m
+    depth_mm = np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16)
+    ok, png = cv2.imencode(".png", depth_mm)
+    return png.tobytes() if ok else depth_m

@@ -66,6 +66,23 @@ REJECTED_LOOP_COLOR = (230, 40, 40)
 MAP_ANCHORING_COLOR = (250, 190, 30)
 UP_AXES = {"+z": 2, "+y": 1, "-y": 1}
 EPOCH_THRESHOLD_S = 1e8
+APPLICATION_ID = "neural-remap-slam"
+"""Rerun application id (recordings with the same id share blueprints)."""
+MAP_MAX_VOXELS = 20_000
+"""Voxel centres are randomly subsampled to at most this many."""
+MESH_MAX_FACES = 60_000
+"""Meshes with more faces are decimated by vertex clustering (display only)."""
+IMAGE_MAX_WIDTH = 320
+"""Colour images wider than this are shrunk by the smallest integer factor that fits before
+encoding (the pinhole is scaled to match)."""
+DEPTH_MAX_WIDTH = 160
+"""The same for depth images, which have their own pinhole entity (noisy depth compresses
+poorly: at 160 px wide a frame is ~20 kB as 16-bit PNG)."""
+JPEG_QUALITY = 80
+"""JPEG quality of the colour images."""
+TRAJECTORY_MOVE_M = 1e-3
+"""A trajectory whose already-logged part moved by more than this (an optimisation) is re-logged
+at once."""
 
 
 def metric_entity(name: str) -> str:
@@ -86,7 +103,6 @@ class RerunLogger(Logger):
     """Records a run to an ``.rrd`` file, a spawned viewer and/or a running viewer.
 
     Args:
-        application_id: Rerun application id (recordings with the same id share blueprints).
         rrd_path: write the recording to this file (parent folders are created).
         spawn: start a local viewer and stream to it.
         connect_url: stream to a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
@@ -94,31 +110,16 @@ class RerunLogger(Logger):
             recording for late viewers) and Rerun's web viewer on ``web_port`` over HTTP, both
             bound to ``serve_bind_ip``; ``viewer_url`` is the page to open.
         scan_max_points: scans are randomly subsampled to at most this many points.
-        map_max_voxels: voxel centres are randomly subsampled to at most this many.
-        mesh_max_faces: meshes with more faces are decimated by vertex clustering (display only).
         voxel_size_m: drawn radius of a voxel centre is half of this (UI points when None).
         up_axis: ``+z`` (LiDAR, KITTI), ``+y`` or ``-y``; sets the view and the height colouring.
-        image_every: log RGB-D images every n-th call of :meth:`log_sensor` (poses every call).
-        image_max_width: images wider than this are shrunk by the smallest integer factor that
-            fits before encoding (the pinhole is scaled to match).
-        depth_max_width: the same for depth images, which have their own pinhole entity (noisy
-            depth compresses poorly: at 160 px wide a frame is ~20 kB as 16-bit PNG).
-        jpeg_quality: JPEG quality of the colour images.
-        depth_png: encode depth as 16-bit millimetre PNG (else raw float32 ``DepthImage``).
         trajectory_relog_points: a growing trajectory of N poses is re-logged at most every
             ``ceil(N / trajectory_relog_points)`` frames; the newest pending polyline is logged
             on :meth:`close`.
-        trajectory_move_m: a trajectory whose already-logged part moved by more than this (an
-            optimisation) is re-logged at once.
-        with_camera_view: force the camera view in the blueprint; ``None`` adds it on the first
-            image.
-        seed: seed of the subsampling RNG.
         flush_timeout_s: how long :meth:`close` waits for the recording to be written or sent.
     """
 
     def __init__(
         self,
-        application_id: str = "neural-remap-slam",
         *,
         rrd_path: Path | str | None = None,
         spawn: bool = False,
@@ -127,19 +128,9 @@ class RerunLogger(Logger):
         web_port: int = 9090,
         serve_bind_ip: str = "127.0.0.1",
         scan_max_points: int = 3000,
-        map_max_voxels: int = 20_000,
-        mesh_max_faces: int = 60_000,
         voxel_size_m: float | None = None,
         up_axis: str = "+z",
-        image_every: int = 1,
-        image_max_width: int = 320,
-        depth_max_width: int = 160,
-        jpeg_quality: int = 80,
-        depth_png: bool = True,
         trajectory_relog_points: int = 500,
-        trajectory_move_m: float = 1e-3,
-        with_camera_view: bool | None = None,
-        seed: int = 0,
         flush_timeout_s: float = FLUSH_TIMEOUT_S,
     ) -> None:
         import rerun as rr
@@ -153,33 +144,24 @@ class RerunLogger(Logger):
         if serve_port is not None:  # before any sink: Rerun would serve on beside a taken port
             check_serve_ports(serve_bind_ip, int(serve_port), int(web_port))
         self.scan_max_points = scan_max_points
-        self.map_max_voxels = map_max_voxels
-        self.mesh_max_faces = mesh_max_faces
         self.voxel_size_m = voxel_size_m
         self.up_axis = up_axis
-        self.image_every = max(1, image_every)
-        self.image_max_width = max(1, int(image_max_width))
-        self.depth_max_width = max(1, int(depth_max_width))
         self._image_scale = 1
         self._depth_scale = 1
-        self.jpeg_quality = jpeg_quality
-        self.depth_png = depth_png
-        self._trajectories = TrajectoryThrottle(trajectory_relog_points, trajectory_move_m)
+        self._trajectories = TrajectoryThrottle(trajectory_relog_points, TRAJECTORY_MOVE_M)
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
-        self._rng = np.random.default_rng(seed)
+        self._rng = np.random.default_rng(0)
         self._frame = 0
         self._sensor_time_is_epoch: bool | None = None
-        self._sensor_calls = 0
         self._height_range: tuple[float, float] | None = None
         self._intrinsics: Intrinsics | None = None
-        self._camera_view = bool(with_camera_view)
-        self._camera_view_auto = with_camera_view is None
+        self._camera_view = False  # added on the first image
         self._metric_names: set[str] = set()
         self._closed = False
         self.flush_timeout_s = flush_timeout_s
 
         self.rec, self._web_viewer = open_recording(
-            application_id,
+            APPLICATION_ID,
             self.rrd_path,
             spawn,
             connect_url,
@@ -258,21 +240,17 @@ class RerunLogger(Logger):
         self._columns.add(
             "world/sensor", rr.Transform3D, translation=T_W_S[:3, 3], mat3x3=T_W_S[:3, :3]
         )
-        self._sensor_calls += 1
         if intrinsics is None:
             return
         if intrinsics != self._intrinsics:
             self._intrinsics = intrinsics
-            self._image_scale = self._log_pinhole(CAMERA_ENTITY, intrinsics, self.image_max_width)
-            self._depth_scale = self._log_pinhole(DEPTH_ENTITY, intrinsics, self.depth_max_width)
-        if (self._sensor_calls - 1) % self.image_every != 0:
-            return
-        if (rgb is not None or depth_m is not None) and self._camera_view_auto:
-            self._camera_view_auto = False
+            self._image_scale = self._log_pinhole(CAMERA_ENTITY, intrinsics, IMAGE_MAX_WIDTH)
+            self._depth_scale = self._log_pinhole(DEPTH_ENTITY, intrinsics, DEPTH_MAX_WIDTH)
+        if (rgb is not None or depth_m is not None) and not self._camera_view:
             self._camera_view = True
             self.rec.send_blueprint(default_blueprint(with_camera=True))
         if rgb is not None:
-            jpeg = encode_rgb(rgb, self._image_scale, self.jpeg_quality)
+            jpeg = encode_rgb(rgb, self._image_scale, JPEG_QUALITY)
             if isinstance(jpeg, bytes):
                 self._columns.add(
                     f"{CAMERA_ENTITY}/rgb", rr.EncodedImage, blob=jpeg, media_type="image/jpeg"
@@ -280,7 +258,7 @@ class RerunLogger(Logger):
             else:  # encoding failed: the shrunk BGR pixels
                 self.rec.log(f"{CAMERA_ENTITY}/rgb", rr.Image(jpeg, color_model="BGR"))
         if depth_m is not None:
-            png = encode_depth(depth_m, self._depth_scale, self.depth_png)
+            png = encode_depth(depth_m, self._depth_scale)
             if isinstance(png, bytes):
                 self._columns.add(
                     f"{DEPTH_ENTITY}/depth",
@@ -289,7 +267,7 @@ class RerunLogger(Logger):
                     media_type="image/png",
                     meter=1000.0,
                 )
-            else:  # raw (depth_png off, or encoding failed): float32 metres
+            else:  # encoding failed: float32 metres
                 self.rec.log(f"{DEPTH_ENTITY}/depth", rr.DepthImage(png, meter=1.0))
 
     def _log_pinhole(self, entity: str, intrinsics: Intrinsics, max_width: int) -> int:
@@ -359,7 +337,7 @@ class RerunLogger(Logger):
         import rerun as rr
 
         centers = np.asarray(voxel_centers_W)
-        keep = self._subsample(len(centers), self.map_max_voxels)
+        keep = self._subsample(len(centers), MAP_MAX_VOXELS)
         values = np.asarray(voxel_values, dtype=np.float64).reshape(-1)[keep]
         scaled = np.log1p(np.maximum(values, 0.0))
         top = float(scaled.max()) if len(scaled) else 1.0
@@ -375,7 +353,7 @@ class RerunLogger(Logger):
             self.log_mesh(mesh)
 
     def log_mesh(self, mesh: trimesh.Trimesh) -> None:
-        """``mesh`` at ``world/map/mesh``, vertex-clustered to at most ``mesh_max_faces`` faces."""
+        """``mesh`` at ``world/map/mesh``, decimated to at most :data:`MESH_MAX_FACES` faces."""
         self._log_mesh("world/map/mesh", mesh, (200, 200, 210, 255))
 
     def log_stored_map(self, mesh_path: Path) -> None:
@@ -391,7 +369,7 @@ class RerunLogger(Logger):
     def _log_mesh(
         self, entity: str, mesh: trimesh.Trimesh, albedo: tuple[int, ...], static: bool = False
     ) -> None:
-        self.rec.log(entity, display_mesh(mesh, self.mesh_max_faces, albedo), static=static)
+        self.rec.log(entity, display_mesh(mesh, MESH_MAX_FACES, albedo), static=static)
 
     # -- metrics ------------------------------------------------------------------------------
 
