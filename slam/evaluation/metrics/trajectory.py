@@ -104,25 +104,21 @@ def ate_rmse(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
     return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
 
 
-def ate_per_axis_rmse(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> np.ndarray:
+def ate_per_axis_rmse(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """(3,) RMSE (metres) of the x, y and z position differences after the same alignment as ATE.
 
     The axes are the ground truth's world axes (z up for KITTI's LiDAR frame and the generated
     LiDAR street), so the last entry is the vertical error; their squares sum to ATE squared.
     """
     est, gt = _check_pair(est, gt)
-    if align:
-        est = align_se3(est, gt) @ est
+    est = align_se3(est, gt) @ est
     return np.sqrt(np.mean((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=0))
 
 
-def ate_rotation_rmse_deg(est: np.ndarray, gt: np.ndarray, *, align: bool = True) -> float:
+def ate_rotation_rmse_deg(est: np.ndarray, gt: np.ndarray) -> float:
     """RMSE (degrees) of the absolute orientation error after the same alignment as ATE."""
     est, gt = _check_pair(est, gt)
-    if align:
-        return float(np.degrees(_kiss_icp_ate(est, gt)[0]))
-    delta = np.swapaxes(est[:, :3, :3], 1, 2) @ gt[:, :3, :3]
-    return float(np.degrees(np.sqrt(np.mean(rotation_angle_rad(delta) ** 2))))
+    return float(np.degrees(_kiss_icp_ate(est, gt)[0]))
 
 
 @dataclass(frozen=True)
