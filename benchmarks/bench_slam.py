@@ -93,15 +93,10 @@ def _mesh_accuracy(pipeline, source, num_samples: int) -> dict:
     from slam.evaluation.metrics.trajectory import align_se3
     from slam.evaluation.run_metrics import mesh_errors
 
-    frame = source[0]
-    cameras = lidar_range = None
-    if frame.intrinsics is not None:
-        cameras = (frame.intrinsics.K, frame.intrinsics.width, frame.intrinsics.height)
-    else:
-        lidar_range = pipeline.cfg.submaps.max_range_m
     T = align_se3(pipeline.slam_poses(), source.gt_poses)
     return mesh_errors(pipeline.map.extract_mesh(), source.gt_mesh_path, T, num_samples,
-                       source.gt_poses, cameras=cameras, lidar_range_m=lidar_range)  # fmt: skip
+                       source.gt_poses, intrinsics=source[0].intrinsics,
+                       lidar_range_m=pipeline.cfg.submaps.max_range_m)  # fmt: skip
 
 
 def lidar_frames(quick: bool) -> int:

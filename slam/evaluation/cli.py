@@ -112,15 +112,10 @@ def mesh_section(
     """``metrics.json``'s ``mesh`` (and ``mesh_unculled``) sections, computed as the run does
     (:func:`slam.evaluation.run_metrics.mesh_sections`); private ``_gt``/``_mask`` entries for
     plotting."""
-    from slam.evaluation.run_metrics import mesh_sections
-
-    cameras = None
-    if gt.intrinsics is not None:
-        cameras = (gt.intrinsics.K, gt.intrinsics.width, gt.intrinsics.height)
-    from slam.evaluation.run_metrics import cull_distance
+    from slam.evaluation.run_metrics import cull_distance, mesh_sections
 
     observed, distance_m = None, cull_distance_m or 0.0
-    if culling == "observed" and cameras is not None:
+    if culling == "observed" and gt.intrinsics is not None:
         distance_m = cull_distance_m if cull_distance_m is not None else cull_distance(True, 0.0)
     elif culling == "observed":
         try:
@@ -140,8 +135,8 @@ def mesh_section(
             gt.poses[scored],
             observed_points_W=observed,
             cull_distance_m=distance_m,
-            cameras=cameras,
-            lidar_range_m=None if cameras is not None else lidar_range_m,
+            intrinsics=gt.intrinsics,
+            lidar_range_m=lidar_range_m,
             observe=culling == "observed",
         )
     except CullDistanceTooSmall as exc:

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from frontends.frame import Intrinsics
 from slam.algorithm.report import PipelineReport
 
 logger = logging.getLogger(__name__)
@@ -118,18 +119,18 @@ def near_trajectory_mask(
 def unculled_face_mask(
     gt: trimesh.Trimesh,
     gt_poses: np.ndarray,
-    cameras: tuple[np.ndarray, int, int] | None = None,
+    intrinsics: Intrinsics | None = None,
     lidar_range_m: float | None = None,
 ) -> tuple[np.ndarray | None, str]:
     """Ground-truth faces the sensor could have seen, and the culling's name: in the frustum of a
-    ground-truth camera (``cameras = (K, width, height)``), or within ``lidar_range_m`` of a
-    ground-truth LiDAR position; None (and ``"none"``) when neither applies or nothing is kept."""
+    ground-truth camera with ``intrinsics``, else within ``lidar_range_m`` of a ground-truth
+    LiDAR position; None (and ``"none"``) when neither applies or nothing is kept."""
     from slam.evaluation.metrics.mesh import visible_face_mask
 
     mask, name = None, "none"
-    if cameras is not None:
-        K, width, height = cameras
-        mask = visible_face_mask(gt, gt_poses[:: max(1, len(gt_poses) // 200)], K, width, height)
+    if intrinsics is not None:
+        poses = gt_poses[:: max(1, len(gt_poses) // 200)]
+        mask = visible_face_mask(gt, poses, intrinsics.K, intrinsics.width, intrinsics.height)
         name = "frustum"
     elif lidar_range_m is not None:
         mask = near_trajectory_mask(gt, gt_poses[:, :3, 3], lidar_range_m)
@@ -145,7 +146,7 @@ def mesh_errors(
     T_gt_W: np.ndarray,
     num_samples: int,
     gt_poses: np.ndarray,
-    cameras: tuple[np.ndarray, int, int] | None = None,
+    intrinsics: Intrinsics | None = None,
     lidar_range_m: float | None = None,
 ) -> dict[str, Any]:
     """Accuracy / completion of ``mesh`` (world frame W) against the ground-truth mesh file, with
@@ -155,7 +156,7 @@ def mesh_errors(
     gt = trimesh.load(gt_mesh_path, force="mesh", process=False)
     pred = mesh.copy()
     pred.apply_transform(T_gt_W)
-    mask, culling = unculled_face_mask(gt, gt_poses, cameras, lidar_range_m)
+    mask, culling = unculled_face_mask(gt, gt_poses, intrinsics, lidar_range_m)
     out = mesh_metrics(pred, gt, num_samples=num_samples, gt_face_mask=mask).as_dict()
     out.update(gt_mesh=str(gt_mesh_path), culling=culling, completion_seen_only=mask is not None)
     return out
@@ -237,7 +238,7 @@ VIEW_CAMERAS_MAX = 60
 def camera_observed_face_mask(
     gt_mesh: trimesh.Trimesh,
     T_W_C: np.ndarray,
-    cameras: tuple[np.ndarray, int, int],
+    intrinsics: Intrinsics,
     distance_m: float,
     *,
     max_depth_m: float = 10.0,
@@ -246,7 +247,7 @@ def camera_observed_face_mask(
     ground-truth mesh (first hit only, so occluded surface is not counted, nor surface beyond
     ``max_depth_m``); faces of the mesh subdivided to ``distance_m`` are observed when their
     centroid lies within ``distance_m`` of a hit. Returns ``(subdivided mesh, mask)``."""
-    K, width, height = cameras
+    K, width, height = intrinsics.K, intrinsics.width, intrinsics.height
     poses = np.asarray(T_W_C, dtype=np.float64)
     poses = poses[np.unique(np.linspace(0, len(poses) - 1, VIEW_CAMERAS_MAX).round().astype(int))]
     u, v = np.meshgrid(
@@ -275,13 +276,13 @@ def mesh_sections(
     *,
     observed_points_W: np.ndarray | None,
     cull_distance_m: float,
-    cameras: tuple[np.ndarray, int, int] | None = None,
+    intrinsics: Intrinsics | None = None,
     lidar_range_m: float | None = None,
     observe: bool = True,
 ) -> dict[str, Any]:
     """``{"mesh": ..., "mesh_unculled": ...}`` of ``metrics.json`` (see the module docstring).
 
-    Observed surface: for cameras, what rays from the ground-truth cameras hit first
+    Observed surface: with ``intrinsics``, what rays from the ground-truth cameras hit first
     (:func:`camera_observed_face_mask`, ``cull_distance_m`` apart at most); otherwise ground truth
     within ``cull_distance_m`` of ``observed_points_W`` (the final map's voxel centres, world
     frame W). Neither gives the unculled numbers under ``mesh``. Both sections hold the
@@ -293,13 +294,13 @@ def mesh_sections(
     gt = trimesh.load(gt_mesh_path, force="mesh", process=False)
     pred = mesh.copy()
     pred.apply_transform(T_gt_W)
-    mask, culling = unculled_face_mask(gt, gt_poses, cameras, lidar_range_m)
+    mask, culling = unculled_face_mask(gt, gt_poses, intrinsics, lidar_range_m)
     unculled = mesh_metrics(pred, gt, num_samples=num_samples, gt_face_mask=mask).as_dict()
     unculled.update(gt_mesh=str(gt_mesh_path), culling=culling, _gt=gt, _mask=mask)
     if not observe:
         return {"mesh": unculled}
-    if cameras is not None:
-        fine, observed = camera_observed_face_mask(gt, gt_poses, cameras, cull_distance_m)
+    if intrinsics is not None:
+        fine, observed = camera_observed_face_mask(gt, gt_poses, intrinsics, cull_distance_m)
         culling = "observed (first hits of camera rays)"
     elif observed_points_W is not None and len(observed_points_W):
         points_gt = observed_points_W @ T_gt_W[:3, :3].T + T_gt_W[:3, 3]
@@ -395,7 +396,7 @@ def collect_metrics(
     gt_mesh_path: Path | None,
     pipeline_s: float | None = None,
     setup_s: float | None = None,
-    intrinsics=None,
+    intrinsics: Intrinsics | None = None,
     lidar_range_m: float | None = None,
     num_mesh_samples: int = 100_000,
     extra: dict[str, Any] | None = None,
@@ -429,9 +430,6 @@ def collect_metrics(
     if can_score and num_mesh_samples > 0:
         slam_scored, gt_scored = gt_subset(slam, gt)
         T_gt_W = align_se3(slam_scored, gt_scored)
-        cameras = None
-        if intrinsics is not None:
-            cameras = (intrinsics.K, intrinsics.width, intrinsics.height)
         centers, weights = neural_map.voxel_centers()
         observed = np.asarray(centers)[np.asarray(weights) > 0]
         try:
@@ -442,9 +440,9 @@ def collect_metrics(
                 num_mesh_samples,
                 gt_scored,
                 observed_points_W=observed,
-                cull_distance_m=cull_distance(cameras is not None, neural_map.voxel_size_m),
-                cameras=cameras,
-                lidar_range_m=None if cameras is not None else lidar_range_m,
+                cull_distance_m=cull_distance(intrinsics is not None, neural_map.voxel_size_m),
+                intrinsics=intrinsics,
+                lidar_range_m=lidar_range_m,
             )
             metrics.update({name: public(value) for name, value in sections.items()})
         except ValueError as exc:
