@@ -61,12 +61,7 @@ def _depth_options(cfg: RunConfig) -> dict[str, Any]:
 
 
 def _kitti_options(cfg: RunConfig) -> dict[str, Any]:
-    kitti = cfg.source.kitti
-    return {
-        **_sequence_options(cfg),
-        "correct_vertical_angle": kitti.correct_vertical_angle,
-        "max_range_m": kitti.max_range_m,
-    }
+    return {**_sequence_options(cfg), **cfg.source.kitti.model_dump()}
 
 
 def _icl_options(cfg: RunConfig) -> dict[str, Any]:
@@ -84,46 +79,27 @@ def _tum_options(cfg: RunConfig) -> dict[str, Any]:
 
 
 def _lidar_options(cfg: RunConfig) -> dict[str, Any]:
-    src, lidar = cfg.source, cfg.source.lidar
+    src = cfg.source
     return {
+        **src.lidar.model_dump(exclude={"scale_from_first_scan"}),  # the runner applies it
         "root": src.root,
-        "dataloader": lidar.dataloader,
-        "sequence": lidar.sequence,
-        "topic": lidar.topic,
         "frames": frame_slice(src.frames),
-        "gt_poses": lidar.gt_poses,
-        "nominal_rate_hz": lidar.nominal_rate_hz,
-        "max_range_m": lidar.max_range_m,
         "max_time_difference_s": src.tum.max_time_difference_s,
     }
 
 
 def _generated_options(cfg: RunConfig) -> dict[str, Any]:
+    """Every ``generated`` field a sequence of its ``kind`` uses (the image size for RGB-D, the
+    street and trajectory for LiDAR)."""
     src, g = cfg.source, cfg.generated
-    options: dict[str, Any] = {
-        "kind": g.kind,
-        "root": src.root,
-        "num_frames": g.num_frames,
-        "seed": g.seed,
-        "frames": frame_slice(src.frames),
-    }
     if g.kind == "rgbd":
+        options = g.model_dump(include={"kind", "num_frames", "seed", "width", "height"})
         loader_options = {"depth_options": src.depth.model_dump()}
-        return {**options, "width": g.width, "height": g.height, "loader_options": loader_options}
-    return {
-        **options,
-        "trajectory": g.trajectory,
-        "kitti_poses": g.kitti_poses,
-        "kitti_calib": g.kitti_calib,
-        "start": g.start,
-        "step": g.step,
-        "azimuth_steps": g.azimuth_steps,
-        "terrain_relief_m": g.terrain_relief_m,
-        "street_style": g.street_style,
-        "range_noise_m": g.range_noise_m,
-        "dropout": g.dropout,
-        "loader_options": {"max_range_m": src.kitti.max_range_m},
-    }
+    else:
+        options = g.model_dump(exclude={"width", "height"})
+        loader_options = {"max_range_m": src.kitti.max_range_m}
+    frames = frame_slice(src.frames)
+    return {**options, "root": src.root, "frames": frames, "loader_options": loader_options}
 
 
 SOURCE_OPTIONS: dict[str, Callable[[RunConfig], dict[str, Any]]] = {
