@@ -235,4 +235,3 @@ class NeuralMap:
     def memory_bytes(self) -> int:
         """Bytes of the global voxel storage (allocated capacity included; submaps not counted)."""
         return self._store.memory_bytes()
-

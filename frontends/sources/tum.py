@@ -40,6 +40,7 @@ with ``F`` to compare with the ICL-NUIM surface model).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import re
@@ -191,17 +192,17 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def pair_with_ground_truth(
+def gt_for_pairs(
     name: str,
     pairs: RgbdFrames,
     gt_file: Path | None,
     max_difference: float,
     gt_transform: np.ndarray | None = None,
-) -> tuple[RgbdFrames, np.ndarray | None]:
-    """Attach ground truth to frames by timestamp; every frame is kept, frames without a pose
-    within ``max_difference`` get a row of NaN. Returns (pairs, (N, 4, 4) poses or None)."""
+) -> np.ndarray | None:
+    """Ground truth of the frames by timestamp, (N, 4, 4) (None without ``gt_file``): every
+    frame is kept, frames without a pose within ``max_difference`` get a row of NaN."""
     if gt_file is None:
-        return pairs, None
+        return None
     gt_stamps, gt_poses = read_tum_trajectory(gt_file)
     if gt_transform is not None:
         gt_poses = gt_transform @ gt_poses @ gt_transform
@@ -225,7 +226,7 @@ def pair_with_ground_truth(
     poses = np.full((len(pairs.stamps), 4, 4), np.nan)
     for i, j in matches:
         poses[i] = gt_poses[j]
-    return pairs, poses
+    return poses
 
 
 class _PairedSource(RgbdSource):
@@ -314,14 +315,9 @@ class TumSource(_PairedSource):
         super().__init__(f"tum-{sequence}", frames, depth_options)
         self.folder = folder
         gt_file = folder / "groundtruth.txt"
-        self._set_pairs(
-            *pair_with_ground_truth(
-                self.name,
-                read_tum_pairs(folder, max_difference, allow_outside_paths),
-                gt_file if gt_file.is_file() else None,
-                max_difference,
-            )
-        )
+        pairs = read_tum_pairs(folder, max_difference, allow_outside_paths)
+        gt_file = gt_file if gt_file.is_file() else None
+        self._set_pairs(pairs, gt_for_pairs(self.name, pairs, gt_file, max_difference))
 
 
 _ICL_NAME = re.compile(r"(lr|of)[-_]?kt([0-3])(n?)")
@@ -372,14 +368,7 @@ class IclSource(_PairedSource):
 
     depth_scale = 5000.0
     dataset_mirror = FLIP_Y
-    intrinsics = Intrinsics(
-        fx=ICL_INTRINSICS_RAW.fx,
-        fy=-ICL_INTRINSICS_RAW.fy,
-        cx=ICL_INTRINSICS_RAW.cx,
-        cy=ICL_INTRINSICS_RAW.cy,
-        width=ICL_INTRINSICS_RAW.width,
-        height=ICL_INTRINSICS_RAW.height,
-    )
+    intrinsics = dataclasses.replace(ICL_INTRINSICS_RAW, fy=-ICL_INTRINSICS_RAW.fy)
 
     def __init__(
         self,
@@ -400,15 +389,8 @@ class IclSource(_PairedSource):
             self._set_pairs(*_read_small_icl(folder))
             return
         gt_file = _find_icl_gt(root, folder, sequence)
-        self._set_pairs(
-            *pair_with_ground_truth(
-                self.name,
-                read_tum_pairs(folder, max_difference),
-                gt_file,
-                max_difference,
-                gt_transform=FLIP_Y,
-            )
-        )
+        pairs = read_tum_pairs(folder, max_difference)
+        self._set_pairs(pairs, gt_for_pairs(self.name, pairs, gt_file, max_difference, FLIP_Y))
 
 
 def _find_icl_gt(root: Path, folder: Path, sequence: str) -> Path | None:

@@ -34,12 +34,6 @@ def loop_edges(run_dir: Path, anchors_W: dict[int, np.ndarray]) -> np.ndarray:
     return np.asarray(edges, dtype=np.float64).reshape(-1, 2, 3)
 
 
-def _aligned(poses: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    from slam.evaluation.metrics.trajectory import align_se3
-
-    return align_se3(poses, gt) @ poses
-
-
 def draw_plots(
     run_dir: Path,
     trajectories: RunTrajectories,
@@ -56,6 +50,7 @@ def draw_plots(
     ``figures_dir``)."""
     from slam.evaluation import plots
     from slam.evaluation.metrics.mesh import surface_distances
+    from slam.evaluation.metrics.trajectory import align_se3
 
     out = Path(run_dir) / PLOTS_DIR
     written: list[Path] = []
@@ -70,7 +65,8 @@ def draw_plots(
     if gt.poses is not None:
         named = {"gt": gt.poses[scored], "slam": T_gt_W @ trajectories.slam[scored]}
         if odometry is not None:
-            named["odometry"] = _aligned(odometry[scored], gt.poses[scored])
+            odometry = odometry[scored]
+            named["odometry"] = align_se3(odometry, gt.poses[scored]) @ odometry
         edges = edges_W @ T_gt_W[:3, :3].T + T_gt_W[:3, 3] if len(edges_W) else edges_W
     else:
         named = {"slam": trajectories.slam}
