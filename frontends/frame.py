@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -78,11 +78,5 @@ class Frame:
         instead of 5.3 MB. The frame itself when it has none."""
         if self.depth is None and self.rgb is None and self.colors is None:
             return self
-        return Frame(
-            index=self.index,
-            timestamp=self.timestamp,
-            points=self.points,
-            normals=self.normals,
-            point_times=self.point_times,
-            T_W_S_gt=self.T_W_S_gt,
-        )
+        images = {"depth": None, "rgb": None, "intrinsics": None, "depth_scale": None}
+        return replace(self, colors=None, **images)

@@ -295,15 +295,7 @@ class RgbdSource(Source):
             )
         opts = self.depth_options
         cloud = depth_to_points(
-            depth,
-            self.intrinsics,
-            rgb=rgb,
-            min_depth_m=opts.min_depth_m,
-            max_depth_m=opts.max_depth_m,
-            stride=opts.stride,
-            normal_step_px=opts.normal_step_px,
-            max_points=opts.max_points,
-            seed=raw_index,
+            depth, self.intrinsics, rgb=rgb, seed=raw_index, **opts.model_dump()
         )
         if len(cloud) == 0:
             raise fail(

@@ -15,7 +15,7 @@ moves as a whole, and what loop closure matches.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -149,16 +149,8 @@ class KeyframeDecisions:
         keep_images = frame.depth is not None and self.cfg.keep_keyframe_images
         keyframe = None
         if keep_images:
-            keyframe = Frame(
-                index=frame.index,
-                timestamp=frame.timestamp,
-                points=np.zeros((0, 3)),
-                depth=frame.depth,
-                rgb=frame.rgb,
-                intrinsics=frame.intrinsics,
-                T_W_S_gt=frame.T_W_S_gt,
-                depth_scale=frame.depth_scale,
-            )
+            empty = {"normals": None, "colors": None, "point_times": None}
+            keyframe = replace(frame, points=np.zeros((0, 3)), **empty)
         self._current = SubmapRecord(
             submap_id=self._next_id,
             frame_indices=[],
