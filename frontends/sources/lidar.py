@@ -222,18 +222,13 @@ def _with_field_constants(read_point_cloud):
     from types import SimpleNamespace
 
     def read(msg):
-        fields = [
-            SimpleNamespace(
-                name=f.name,
-                offset=f.offset,
-                datatype=f.datatype,
-                count=f.count,
-                **POINT_FIELD_TYPES,
-            )
-            for f in msg.fields
-        ]
+        def copy(item, names: tuple[str, ...], **extra) -> SimpleNamespace:
+            return SimpleNamespace(**{n: getattr(item, n) for n in names}, **extra)
+
+        field_names = ("name", "offset", "datatype", "count")
+        fields = [copy(f, field_names, **POINT_FIELD_TYPES) for f in msg.fields]
         names = ("header", "height", "width", "is_bigendian", "point_step", "row_step", "data")
-        plain = SimpleNamespace(fields=fields, **{n: getattr(msg, n) for n in names})
+        plain = copy(msg, names, fields=fields)
         plain.is_dense = getattr(msg, "is_dense", True)
         return read_point_cloud(plain)
 

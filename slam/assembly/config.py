@@ -188,13 +188,7 @@ class RunConfig(Strict):
 
     def pipeline_config(self) -> PipelineConfig:
         """The algorithm's part of this configuration (the same section objects, not copies)."""
-        return PipelineConfig(
-            submaps=self.submaps,
-            loop_closure=self.loop_closure,
-            pose_graph=self.pose_graph,
-            remap=self.remap,
-            map_worker=self.map_worker,
-        )
+        return PipelineConfig(**{name: getattr(self, name) for name in PipelineConfig.model_fields})
 
 
 class UsageError(ValueError):
