@@ -9,7 +9,6 @@ of one run shows the same square.
 
 from __future__ import annotations
 
-import io
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -238,16 +237,7 @@ def corner_figure(
 
 
 def write_png(path: str | Path, figure) -> Path:
-    """``figure`` drawn on its Agg canvas, written atomically as a palette PNG."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from PIL import Image
+    """``figure`` written atomically as a palette PNG."""
+    from slam.evaluation.plots import palette_png, save_png
 
-    from common.atomic_io import write_bytes_atomic
-
-    canvas = FigureCanvasAgg(figure)
-    canvas.draw()
-    rgb = Image.fromarray(np.asarray(canvas.buffer_rgba())[..., :3].copy())
-    stream = io.BytesIO()
-    rgb.quantize(PALETTE_COLOURS).save(stream, format="PNG", optimize=True)
-    write_bytes_atomic(path, stream.getvalue())
-    return Path(path)
+    return palette_png(save_png(figure, path), PALETTE_COLOURS)

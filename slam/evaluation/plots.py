@@ -313,10 +313,10 @@ def render_mesh(
     if title:
         axes.set_title(title, fontsize=9)
     figure.set_dpi(dpi)
-    return _palette_png(save_png(figure, path))
+    return palette_png(save_png(figure, path))
 
 
-def _palette_png(path: Path, colors: int = 256) -> Path:
+def palette_png(path: Path, colors: int = 256) -> Path:
     """Re-save a PNG with a palette of ``colors`` (a third of the size for shaded renders)."""
     from PIL import Image
 
