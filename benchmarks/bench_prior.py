@@ -31,9 +31,8 @@ from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
 from common.geometry import orthonormalize
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
-from mapping.training.patches import PatchConfig, generate_patches_with_scenes
 from mapping.training.scenes import PATCH_KINDS
-from mapping.training.train import EVAL_SEED_BASE, encode_patches, evaluate
+from mapping.training.train import EVAL_SEED_BASE, encode_patches, evaluate, heldout_sets
 
 log = logging.getLogger("benchmarks.bench_prior")
 
@@ -60,17 +59,6 @@ def load_models(weights: Path) -> list[tuple[str, PriorModel]]:
 
 
 # ---------------------------------------------------------------------------- patches
-def heldout(n_patches: int) -> list:
-    """The held-out set of mapping.training.train (same seeds), with the scenes kept for exact
-    SDF."""
-    cfg = PatchConfig()
-    out, chunk = [], 64
-    for i, start in enumerate(range(0, n_patches, chunk)):
-        size = min(chunk, n_patches - start)
-        out.append(generate_patches_with_scenes(size, EVAL_SEED_BASE + i, cfg))
-    return out
-
-
 def patch_section(models, sets, lines: list[str]) -> None:
     batches = [b for b, _ in sets]
     n = sum(b.points.shape[0] for b in batches)
@@ -383,7 +371,7 @@ def main(argv: list[str] | None = None) -> None:
         f"- Weights: `{args.weights}`{weights}",
         "",
     ]
-    sets = heldout(32 if args.quick else 256)
+    sets = heldout_sets(32 if args.quick else 256)
     patch_section(models, sets, lines)
     lattice_section(models, sets, lines)
     if not args.no_scenes:

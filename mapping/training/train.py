@@ -33,7 +33,13 @@ from pydantic import BaseModel, ConfigDict, Field
 from common.atomic_io import write_bytes_atomic
 from mapping.config import resolve_device
 from mapping.networks import ModelConfig, PriorModel
-from mapping.training.patches import PatchBatch, PatchConfig, generate_patches
+from mapping.training.patches import (
+    PatchBatch,
+    PatchConfig,
+    generate_patches,
+    generate_patches_with_scenes,
+)
+from mapping.training.scenes import Scenes
 
 log = logging.getLogger(__name__)
 
@@ -127,13 +133,16 @@ def patch_loss(
     return loss, {"loss": loss.item(), "nll": nll.item(), "mae_vu": mae.item()}
 
 
-def heldout_batches(
-    n_patches: int, cfg: PatchConfig | None = None, chunk: int = 64
-) -> list[PatchBatch]:
-    """The fixed-seed held-out set (generator defaults: 4096 SDF samples per patch)."""
-    cfg = cfg or PatchConfig()
+def heldout_sets(n_patches: int, chunk: int = 64) -> list[tuple[PatchBatch, Scenes]]:
+    """The fixed-seed held-out set (generator defaults: 4096 SDF samples per patch), in batches
+    of ``chunk`` patches, each with the scenes it was cut from (for exact SDF)."""
     sizes = [min(chunk, n_patches - i) for i in range(0, n_patches, chunk)]
-    return [generate_patches(size, EVAL_SEED_BASE + i, cfg) for i, size in enumerate(sizes)]
+    return [generate_patches_with_scenes(n, EVAL_SEED_BASE + i) for i, n in enumerate(sizes)]
+
+
+def heldout_batches(n_patches: int) -> list[PatchBatch]:
+    """:func:`heldout_sets` without the scenes."""
+    return [batch for batch, _ in heldout_sets(n_patches)]
 
 
 @torch.no_grad()
