@@ -65,13 +65,16 @@ from common.atomic_io import write_problem
 from frontends.errors import DatasetError
 from slam.assembly.config import OneLineParser, UsageError
 from slam.assembly.error_line import error_line
-from slam.evaluation.run_metrics import CullDistanceTooSmall, observed_face_mask
+from slam.evaluation.run_metrics import (
+    CullDistanceTooSmall,
+    observed_face_mask,
+    trajectory_section,
+)
 from slam.evaluation.run_plots import draw_plots
 from slam.evaluation.summary import length, mesh_lines
 from slam.run_folder.reader import (
     EvalError,
     GroundTruth,
-    RunTrajectories,
     _load_run_config,
     _to_loader_frame,
     check_run_finished,
@@ -84,18 +87,6 @@ from slam.run_folder.reader import (
 __all__ = ["EvalError", "evaluate_run", "observed_face_mask", "read_gt_poses"]
 
 logger = logging.getLogger("slam.eval")
-
-
-def trajectory_section(
-    trajectories: RunTrajectories, gt_poses: np.ndarray, sensor: str | None
-) -> dict[str, Any]:
-    """``metrics.json["trajectory"]``: the same numbers ``slam.evaluation.run_metrics`` writes."""
-    from slam.evaluation.run_metrics import trajectory_section as section
-
-    result = section(trajectories.odometry, trajectories.slam, gt_poses, sensor)
-    if result is None:
-        raise EvalError("fewer than two frames have a ground-truth pose; nothing to score")
-    return result
 
 
 def mesh_section(
@@ -205,8 +196,11 @@ def evaluate_run(
     for stale in ("trajectory", "mesh", "mesh_unculled"):
         metrics.pop(stale, None)
     T_gt_W = np.eye(4)
-    if gt.poses is not None and np.isfinite(gt.poses).all(axis=(1, 2)).sum() >= 2:
-        metrics["trajectory"] = trajectory_section(trajectories, gt.poses, gt.sensor)
+    section = None  # the same numbers the run writes, over the frames with ground truth
+    if gt.poses is not None:
+        section = trajectory_section(trajectories.odometry, trajectories.slam, gt.poses, gt.sensor)
+    if section is not None:
+        metrics["trajectory"] = section
         scored = np.isfinite(gt.poses).all(axis=(1, 2))
         T_gt_W = align_se3(trajectories.slam[scored], gt.poses[scored])
     else:
