@@ -47,6 +47,7 @@ TEST_WORKERS ?= 2
 # 3 s of CPU apiece. Unset, the first process to import a module caches its bytecode for the rest.
 test: setup
 	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 	env -u PYTHONDONTWRITEBYTECODE \
 		$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 

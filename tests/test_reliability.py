@@ -36,8 +36,6 @@ def run_cli(argv: list[str], capsys) -> tuple[int, str]:
     return status, err
 
 
-
-
 # -- atomic writes (defects 7, 14) --------------------------------------------------------------
 
 
@@ -162,8 +160,6 @@ def test_output_root_pointing_at_a_file_names_output_root(tmp_path: Path, capsys
     status, err = run_cli(["demo", "--no-viz", "--set", f"output.root={afile}"], capsys)
     assert status == 2
     assert f"output.root {afile}" in one_line(err)
-
-
 
 
 def test_read_only_out_is_one_line(tmp_path: Path, capsys) -> None:

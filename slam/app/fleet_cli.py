@@ -60,14 +60,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("manifest", nargs="?", type=Path, help="YAML list of runs")
     parser.add_argument("--sweep", type=Path, help="YAML: one run and a grid of --set values")
     parser.add_argument("--out", type=Path, required=True, help="fleet folder (new, or continued)")
-    parser.add_argument("--address", help="join this Ray cluster (default: RAY_ADDRESS, else a "
-                        "local Ray on this machine)")
-    parser.add_argument("--num-cpus", type=int,
-                        help="CPUs of the local Ray (default: all; a cluster has its own)")
-    parser.add_argument("--merge", choices=["global", "tree"], default=MERGE_DEFAULT,
-                        help="one merge of all runs, or pairwise merges in a tree")
-    parser.add_argument("--record", action="store_true",
-                        help="write each run's and the merge's Rerun recording")
+    parser.add_argument(
+        "--address",
+        help="join this Ray cluster (default: RAY_ADDRESS, else a local Ray on this machine)",
+    )
+    parser.add_argument(
+        "--num-cpus", type=int, help="CPUs of the local Ray (default: all; a cluster has its own)"
+    )
+    parser.add_argument(
+        "--merge",
+        choices=["global", "tree"],
+        default=MERGE_DEFAULT,
+        help="one merge of all runs, or pairwise merges in a tree",
+    )
+    parser.add_argument(
+        "--record", action="store_true", help="write each run's and the merge's Rerun recording"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     return parser
@@ -138,8 +146,9 @@ def _main(argv: list[str], debug: bool) -> int:
         connected = fleet_ray.connect(args.address, args.num_cpus)
         _catch_sigterm()  # ray.init installs its own SIGTERM handler, which aborts the driver
         size = fleet_ray.cluster_size()
-        tasks = plan_runs(runs, out, thread_share(size.cpus, size.node_cpus, len(runs)),
-                          args.record)
+        tasks = plan_runs(
+            runs, out, thread_share(size.cpus, size.node_cpus, len(runs)), args.record
+        )
         live = not args.no_progress and sys.stderr.isatty()
         progress = FleetProgress(total=len(tasks), live=live)
         try:
@@ -168,9 +177,11 @@ def _main(argv: list[str], debug: bool) -> int:
         if connected:
             fleet_ray.disconnect()
     failed = len(tasks) - len(finished)
-    print(f"{len(finished)} of {len(tasks)} runs finished"
-          + (f", {failed} failed" if failed else "")
-          + (f"; merged map in {out / 'merged'}" if merged_ok else ""))
+    print(
+        f"{len(finished)} of {len(tasks)} runs finished"
+        + (f", {failed} failed" if failed else "")
+        + (f"; merged map in {out / 'merged'}" if merged_ok else "")
+    )
     return 0 if failed == 0 and merged_ok else 1
 
 
@@ -233,8 +244,11 @@ def _merge(tasks, finished, out: Path, args, pool, size, progress: FleetProgress
         return True
     log = out / "logs" / "merge.log"
     for level in merge_levels(folders, out, args.merge == "tree"):
-        steps = {f"{MERGE_KEY}{step.out}": step for step in level
-                 if not merged_is_current(step.out, step.runs)}
+        steps = {
+            f"{MERGE_KEY}{step.out}": step
+            for step in level
+            if not merged_is_current(step.out, step.runs)
+        }
         cpus = max(1, min(size.node_cpus, size.cpus // max(1, len(steps))))
         for key, step in steps.items():
             partial = partial_path(step.out)

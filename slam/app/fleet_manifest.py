@@ -36,12 +36,12 @@ class FleetRun(Strict):
     dataset: str = Field(description="the run command's DATASET, e.g. kitti, demo, lidar")
     sequence: str | None = Field(
         None,
-        description="the run command's SEQUENCE (e.g. \"00\", quoted; for lidar and rgbd the "
+        description='the run command\'s SEQUENCE (e.g. "00", quoted; for lidar and rgbd the '
         "recording's path)",
     )
     root: Path | None = Field(None, description="--root: the dataset's folder")
     config: Path | None = Field(None, description="--config: a YAML config of configs/' format")
-    frames: str | None = Field(None, description="--frames A:B[:STEP], e.g. \"0:120\"")
+    frames: str | None = Field(None, description='--frames A:B[:STEP], e.g. "0:120"')
     odometry: Literal["gt", "kiss-icp", "rgbd"] | None = Field(None, description="--odometry")
     device: Literal["auto", "cpu", "cuda"] | None = Field(None, description="--device")
     dataloader: str | None = Field(None, description="--dataloader (lidar only)")
@@ -68,8 +68,10 @@ class FleetRun(Strict):
 class Sweep(Strict):
     """One recording run under every combination of a grid of ``--set`` values."""
 
-    run: FleetRun = Field(description="the recording, as a manifest entry (its name prefixes "
-                          "each combination's run name)")
+    run: FleetRun = Field(
+        description="the recording, as a manifest entry (its name prefixes "
+        "each combination's run name)"
+    )
     grid: dict[str, list[Any]] = Field(
         min_length=1,
         description="dotted config key -> the values to try; every combination is one run",
@@ -90,8 +92,9 @@ class Sweep(Strict):
         for k, values in enumerate(itertools.product(*(self.grid[key] for key in keys))):
             chosen = dict(zip(keys, values, strict=True))
             overrides = {**self.run.set_items(), **chosen}
-            entry = self.run.model_copy(update={"name": f"{self.run.name}-{k}",
-                                                "overrides": overrides})
+            entry = self.run.model_copy(
+                update={"name": f"{self.run.name}-{k}", "overrides": overrides}
+            )
             out.append((entry, chosen))
         return out
 

@@ -49,9 +49,7 @@ def sensor_of(run: FleetRun) -> str:
 
 def run_memory_mb(run: FleetRun) -> int:
     """Memory Ray reserves for the run of an entry."""
-    scored = run.dataset in DATASETS_WITH_GT_MESH and run.set_items().get(
-        "output.mesh_samples", 1
-    )
+    scored = run.dataset in DATASETS_WITH_GT_MESH and run.set_items().get("output.mesh_samples", 1)
     return TASK_MEMORY_MB[sensor_of(run)] + (SCORING_MEMORY_MB if scored else 0)
 
 
@@ -136,9 +134,7 @@ def check_fleet_folder(out: Path) -> None:
         )
 
 
-def plan_runs(
-    runs: list[FleetRun], out: Path, share: int, record: bool
-) -> list[RunTask]:
+def plan_runs(runs: list[FleetRun], out: Path, share: int, record: bool) -> list[RunTask]:
     """The tasks of ``runs`` in ``out``: finished run folders of the same entry are reused, any
     other folder of an entry is removed (the run is redone). Writes ``fleet.json``."""
     check_fleet_folder(out)
