@@ -9,6 +9,7 @@ The command line around it is :mod:`slam.app.cli`.
 
 from __future__ import annotations
 
+import copy
 import logging
 import re
 import time
@@ -27,6 +28,7 @@ from slam.app.summary import summary_lines
 from slam.assembly.config import RunConfig
 from slam.assembly.datasets import DatasetEntry
 from slam.run_folder.outputs import KittiRows
+from slam.run_folder.write_behind import WriteBehind
 
 logger = logging.getLogger("slam.run")
 
@@ -186,12 +188,27 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     frame_indices: list[int] = []  # the dataset's index of each processed frame
     placed_at: list[int] = []  # the frame at which the run was placed in the stored map
 
-    def write_poses() -> None:
-        outputs.write_poses(
+    def poses() -> tuple:
+        """The arguments of ``outputs.write_poses`` as of now (copies)."""
+        return (
             source.to_dataset_frame(pipeline.frames.odometry_poses()),
             source.to_dataset_frame(pipeline.slam_poses()),
             pipeline.frames.timestamps(),
             KittiRows(np.asarray(kitti_rows), state.frames_done),
+        )
+
+    def write_progress() -> None:
+        """The files a submap close rewrites, written behind the run from copies."""
+        localisation = None
+        if relocaliser is not None:
+            localisation = _localisation_rows(pipeline, frame_indices)
+        writes.submit(
+            _write_progress,
+            outputs,
+            poses(),
+            [copy.copy(candidate) for candidate in pipeline.loop_candidates],
+            localisation,
+            (state.frames_done, state.frames_total),
         )
 
     bar = None
@@ -201,6 +218,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         bar = tqdm(total=len(source), unit="frame", desc=source.name, dynamic_ncols=True)
     intrinsics = None
     skipped: list[int] = []
+    writes = WriteBehind()
     loop_start = time.perf_counter()
     cpu_start = run_cpu_s(odometry)
     try:
@@ -228,11 +246,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
             if intrinsics is None and frame.intrinsics is not None:
                 intrinsics = frame.intrinsics
             if result.closed_submap_id is not None:
-                write_poses()
-                outputs.write_loops(pipeline.loop_candidates)
-                if relocaliser is not None:
-                    _localisation(outputs, pipeline, frame_indices, placed_at)
-                outputs.write_status("running", state.frames_done, state.frames_total)
+                write_progress()
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(
@@ -255,11 +269,13 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         recorder.finish()
     except BaseException:  # Ctrl-C, SIGTERM, a failed job: stop the workers, skip their queue
         pipeline.abort()
+        writes.abandon()  # before the failure's status is written
         raise
     finally:
         if bar is not None:
             bar.close()
-    write_poses()
+    writes.close()  # before the final writes of the same files
+    outputs.write_poses(*poses())
     outputs.write_loops(pipeline.loop_candidates)
     mesh = None if localise_only else neural_map.extract_mesh(threads=threads.mesh_threads)
     if mesh is not None and cfg.output.write_mesh:
@@ -362,24 +378,38 @@ def _relocalisation_metrics(pipeline, relocaliser) -> dict[str, Any]:
     return out
 
 
-def _localisation(outputs, pipeline, frame_indices: list[int], placed_at: list[int]) -> dict:
-    """Write ``localisation.csv`` (every processed frame's status as the main thread knows it)
-    and return ``metrics.json``'s ``localisation`` (complete after ``pipeline.finish()``)."""
-    from slam.run_folder.localisation import (
-        frame_statuses,
-        localisation_csv,
-        localisation_summary,
-    )
+def _localisation_rows(pipeline, frame_indices: list[int]) -> tuple[list, list, list, list]:
+    """The columns of ``localisation.csv`` (:func:`slam.run_folder.localisation.localisation_csv`)
+    as the main thread knows them now, as copies: every processed frame's status."""
+    from slam.run_folder.localisation import frame_statuses
 
     frame_submaps = pipeline.frames.anchors()[0].tolist()
     statuses = frame_statuses(frame_submaps, pipeline.map_anchored)
-    outputs.write_localisation(
-        localisation_csv(
-            frame_indices, pipeline.frames.timestamps().tolist(), frame_submaps, statuses
-        )
-    )
-    if not pipeline.finished:
-        return {}
+    return list(frame_indices), pipeline.frames.timestamps().tolist(), frame_submaps, statuses
+
+
+def _write_progress(
+    outputs, poses: tuple, candidates: list, localisation: tuple | None, frames: tuple[int, int]
+) -> None:
+    """The files a submap close rewrites (on the write-behind thread, from copies): the
+    trajectories, ``loops.csv``, ``localisation.csv`` (in a stored map) and the status."""
+    from slam.run_folder.localisation import localisation_csv
+
+    outputs.write_poses(*poses)
+    outputs.write_loops(candidates)
+    if localisation is not None:
+        outputs.write_localisation(localisation_csv(*localisation))
+    outputs.write_status("running", *frames)
+
+
+def _localisation(outputs, pipeline, frame_indices: list[int], placed_at: list[int]) -> dict:
+    """Write the final ``localisation.csv`` and return ``metrics.json``'s ``localisation``
+    (after ``pipeline.finish()``)."""
+    from slam.run_folder.localisation import localisation_csv, localisation_summary
+
+    rows = _localisation_rows(pipeline, frame_indices)
+    outputs.write_localisation(localisation_csv(*rows))
+    frame_submaps, statuses = rows[2], rows[3]
     found, localisation = pipeline.relocalisation, pipeline.localisation
     summary = localisation_summary(
         frame_indices,
