@@ -27,12 +27,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common.geometry import transform_points
-from common.point_to_plane import IcpResult, point_to_plane_icp
+from common.point_to_plane import IcpResult
 from common.voxel_keys import unpack_keys
 from mapping.neural_map import Submap
 from slam.algorithm.loops.ambiguity import find_ambiguity, graph_gate
 from slam.algorithm.merge.config import LocaliseConfig, MergeConfig
-from slam.algorithm.merge.surface import SurfaceDecoder, icp_covariance, verify
+from slam.algorithm.merge.surface import SurfaceDecoder, align_surfaces, icp_covariance, verify
 
 AnchorCovariance = Callable[[int], np.ndarray]
 """The graph's 6x6 marginal covariance of an anchor (``[rot, trans]``) in the map's frame."""
@@ -169,10 +169,11 @@ class MapConstraints:
             return None
         merge = self._merge
         query = np.asarray(subsample(points_A, self.cfg.max_query_points), dtype=np.float64)
+        coarse = self._coarse(query)
         reference = self._reference(ids)
         tree = cKDTree(reference[0])
         accepted, reason, T, scores, result = verify(
-            reference, (query, np.zeros((0, 3))), T_M_A, self._V, merge, tree
+            reference, (query, np.zeros((0, 3))), T_M_A, self._V, merge, tree, coarse
         )
         if accepted and scores["inlier_fraction"] < self.cfg.min_inlier_fraction:
             accepted = False
@@ -187,10 +188,16 @@ class MapConstraints:
         constraint.covariance = registration_covariance(result, scores, query, merge)
         graph = None if anchor_covariance is None else anchor_covariance(submap_id)
         if graph is None or self._graph_may_be_fooled(graph):
-            self._check_ambiguity(constraint, reference, query, tree)
+            self._check_ambiguity(constraint, reference, query, coarse, tree)
         if constraint.accepted and graph is not None:
             self._check_graph(constraint, T_M_A, graph)
         return constraint
+
+    def _coarse(self, query: np.ndarray) -> np.ndarray | None:
+        """The query points of the registration's gates wider than half a voxel
+        (:func:`~slam.algorithm.merge.surface.align_surfaces`), or None: all of them."""
+        count = self.cfg.coarse_query_points
+        return None if count == 0 or count >= len(query) else subsample(query, count)
 
     def _graph_may_be_fooled(self, covariance: np.ndarray) -> bool:
         """Whether an alternative solution ``ambiguity_min_separation_vu`` away could pass the
@@ -206,18 +213,15 @@ class MapConstraints:
         constraint: MapConstraint,
         reference: tuple[np.ndarray, np.ndarray],
         query: np.ndarray,
+        coarse: np.ndarray | None,
         tree: cKDTree,
     ) -> None:
         c, V = self.cfg, self._V
         if not c.ambiguity_check:
             return
-        gates = tuple(g * V for g in self._merge.icp_gates_vu)
-        tolerance = self._merge.icp_tolerance_vu * V
 
         def realign(guess: np.ndarray) -> np.ndarray:
-            return point_to_plane_icp(
-                reference[0], reference[1], query, guess, gates, tolerance=tolerance, tree=tree
-            ).T_ref_query
+            return align_surfaces(reference, query, guess, V, self._merge, tree, coarse).T_ref_query
 
         radius = _centre_radius(reference[0])[1]
         score, alternative = find_ambiguity(

@@ -13,9 +13,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common.geometry import relative_motion, transform_points
-from common.point_to_plane import point_to_plane_hessian, point_to_plane_icp
+from common.point_to_plane import IcpResult, point_to_plane_hessian, point_to_plane_icp
 from mapping.neural_map import NeuralMap, Submap
 from slam.algorithm.merge.config import MergeConfig
+
+COARSE_GATE_VU = 0.5
+"""ICP gates wider than this (voxel units) are coarse (:func:`align_surfaces`)."""
 
 
 class SurfaceDecoder:
@@ -80,6 +83,36 @@ def _overlap(
     return seen.inlier_fraction, seen.robust_sigma_m
 
 
+def align_surfaces(
+    reference: tuple[np.ndarray, np.ndarray],
+    query: np.ndarray,
+    guess: np.ndarray,
+    voxel_size_m: float,
+    cfg: MergeConfig,
+    tree: cKDTree,
+    coarse_query: np.ndarray | None = None,
+) -> IcpResult:
+    """Point-to-plane ICP of ``query`` onto a decoded surface (its points and normals, ``tree``
+    their KD-tree) from ``guess`` through the gates ``icp_gates_vu``. With ``coarse_query`` (a
+    subset of ``query``) the gates wider than half a voxel align that subset alone: they only
+    bring the pose into the fine gates' reach, which then align every point, and the KD-tree
+    queries of the coarse iterations (about three fifths of them) cost a fraction
+    (``LocaliseConfig.coarse_query_points``)."""
+    V = voxel_size_m
+    gates = tuple(g * V for g in cfg.icp_gates_vu)
+    tolerance = cfg.icp_tolerance_vu * V
+    coarse = tuple(g for g in gates if g > COARSE_GATE_VU * V)
+    fine = tuple(g for g in gates if g <= COARSE_GATE_VU * V)
+    if coarse_query is not None and coarse and fine:
+        guess = point_to_plane_icp(
+            reference[0], reference[1], coarse_query, guess, coarse, tolerance=tolerance, tree=tree
+        ).T_ref_query
+        gates = fine
+    return point_to_plane_icp(
+        reference[0], reference[1], query, guess, gates, tolerance=tolerance, tree=tree
+    )
+
+
 def verify(
     reference: tuple[np.ndarray, np.ndarray],
     query: tuple[np.ndarray, np.ndarray],
@@ -87,9 +120,12 @@ def verify(
     voxel_size_m: float,
     cfg: MergeConfig,
     tree: cKDTree | None = None,
+    coarse_query: np.ndarray | None = None,
 ):
     """ICP of decoded surfaces from a guess: ``(accepted, reason, T_ref_query, scores, result)``;
-    ``tree``: a KD-tree of the reference points already built (else one is).
+    ``tree``: a KD-tree of the reference points already built (else one is); ``coarse_query``:
+    the points the gates wider than half a voxel align (a subset of ``query[0]``; else all), see
+    :func:`align_surfaces`.
 
     The ICP's gates narrow down to ``icp_gates_vu[-1]``: a wide last gate lets the parts of two
     partly overlapping surfaces that do not match pull the pose (measured on 7-Scenes redkitchen:
@@ -99,16 +135,7 @@ def verify(
     finer pose does not change what is accepted."""
     V = voxel_size_m
     tree = tree if tree is not None else cKDTree(reference[0])
-    gates = tuple(g * V for g in cfg.icp_gates_vu)
-    result = point_to_plane_icp(
-        reference[0],
-        reference[1],
-        query[0],
-        guess,
-        gates,
-        tolerance=cfg.icp_tolerance_vu * V,
-        tree=tree,
-    )
+    result = align_surfaces(reference, query[0], guess, V, cfg, tree, coarse_query)
     T = result.T_ref_query
     overlap, residual = _overlap(reference, query[0], T, cfg.overlap_gate_vu * V, tree)
     correction_m, correction_deg = relative_motion(guess, T)
