@@ -102,10 +102,10 @@ def run_slam(checkout: Path, args: list[str], out: Path) -> dict[str, Any]:
 
 
 def map_file_stats(path: Path) -> dict[str, Any]:
-    """Size and content of a ``map.npz`` (format version 2: the submaps' arrays and a header)."""
+    """Size and content of a ``map.npz`` (the submaps' arrays and a header; one weight a voxel)."""
     with np.load(path, allow_pickle=False) as npz:
         submap_arrays = [n for n in npz.files if not n.startswith("submap_") and n != "header"]
-        voxels = int(npz["keys"].shape[0])
+        voxels = int(npz["weights"].shape[0])
         submap_bytes = sum(npz[n].nbytes for n in submap_arrays)
     return {
         "file_mb": path.stat().st_size / 1e6,

@@ -4,11 +4,13 @@ A submap keeps its original encoding for life, so that encoding is where the map
 :class:`CompactBlock` holds it as
 
 * packed int64 keys (sorted) and float32 weights (point counts, exact integers),
-* latents as coefficients on a per-block *channel basis*, in half precision,
-* Jacobians as coefficients on their own channel basis, quantised to int8 with one scale per
-  basis direction (or in a float format). They only feed the transform's first-order term, whose
-  effect on the mesh is a fraction of a millimetre; the int8 rounding (at most half a step,
-  ``max|b_k| / 254``) changes the two-path transform benchmark by less than its noise.
+* latents as coefficients on a per-block *channel basis*, in half precision (or quantised to
+  int8 with one step per basis direction, ``max|a_k| / 127``, where the map file must be small),
+* Jacobians as coefficients on their own channel basis, quantised to int8 with one step per
+  basis direction (or to int4, codes within +-7 held one per byte, or in a float format). They
+  only feed the transform's first-order term, whose effect on the mesh is a fraction of a
+  millimetre; the int8 rounding (at most half a step, ``max|b_k| / 254``) changes the two-path
+  transform benchmark by less than its noise, int4's makes its mean distances 10-16 % larger.
 
 The channel basis is the leading eigenvectors of the (uncentred) channel second-moment matrix of
 the block: ``F[m, :, d] ~ B_F @ a[m, :, d]`` and ``J[m, :, i, j] ~ B_J @ b[m, :, i, j]``. The basis
@@ -37,15 +39,17 @@ import torch
 from common.voxel_keys import unpack_keys
 from mapping.voxel_block import VoxelBlock
 
-StorageDtype = Literal["float16", "bfloat16", "float32"]
-JacobianStorage = Literal["int8", "float16", "bfloat16", "float32"]
+StorageDtype = Literal["int8", "float16", "bfloat16", "float32"]
+JacobianStorage = Literal["int4", "int8", "float16", "bfloat16", "float32"]
 _DTYPES: dict[str, torch.dtype] = {
+    "int4": torch.int8,  # codes within +-7, held one per byte
     "int8": torch.int8,
     "float16": torch.float16,
     "bfloat16": torch.bfloat16,
     "float32": torch.float32,
 }
-_INT8_MAX = 127
+_MAX_CODES = {"int4": 7, "int8": 127}
+"""Largest code magnitude of each integer storage."""
 
 
 def storage_dtype(name: str) -> torch.dtype:
@@ -72,12 +76,24 @@ def channel_basis(samples: torch.Tensor, rank: int) -> torch.Tensor:
     return (basis * signs).to(torch.float32)
 
 
-def _quantise(b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(M, k, 3, 3)`` -> int8 codes and ``(k,)`` float32 scales, ``b ~ codes * scale``."""
-    peak = b.abs().amax(dim=(0, 2, 3)) if b.shape[0] else torch.zeros(b.shape[1])
-    scales = torch.where(peak > 0, peak / _INT8_MAX, torch.ones_like(peak)).to(torch.float32)
-    codes = torch.round(b / scales.view(1, -1, 1, 1)).clamp_(-_INT8_MAX, _INT8_MAX)
+def _quantise(x: torch.Tensor, max_code: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(M, k, ...)`` -> int8 codes within ``+-max_code`` and ``(k,)`` float32 scales (one per
+    basis direction, its peak over ``max_code``), ``x ~ codes * scale``."""
+    shape = (1, -1) + (1,) * (x.dim() - 2)
+    others = [d for d in range(x.dim()) if d != 1]
+    peak = x.abs().amax(dim=others) if x.shape[0] else torch.zeros(x.shape[1], device=x.device)
+    scales = torch.where(peak > 0, peak / max_code, torch.ones_like(peak)).to(torch.float32)
+    codes = torch.round(x / scales.view(shape)).clamp_(-max_code, max_code)
     return codes.to(torch.int8), scales
+
+
+def _store(x: torch.Tensor, storage: str, what: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Coefficients ``x`` (``(M, k, ...)``) as ``storage`` codes and their ``(k,)`` scales
+    (ones for a float format)."""
+    if storage in _MAX_CODES:
+        return _quantise(x, _MAX_CODES[storage])
+    ones = torch.ones(x.shape[1], dtype=torch.float32, device=x.device)
+    return _to_storage(x, storage_dtype(storage), what), ones
 
 
 def _to_storage(x: torch.Tensor, dtype: torch.dtype, what: str) -> torch.Tensor:
@@ -98,10 +114,12 @@ class CompactBlock:
         keys: ``(M,)`` packed int64 keys, sorted and unique.
         weights: ``(M,)`` float32 positive weights.
         latent_basis: ``(C, kF)`` float32 orthonormal channel basis of the latents.
-        latent_coeffs: ``(M, kF, 3)`` coefficients in the storage dtype.
+        latent_coeffs: ``(M, kF, 3)`` coefficients: int8 codes or a float format.
         jacobian_basis: ``(C, kJ)`` float32 orthonormal channel basis of the Jacobians.
-        jacobian_coeffs: ``(M, kJ, 3, 3)`` coefficients: int8 codes or a float format.
-        jacobian_scales: ``(kJ,)`` float32 step of each direction's int8 codes (1 for floats).
+        jacobian_coeffs: ``(M, kJ, 3, 3)`` coefficients: int8 codes (within +-7 for ``int4``)
+            or a float format.
+        jacobian_scales: ``(kJ,)`` float32 step of each direction's integer codes (1 for floats).
+        latent_scales: ``(kF,)`` float32 step of each direction's integer codes (1 for floats).
     """
 
     keys: torch.Tensor
@@ -111,6 +129,7 @@ class CompactBlock:
     jacobian_basis: torch.Tensor
     jacobian_coeffs: torch.Tensor
     jacobian_scales: torch.Tensor
+    latent_scales: torch.Tensor
 
     def __post_init__(self) -> None:
         m = self.keys.shape[0]
@@ -124,6 +143,7 @@ class CompactBlock:
             and self.jacobian_basis.shape == (c, k_j)
             and self.jacobian_coeffs.shape == (m, k_j, 3, 3)
             and self.jacobian_scales.shape == (k_j,)
+            and self.latent_scales.shape == (k_f,)
         )
         if not shapes_ok:
             raise ValueError(
@@ -137,8 +157,9 @@ class CompactBlock:
             raise ValueError("CompactBlock: weights must be finite and positive")
         if m > 1 and not bool((self.keys[1:] > self.keys[:-1]).all()):
             raise ValueError("CompactBlock: keys must be sorted and unique")
-        if not bool((self.jacobian_scales > 0).all()):
-            raise ValueError("CompactBlock: jacobian_scales must be positive")
+        for name in ("jacobian_scales", "latent_scales"):
+            if not bool((getattr(self, name) > 0).all()):
+                raise ValueError(f"CompactBlock: {name} must be positive")
         for name in _FLOAT_FIELDS:
             values = getattr(self, name)
             if values.is_floating_point() and not bool(torch.isfinite(values).all()):
@@ -156,9 +177,6 @@ class CompactBlock:
         """Compress a block that has Jacobians (keys sorted and unique, as encoders return)."""
         if block.jacobians is None:
             raise ValueError("CompactBlock.compress: the block has no Jacobians to keep")
-        torch_dtype = storage_dtype(dtype)
-        if torch_dtype == torch.int8:
-            raise ValueError("latents cannot be stored as int8 (float16, bfloat16 or float32)")
         m, c = block.num_voxels, block.channels
         latents = block.latents  # (M, C, 3)
         jacobians = block.jacobians  # (M, C, 3, 3)
@@ -169,24 +187,25 @@ class CompactBlock:
         keys = block.packed_keys()
         if m > 1 and not bool((keys[1:] > keys[:-1]).all()):
             raise ValueError("CompactBlock.compress: block keys must be sorted and unique")
-        if storage_dtype(jacobian_storage) == torch.int8:
-            jacobian_coeffs, scales = _quantise(b)
-        else:
-            jacobian_coeffs = _to_storage(b, storage_dtype(jacobian_storage), "Jacobians")
-            scales = torch.ones(b.shape[1], dtype=torch.float32, device=b.device)
+        if dtype == "int4":
+            raise ValueError("latents cannot be stored as int4 (int8 or a float format)")
+        latent_coeffs, latent_scales = _store(a, dtype, "latents")
+        jacobian_coeffs, jacobian_scales = _store(b, jacobian_storage, "Jacobians")
         return cls(
             keys=keys,
             weights=block.weights.to(torch.float32),
             latent_basis=b_f,
-            latent_coeffs=_to_storage(a, torch_dtype, "latents"),
+            latent_coeffs=latent_coeffs,
             jacobian_basis=b_j,
             jacobian_coeffs=jacobian_coeffs,
-            jacobian_scales=scales.to(b.device),
+            jacobian_scales=jacobian_scales,
+            latent_scales=latent_scales,
         )
 
     def decompress(self, with_jacobians: bool = True) -> VoxelBlock:
         """The float32 block (deterministic: the same bytes always give the same block)."""
-        latents = torch.einsum("ck,mkd->mcd", self.latent_basis, self.latent_coeffs.float())
+        basis = self.latent_basis * self.latent_scales  # scales fold into the basis
+        latents = torch.einsum("ck,mkd->mcd", basis, self.latent_coeffs.float())
         jacobians = None
         if with_jacobians:
             basis = self.jacobian_basis * self.jacobian_scales  # scales fold into the basis
@@ -225,5 +244,6 @@ FIELDS = (
     "jacobian_basis",
     "jacobian_coeffs",
     "jacobian_scales",
+    "latent_scales",
 )
 _FLOAT_FIELDS = FIELDS[2:]  # int8 codes are skipped by the finiteness check

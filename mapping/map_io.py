@@ -1,6 +1,6 @@
 """Saving and loading a neural map with its submaps (docs/design.md §3.7).
 
-Format ``neural-remap-slam/map`` version 2: one compressed ``.npz`` (numpy zip, deflate) written
+Format ``neural-remap-slam/map`` version 5: one compressed ``.npz`` (numpy zip, deflate) written
 and read with ``allow_pickle=False``, so loading never executes code. It holds what cannot be
 derived: every submap's compact original encoding (:class:`~mapping.compact_block.CompactBlock`)
 and its poses. The global map is not stored: it is the fusion of the fused submaps' placed blocks,
@@ -11,20 +11,26 @@ rebuilt on load (equal to the saved one up to float32 rounding of the fusion ord
 * per submap (``S`` of them, in order): ``submap_ids (S,) int64``, ``submap_fused (S,) bool``,
   ``submap_T_W_A_encoded (S,4,4)`` and ``submap_T_W_A (S,4,4)`` float64, ``submap_offsets (S+1,)
   int64`` (rows of submap ``i`` are ``offsets[i]:offsets[i+1]`` in the voxel arrays),
-  ``latent_basis (S,C,kF)``, ``jacobian_basis (S,C,kJ)`` and ``jacobian_scales (S,kJ)`` float32.
-* per voxel of every submap: ``keys`` (packed int64, see :mod:`mapping.voxel_block`),
-  ``weights`` float32, ``latent_coeffs (N,kF,3)`` in the header's ``storage_dtype`` and
-  ``jacobian_coeffs (N,kJ,3,3)`` in its ``jacobian_storage`` (``int8``, ``float16`` and
-  ``float32`` as numpy types; ``bfloat16`` as its raw ``int16`` bits). A submap's latents are
-  ``latent_basis[i] @ latent_coeffs[rows]`` (channels x 3 per voxel), its Jacobians
-  ``(jacobian_basis[i] * jacobian_scales[i]) @ jacobian_coeffs[rows]``.
+  ``latent_basis (S,C,kF)``, ``latent_scales (S,kF)``, ``jacobian_basis (S,C,kJ)`` and
+  ``jacobian_scales (S,kJ)`` float32.
+* per voxel of every submap: ``key_deltas`` int64 (a submap's first packed key, see
+  :mod:`common.voxel_keys`, then the step from each of its sorted keys to the next: neighbours
+  make small steps, which deflate stores in a ninth of the keys' bytes), ``weights`` float32,
+  ``latent_coeffs (N,kF,3)`` in the header's ``storage_dtype`` and ``jacobian_coeffs
+  (N,kJ,3,3)`` in its ``jacobian_storage`` (``int8``, ``float16`` and ``float32`` as numpy
+  types, ``int4`` as int8 codes within +-7; ``bfloat16`` as its raw ``int16`` bits). A submap's
+  latents are ``(latent_basis[i] * latent_scales[i]) @ latent_coeffs[rows]`` (channels x 3 per
+  voxel), its Jacobians ``(jacobian_basis[i] * jacobian_scales[i]) @ jacobian_coeffs[rows]``;
+  the scales are the steps of integer codes, 1 for a float format.
 
 Version 3 adds an optional *session* section (docs/design.md §4): ``header["session"]`` (JSON)
 and arrays named ``session_*``, written and read opaquely here (the SLAM layer defines them; see
 ``slam.algorithm.merge.session``). Version 4 changes only that section (frames'
 anchor-relative poses as float32 quaternion and translation instead of float64 matrices).
-Version 2 and 3 files still load as maps; :func:`load_session` reads only the current version's
-section and refuses theirs.
+Version 5 changes only the map's arrays: ``key_deltas`` instead of absolute ``keys`` and
+``latent_scales`` for int8 latents. Version 2 to 4 files still load as maps (absolute keys, no
+latent scales); :func:`load_session` reads the session section of versions 4 and 5 and refuses
+the older ones.
 
 Files are written to a temporary file in the target folder and moved into place. The per-voxel
 arrays are written submap by submap (:class:`_Stacked`): the file is the one ``np.savez_compressed``
@@ -56,6 +62,7 @@ from mapping.config import MapConfig
 from mapping.errors import MapFileError
 from mapping.map_schema import (
     MAP_ARRAYS,
+    MAP_ARRAYS_BEFORE_5,
     MAX_CHANNELS,
     MAX_HEADER_CHARS,
     MAX_SUBMAPS,
@@ -69,11 +76,12 @@ from mapping.npz_members import Member, MemberError, list_members, read_member
 from mapping.transform import check_rigid
 
 FORMAT = "neural-remap-slam/map"
-VERSION = 4
-READABLE_VERSIONS = (2, 3, 4)
+VERSION = 5
+READABLE_VERSIONS = (2, 3, 4, 5)
+SESSION_VERSIONS = (4, VERSION)
+"""Versions whose session section :func:`load_session` reads (5 changed only the map's arrays)."""
 SESSION_PREFIX = "session_"
-_PER_VOXEL = ("keys", "weights", "latent_coeffs", "jacobian_coeffs")
-_PER_SUBMAP = ("latent_basis", "jacobian_basis", "jacobian_scales")
+_PER_VOXEL = ("key_deltas", "weights", "latent_coeffs", "jacobian_coeffs")
 
 
 def _to_numpy(t: torch.Tensor) -> np.ndarray:
@@ -170,6 +178,7 @@ def save_map(
         "latent_basis": (channels, k_f),
         "jacobian_basis": (channels, k_j),
         "jacobian_scales": (k_j,),
+        "latent_scales": (k_f,),
     }
     for name, shape in shapes.items():
         if any(tuple(getattr(o, name).shape) != shape for o in originals):
@@ -178,13 +187,16 @@ def save_map(
         for i, o in enumerate(originals):
             arrays[name][i] = _to_numpy(getattr(o, name))
     empty = {  # zero-row templates keep shapes and dtypes when there are no voxels at all
-        "keys": np.zeros(0, np.int64),
+        "key_deltas": np.zeros(0, np.int64),
         "weights": np.zeros(0, np.float32),
         "latent_coeffs": _to_numpy(torch.zeros(0, k_f, 3, dtype=dtype)),
         "jacobian_coeffs": _to_numpy(torch.zeros(0, k_j, 3, 3, dtype=jac_dtype)),
     }
-    for name in _PER_VOXEL:  # views of the submaps' tensors, written one after the other
-        arrays[name] = _Stacked([empty[name], *(_to_numpy(getattr(o, name)) for o in originals)])
+    per_voxel = {"key_deltas": [_key_deltas(o.keys) for o in originals]}
+    for name in _PER_VOXEL[1:]:  # views of the submaps' tensors, written one after the other
+        per_voxel[name] = [_to_numpy(getattr(o, name)) for o in originals]
+    for name, parts in per_voxel.items():
+        arrays[name] = _Stacked([empty[name], *parts])
     header = {
         "format": FORMAT,
         "version": VERSION,
@@ -299,10 +311,11 @@ def read_map_file(
             header = _parse_header(path, archive, members)
             cfg = map_config(path, header, settings)
             dims = _dims(path, header, cfg)
-            offsets = check_members(members, {"submap_offsets": MAP_ARRAYS["submap_offsets"]}, dims)
+            specs = MAP_ARRAYS if header["version"] >= 5 else MAP_ARRAYS_BEFORE_5
+            offsets = check_members(members, {"submap_offsets": specs["submap_offsets"]}, dims)
             first = read_member(archive, offsets["submap_offsets"])
             dims["N"] = int(first[-1]) if len(first) and first[-1] >= 0 else -1
-            chosen = check_members(members, MAP_ARRAYS, dims)
+            chosen = check_members(members, specs, dims)
             chosen.update(_session_members(path, header, members, dims, session))
             check_inflation(chosen, path.stat().st_size)
             arrays = {name: read_member(archive, member) for name, member in chosen.items()}
@@ -335,7 +348,7 @@ def _session_members(
 
 
 def _require_session(path: Path, header: dict) -> None:
-    if header.get("version") != VERSION or not isinstance(header.get("session"), dict):
+    if header.get("version") not in SESSION_VERSIONS or not isinstance(header.get("session"), dict):
         raise MapFileError(
             f"{path}: map format version {header.get('version')} holds no session data of version "
             f"{VERSION} and cannot be merged; re-run `python -m slam.run` on the sequence to write "
@@ -387,6 +400,22 @@ def load_map(
     return neural_map, submaps
 
 
+def _key_deltas(keys: torch.Tensor) -> np.ndarray:
+    """A submap's sorted keys as its first key and the steps to each next one: neighbouring
+    voxels make small steps, which deflate stores in a fraction of the keys' bytes."""
+    keys = _to_numpy(keys)
+    return np.diff(keys, prepend=np.zeros(1, np.int64)) if len(keys) else keys
+
+
+def _keys_of_deltas(deltas: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The keys :func:`_key_deltas` coded, submap by submap (rows ``offsets[i]:offsets[i+1]``);
+    int64 wraps around both ways, so any file decodes to the keys it was written from."""
+    sums = np.cumsum(deltas.astype(np.int64, copy=False))
+    starts = np.repeat(offsets[:-1], np.diff(offsets))
+    before = np.concatenate([np.zeros(1, np.int64), sums])[starts]
+    return sums - before
+
+
 def _submaps(header: dict, data: dict[str, np.ndarray], device: torch.device) -> list[Submap]:
     dtype = storage_dtype(header["storage_dtype"])
     jac_dtype = storage_dtype(header["jacobian_storage"])
@@ -395,10 +424,16 @@ def _submaps(header: dict, data: dict[str, np.ndarray], device: torch.device) ->
     ids = data["submap_ids"]
     if offsets.shape != (n_sub + 1,) or offsets[0] != 0 or np.any(np.diff(offsets) < 0):
         raise ValueError("submap offsets are not a monotone (S+1,) array starting at 0")
-    if offsets[-1] != data["keys"].shape[0] or len(set(ids.tolist())) != n_sub:
+    if offsets[-1] != data["weights"].shape[0] or len(set(ids.tolist())) != n_sub:
         raise ValueError("submap offsets, ids and voxel arrays disagree")
+    if "key_deltas" in data:
+        keys = _keys_of_deltas(data["key_deltas"], offsets)
+        latent_scales = data["latent_scales"]
+    else:  # before version 5: absolute keys, float latents
+        keys = data["keys"].astype(np.int64, copy=False)
+        latent_scales = np.ones(data["latent_basis"].shape[::2], np.float32)
     voxel = {
-        "keys": torch.from_numpy(data["keys"].astype(np.int64, copy=False)),
+        "keys": torch.from_numpy(keys),
         "weights": torch.from_numpy(data["weights"]).to(torch.float32),
         "latent_coeffs": _from_numpy(data["latent_coeffs"], dtype),
         "jacobian_coeffs": _from_numpy(data["jacobian_coeffs"], jac_dtype),
@@ -414,6 +449,7 @@ def _submaps(header: dict, data: dict[str, np.ndarray], device: torch.device) ->
             jacobian_basis=torch.from_numpy(data["jacobian_basis"][i]).to(torch.float32),
             jacobian_coeffs=voxel["jacobian_coeffs"][rows],
             jacobian_scales=torch.from_numpy(data["jacobian_scales"][i]).to(torch.float32),
+            latent_scales=torch.from_numpy(latent_scales[i]).to(torch.float32),
         ).to(device)
         submaps.append(
             Submap(

@@ -46,7 +46,7 @@ class Spec:
     required: bool = True
 
 
-MAP_ARRAYS: dict[str, Spec] = {
+_SUBMAP_AND_CODES: dict[str, Spec] = {
     "submap_ids": Spec("S", (), "iu"),
     "submap_fused": Spec("S", (), "b"),
     "submap_T_W_A_encoded": Spec("S", (4, 4)),
@@ -55,12 +55,20 @@ MAP_ARRAYS: dict[str, Spec] = {
     "latent_basis": Spec("S", ("C", "kF")),
     "jacobian_basis": Spec("S", ("C", "kJ")),
     "jacobian_scales": Spec("S", ("kJ",)),
-    "keys": Spec("N", (), "iu"),
     "weights": Spec("N", ()),
-    "latent_coeffs": Spec("N", ("kF", 3), "fiu"),  # bfloat16 as its int16 bits
+    "latent_coeffs": Spec("N", ("kF", 3), "fiu"),  # int8 with scales, bfloat16 as its int16 bits
     "jacobian_coeffs": Spec("N", ("kJ", 3, 3), "fiu"),  # int8 with scales
 }
-"""The arrays of the map itself (:mod:`mapping.map_io`)."""
+
+MAP_ARRAYS: dict[str, Spec] = {
+    **_SUBMAP_AND_CODES,
+    "latent_scales": Spec("S", ("kF",)),
+    "key_deltas": Spec("N", (), "i"),
+}
+"""The arrays of the map itself (:mod:`mapping.map_io`), in the current version."""
+
+MAP_ARRAYS_BEFORE_5: dict[str, Spec] = {**_SUBMAP_AND_CODES, "keys": Spec("N", (), "iu")}
+"""The arrays of a version 2 to 4 map: absolute keys, no latent scales."""
 
 
 def _shape(member: Member, spec: Spec, dims: dict[str, int]) -> tuple[int, ...]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import itertools
+import json
 import logging
 import os
 import signal
@@ -101,6 +102,27 @@ def sphere_points(n: int, centre, seed: int) -> tuple[np.ndarray, np.ndarray]:
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return d * 0.3 + np.asarray(centre), d
+
+
+def written_before_version_5(
+    path: Path, out: Path, version: int, submaps, session: bool = True
+) -> None:
+    """``path``'s map written at ``out`` as a version 2 to 4 file lays it out: the ``submaps``'
+    absolute keys instead of steps between them, no latent scales (float latents only), and
+    without its session section unless ``session``."""
+    dropped = ("key_deltas", "latent_scales")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {
+            k: npz[k]
+            for k in npz.files
+            if k not in dropped and (session or not k.startswith("session_"))
+        }
+    header = json.loads(str(arrays["header"]))
+    if not session:
+        header.pop("session", None)
+    arrays["header"] = np.array(json.dumps({**header, "version": version}))
+    arrays["keys"] = np.concatenate([s.original.keys.cpu().numpy() for s in submaps])
+    np.savez_compressed(out, **arrays)
 
 
 def seeded_prior(seed: int = 0):

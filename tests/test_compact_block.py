@@ -41,15 +41,28 @@ def test_full_rank_round_trip_is_within_storage_rounding(block, dtype) -> None:
         assert ((got - want).abs() <= u * want.abs() + 6e-8).all()
 
 
-def test_int8_jacobians_are_within_half_a_step(block) -> None:
-    compact = CompactBlock.compress(block, 16, 16, "float32")
+@pytest.mark.parametrize(("storage", "max_code"), [("int8", 127), ("int4", 7)])
+def test_integer_jacobians_are_within_half_a_step(block, storage: str, max_code: int) -> None:
+    compact = CompactBlock.compress(block, 16, 16, "float32", jacobian_storage=storage)
     assert compact.jacobian_coeffs.dtype == torch.int8
+    assert int(compact.jacobian_coeffs.abs().max()) == max_code
     steps = compact.jacobian_scales  # identity basis at full rank: one step per channel
     err = (compact.decompress().jacobians - block.jacobians).abs()
     assert (err <= 0.5 * steps.view(1, -1, 1, 1) * (1 + 1e-5)).all()
-    # the step is the channel's peak / 127: nothing saturates
+    # the step is the channel's peak over the largest code: nothing saturates
     peak = block.jacobians.abs().amax(dim=(0, 2, 3))
-    assert torch.allclose(steps, peak / 127)
+    assert torch.allclose(steps, peak / max_code)
+
+
+def test_int8_latents_are_within_half_a_step(block) -> None:
+    compact = CompactBlock.compress(block, 16, 16, "int8")
+    assert compact.latent_coeffs.dtype == torch.int8
+    steps = compact.latent_scales  # identity basis at full rank: one step per channel
+    err = (compact.decompress().latents - block.latents).abs()
+    assert (err <= 0.5 * steps.view(1, -1, 1) * (1 + 1e-5)).all()
+    assert torch.allclose(steps, block.latents.abs().amax(dim=(0, 2)) / 127)
+    with pytest.raises(ValueError, match="latents cannot be stored as int4"):
+        CompactBlock.compress(block, 16, 16, "int4")
 
 
 def test_rank_reduction_keeps_the_leading_channel_energy(block) -> None:

@@ -15,7 +15,7 @@ from mapping.config import MapConfig
 from mapping.errors import MapFileError
 from mapping.map_io import COMMAND_FIELDS, load_map, save_map
 from mapping.neural_map import NeuralMap
-from tests.helpers import seeded_prior, sphere_points
+from tests.helpers import seeded_prior, sphere_points, written_before_version_5
 
 torch.set_num_threads(1)
 
@@ -112,6 +112,29 @@ def _rewrite_arrays(path: Path, out: Path, **changes) -> None:
     np.savez_compressed(out, **arrays)
 
 
+def test_version_4_files_load_as_written(saved_map, tmp_path: Path) -> None:
+    """Before version 5 a file held absolute keys and no latent scales (float latents)."""
+    _, subs, path = saved_map
+    written_before_version_5(path, tmp_path / "v4.npz", 4, subs)
+    loaded, loaded_subs = load_map(tmp_path / "v4.npz", seeded_prior())
+    for s, t in zip(subs, loaded_subs, strict=True):
+        for name in FIELDS:
+            assert torch.equal(getattr(s.original, name), getattr(t.original, name))
+    assert torch.equal(
+        loaded.voxel_block().latents, load_map(path, seeded_prior())[0].voxel_block().latents
+    )
+
+
+def test_keys_are_stored_as_steps_within_each_submap(saved_map) -> None:
+    _, subs, path = saved_map
+    with np.load(path, allow_pickle=False) as npz:
+        deltas, offsets = npz["key_deltas"], npz["submap_offsets"]
+    for s, start in zip(subs, offsets, strict=False):
+        keys = s.original.keys.numpy()
+        assert deltas[start] == keys[0]  # each submap starts from its own first key
+        assert np.array_equal(np.cumsum(deltas[start : start + len(keys)]), keys)
+
+
 def test_version_1_files_get_a_regenerate_hint(saved_map, tmp_path: Path) -> None:
     _, _, path = saved_map
     _rewrite_header(path, tmp_path / "v1.npz", version=1)
@@ -161,11 +184,15 @@ def test_empty_map_round_trips(tmp_path: Path) -> None:
     assert torch.equal(loaded.voxel_block().latents, nm.voxel_block().latents)
 
 
-@pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32"])
-def test_every_storage_dtype_round_trips(tmp_path: Path, dtype: str) -> None:
-    nm = NeuralMap(
-        MapConfig(device="cpu", min_points_per_voxel=1, storage_dtype=dtype), seeded_prior()
+@pytest.mark.parametrize(
+    ("dtype", "jacobians"),
+    [("float16", "int8"), ("bfloat16", "int8"), ("float32", "int8"), ("int8", "int4")],
+)
+def test_every_storage_dtype_round_trips(tmp_path: Path, dtype: str, jacobians: str) -> None:
+    cfg = MapConfig(
+        device="cpu", min_points_per_voxel=1, storage_dtype=dtype, jacobian_storage=jacobians
     )
+    nm = NeuralMap(cfg, seeded_prior())
     p, n = sphere_points(1500, (0.0, 0.0, 0.0), 5)
     sub = nm.encode(0, p, n, np.eye(4))
     nm.fuse(sub)

@@ -18,7 +18,12 @@ from slam.app.cli import main as run_main
 from slam.app.merge_cli import main as merge_main
 from slam.evaluation.cli import evaluate_run
 from slam.run_folder.trajectory_io import read_kitti
-from tests.helpers import ROOM_SESSION_ARGS, assert_error_line, call_main
+from tests.helpers import (
+    ROOM_SESSION_ARGS,
+    assert_error_line,
+    call_main,
+    written_before_version_5,
+)
 
 # benchmarks/results/merge.md (the same split): combined ATE 0.48 cm; bound 3x that
 COMBINED_ATE_BOUND_M = 0.015
@@ -149,13 +154,8 @@ def test_different_voxel_size_or_no_descriptors_is_refused(runs, tmp_path: Path)
 def test_version_2_map_loads_but_is_not_merged(runs, tmp_path: Path):
     old = tmp_path / "old"
     old.mkdir()
-    with np.load(runs["b"] / "map.npz") as npz:
-        arrays = {k: npz[k] for k in npz.files if not k.startswith("session_")}
-    header = json.loads(str(arrays["header"]))
-    header["version"] = 2
-    del header["session"]
-    arrays["header"] = np.array(json.dumps(header))
-    np.savez_compressed(old / "map.npz", **arrays)
+    _, submaps = load_map(runs["b"] / "map.npz")
+    written_before_version_5(runs["b"] / "map.npz", old / "map.npz", 2, submaps, session=False)
     assert load_map(old / "map.npz")[0].num_voxels > 0  # still a map
     result = _merge(str(runs["a"]), str(old), "--out", str(tmp_path / "out"))
     assert_error_line(result, "version 2", "re-run", "slam.run")

@@ -19,6 +19,7 @@ from mapping.neural_map import NeuralMap
 from slam.algorithm.graph.gravity import UpMeasurement
 from slam.algorithm.loops.place import PlaceDescriptor
 from slam.algorithm.merge.session import Edge, SessionRecord
+from tests.helpers import written_before_version_5
 
 torch.set_num_threads(1)
 
@@ -138,12 +139,12 @@ def test_older_session_layout_loads_as_a_map_but_is_refused(tmp_path: Path):
     path = _saved_with_session(tmp_path)
     header, _, arrays = load_session(path)
     assert header["version"] == VERSION and "frame_pose_A_S" in arrays
-    with np.load(path, allow_pickle=False) as npz:
-        data = {k: npz[k] for k in npz.files}
-    header["version"] = 3  # the earlier layout: float64 3x4 frame poses
-    data["header"] = np.array(json.dumps(header))
-    old = tmp_path / "v3.npz"
-    np.savez_compressed(old, **data)
+    _, submaps = load_map(path, _model())
+    v4 = tmp_path / "v4.npz"  # version 5 changed only the map's arrays: the session merges
+    written_before_version_5(path, v4, 4, submaps)
+    assert load_session(v4)[2].keys() == arrays.keys()
+    old = tmp_path / "v3.npz"  # the earlier layout: float64 3x4 frame poses
+    written_before_version_5(path, old, 3, submaps)
     assert load_map(old, _model())[0].num_voxels > 0
     with pytest.raises(MapFileError, match=r"v3\.npz: map format version 3 .*slam\.run") as info:
         load_session(old)

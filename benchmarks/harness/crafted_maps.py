@@ -71,8 +71,10 @@ def inflated_member(src: Path, dst: Path) -> None:
 
 
 def claims_10e12_elements(src: Path, dst: Path) -> None:
-    """``keys`` whose ``.npy`` header claims 10^12 elements (and holds none)."""
-    _with_member(src, dst, "keys", lambda stream: stream.write(_npy_header((10**12,), np.int64)))
+    """``key_deltas`` whose ``.npy`` header claims 10^12 elements (and holds none)."""
+    _with_member(
+        src, dst, "key_deltas", lambda stream: stream.write(_npy_header((10**12,), np.int64))
+    )
 
 
 def consistent_but_huge(src: Path, dst: Path) -> None:
@@ -83,7 +85,7 @@ def consistent_but_huge(src: Path, dst: Path) -> None:
     offsets = arrays["submap_offsets"].copy()
     offsets[-1] = voxels
     sizes = {
-        "keys": ((voxels,), np.int64),
+        "key_deltas": ((voxels,), np.int64),
         "weights": ((voxels,), np.float32),
         "latent_coeffs": ((voxels, 4, 3), np.float16),
         "jacobian_coeffs": ((voxels, 4, 3, 3), np.int8),
