@@ -119,13 +119,18 @@ def deep_json(src: Path, dst: Path) -> None:
     np.savez_compressed(dst, **arrays)
 
 
-def session_edit(name: str, change):
-    """A crafting that replaces the session array ``name`` by ``change(copy of it)``."""
+def array_edit(name: str, change):
+    """A crafting that replaces the array ``name`` by ``change(copy of it)``."""
 
     def edit(header, arrays):
-        arrays[f"session_{name}"] = change(arrays[f"session_{name}"].copy())
+        arrays[name] = change(arrays[name].copy())
 
     return rewritten(edit)
+
+
+def session_edit(name: str, change):
+    """A crafting that replaces the session array ``name`` by ``change(copy of it)``."""
+    return array_edit(f"session_{name}", change)
 
 
 def _nan_anchor(a):
@@ -152,6 +157,14 @@ def _parts(header, arrays):
     header["session"]["parts"] = [{"name": "x", "first_row": "zero", "rows": 5}]
 
 
+def _set(index, value):
+    def change(a):
+        a[index] = value
+        return a
+
+    return change
+
+
 CRAFTED = {
     "size: member inflating past its declared size": inflated_member,
     "size: npy header claiming 10^12 elements": claims_10e12_elements,
@@ -161,6 +174,9 @@ CRAFTED = {
     "header: voxel size 1e-9": header_edit(voxel_size_m=1e-9),
     "header: encoder_table_nodes 10^6": header_edit(encoder_table_nodes=10**6),
     "header: deep JSON nesting": deep_json,
+    "arrays: latent scales of rank 2": array_edit("latent_scales", lambda a: a[:, :2].copy()),
+    "arrays: a zero latent scale": array_edit("latent_scales", _set((0, 0), 0.0)),
+    "arrays: key steps going back": array_edit("key_deltas", _set(1, -5)),
     "session: NaN anchors": session_edit("T_W_A", _nan_anchor),
     "session: edge to an unknown anchor": rewritten(_edge_to_unknown),
     "session: descriptors 16 bytes wide": session_edit(
