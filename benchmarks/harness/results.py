@@ -19,9 +19,11 @@ def run_scenarios(
     work_root: Path | None,
 ) -> dict[str, dict[str, Any]]:
     """``run(name, work)`` of each scenario, in a new folder ``work`` under ``work_root`` (the
-    system's temporary folder without one); a scenario whose data is absent (its
-    ``FileNotFoundError``) is recorded as ``{"skipped": reason}``."""
+    system's temporary folder without one; created when missing); a scenario whose data is
+    absent (its ``FileNotFoundError``) is recorded as ``{"skipped": reason}``."""
     results = {}
+    if work_root is not None:
+        work_root.mkdir(parents=True, exist_ok=True)
     for name in names:
         work = Path(tempfile.mkdtemp(prefix=f"{prefix}-{name}-", dir=work_root))
         try:
