@@ -190,6 +190,21 @@ def test_bev_descriptor_recovers_a_planar_motion():
     assert np.abs(T[:3, :3] - R).max() < 0.02
 
 
+def _truth_and_guess(
+    rotvec: list[float], t: list[float], yaw_off_rad: float, offset_m: list[float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """A true pose and an initial guess off it by a yaw and a translation."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    guess = T.copy()
+    guess[:3, :3] = Rotation.from_rotvec([0, 0, yaw_off_rad]).as_matrix() @ T[:3, :3]
+    guess[:3, 3] += offset_m
+    return T, guess
+
+
 def _planes(rng, ghost: bool) -> tuple[np.ndarray, np.ndarray]:
     """A room corner with a box (points, normals); ``ghost`` adds a surface 5 cm above part of
     the floor, which the other side does not have, and a wall beyond the other's surfaces."""
@@ -213,7 +228,6 @@ def test_merge_verification_is_not_pulled_by_surfaces_one_side_lacks():
     """Decoded surfaces of two sessions overlap only in part: the ICP's last gate is fine enough
     that a surface only one side has (5 cm off the other's) does not bias the edge, while the
     overlap that decides acceptance is measured at its own gate, whatever the ICP's gates."""
-    from scipy.spatial.transform import Rotation
 
     from common.geometry import relative_motion
     from slam.algorithm.merge.config import MergeConfig
@@ -222,14 +236,9 @@ def test_merge_verification_is_not_pulled_by_surfaces_one_side_lacks():
     rng = np.random.default_rng(0)
     reference = _planes(rng, ghost=False)
     points, normals = _planes(rng, ghost=True)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec([0.02, -0.03, 0.3]).as_matrix()
-    T[:3, 3] = [0.3, -0.2, 0.05]
+    T, guess = _truth_and_guess([0.02, -0.03, 0.3], [0.3, -0.2, 0.05], 0.03, [0.05, -0.04, 0.06])
     R_inv = T[:3, :3].T
     query = ((points - T[:3, 3]) @ R_inv.T, normals @ R_inv.T)
-    guess = T.copy()
-    guess[:3, :3] = Rotation.from_rotvec([0, 0, 0.03]).as_matrix() @ T[:3, :3]
-    guess[:3, 3] += [0.05, -0.04, 0.06]
     errors, overlaps = {}, {}
     coarse = MergeConfig(icp_gates_vu=(3.0, 1.5, 0.75))
     for name, cfg in (("default", MergeConfig()), ("coarse", coarse)):
@@ -248,7 +257,6 @@ def test_a_coarse_subset_brings_the_registration_where_all_points_take_it():
     a voxel (``LocaliseConfig.coarse_query_points``): from a guess 15 cm and 3 deg off it ends
     where the registration of every point through every gate ends, with fewer KD-tree queries."""
     from scipy.spatial import cKDTree
-    from scipy.spatial.transform import Rotation
 
     from common.geometry import relative_motion
     from slam.algorithm.merge.config import MergeConfig
@@ -258,13 +266,8 @@ def test_a_coarse_subset_brings_the_registration_where_all_points_take_it():
     rng = np.random.default_rng(1)
     reference = _planes(rng, ghost=False)
     points, _ = _planes(rng, ghost=False)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec([0.01, -0.02, 0.2]).as_matrix()
-    T[:3, 3] = [0.3, -0.2, 0.05]
+    T, guess = _truth_and_guess([0.01, -0.02, 0.2], [0.3, -0.2, 0.05], 0.05, [0.1, -0.1, 0.05])
     query = subsample((points - T[:3, 3]) @ T[:3, :3], 2500)
-    guess = T.copy()
-    guess[:3, :3] = Rotation.from_rotvec([0, 0, 0.05]).as_matrix() @ T[:3, :3]
-    guess[:3, 3] += [0.1, -0.1, 0.05]
 
     class CountingTree(cKDTree):
         queried = 0
