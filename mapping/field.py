@@ -43,26 +43,32 @@ def _sq_term(decoder: Decoder, q: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def decode_lattice(
-    decoder: Decoder, F: torch.Tensor, q: torch.Tensor
+    decoder: Decoder,
+    F: torch.Tensor,
+    q: torch.Tensor,
+    terms: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Decode every voxel ``F (M, C, 3)`` at the same offsets ``q (Q, 3)``: mean, sigma ``(M, Q)``.
 
     Equal to ``decoder(F, q)`` but the per-query first layer is ``code + A q + w |q|^2`` with the
-    per-voxel ``A = W_proj F`` (``H x 3``), and the MLP runs on cache-sized row blocks.
+    per-voxel ``A = W_proj F`` (``H x 3``), and the MLP runs on cache-sized row blocks. ``terms``:
+    ``(code, A)`` of :func:`voxel_query_terms` where the caller has them already.
     """
     m = F.shape[0]
     n_q = q.shape[0]
     if m == 0:
         empty = torch.zeros(0, n_q, dtype=F.dtype, device=F.device)
         return empty, empty.clone()
-    code, A = voxel_query_terms(decoder, F)
+    code, A = terms if terms is not None else voxel_query_terms(decoder, F)
     sq_term = _sq_term(decoder, q)  # (Q, H)
     mean = torch.empty(m, n_q, dtype=F.dtype, device=F.device)
     sigma = torch.empty_like(mean)
     step = max(1, DECODE_ROWS // n_q)
     for start in range(0, m, step):
         sl = slice(start, start + step)
-        x = torch.einsum("mhd,qd->mqh", A[sl], q) + sq_term + code[sl].unsqueeze(1)
+        x = torch.matmul(q, A[sl].transpose(1, 2))  # (m, Q, H), laid out as the MLP reads it
+        x += sq_term
+        x += code[sl].unsqueeze(1)
         mean[sl], sigma[sl] = _finish(decoder, decoder.mlp(x))
     return mean, sigma
 

@@ -24,7 +24,7 @@ from mapping.compact_block import CompactBlock
 from mapping.config import MapConfig, resolve_device
 from mapping.encoding import encode_points
 from mapping.field import query_field
-from mapping.meshing import ChunkMesher
+from mapping.meshing import CHUNKS_PER_BATCH, ChunkMesher
 from mapping.networks import PriorModel, load_default_prior
 from mapping.transform import check_rigid, transform_block
 from mapping.voxel_block import VoxelBlock
@@ -200,15 +200,22 @@ class NeuralMap:
             valid.cpu().numpy(),
         )
 
-    def extract_mesh(self, threads: int = 1) -> trimesh.Trimesh:
+    def extract_mesh(
+        self, threads: int = 1, chunks_per_batch: int = CHUNKS_PER_BATCH
+    ) -> trimesh.Trimesh:
         """The map's mesh; only chunks touched since the last call are re-meshed.
 
         ``threads > 1`` meshes on that many threads, each running torch with its intra-op
         threads: give more than one only where torch has a single intra-op thread and the
-        cores are otherwise idle (the whole-map mesh after a run).
+        cores are otherwise idle (the whole-map mesh after a run). ``chunks_per_batch``: see
+        :meth:`~mapping.meshing.ChunkMesher.update`.
         """
         self._mesher.update(
-            self._store, self.model.decoder, self._store.take_dirty(), threads=threads
+            self._store,
+            self.model.decoder,
+            self._store.take_dirty(),
+            threads=threads,
+            chunks_per_batch=chunks_per_batch,
         )
         return self._mesher.mesh()
 

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 from common.voxel_keys import unpack_keys
 from mapping.analytic_prior import planar_prior
 from mapping.config import MapConfig
+from mapping.field import decode_lattice
 from mapping.mesh_lattice import lattice_offsets
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.neural_map import NeuralMap
@@ -192,6 +193,34 @@ def test_meshing_on_threads_gives_the_same_mesh() -> None:
     np.testing.assert_array_equal(meshes[0].vertices, meshes[1].vertices)
 
 
+def test_meshing_in_larger_batches_gives_the_same_mesh(monkeypatch) -> None:
+    """All chunks in one batch: the same vertices and faces as batches of 32, with each voxel
+    decoded once (in batches of 32 the voxels on the batches' shared chunk faces twice)."""
+    import mapping.meshing as meshing
+
+    decoded = []
+
+    def counted(decoder, F, q, terms=None):
+        decoded.append(F.shape[0])
+        return decode_lattice(decoder, F, q, terms)
+
+    monkeypatch.setattr(meshing, "decode_lattice", counted)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    points, face = trimesh.sample.sample_surface_even(sphere, 8000, seed=3)
+    meshes, rows = [], []
+    for chunks_per_batch in (32, 10_000):
+        decoded.clear()
+        nm = NeuralMap(_cfg(mesh_chunk_voxels=2), planar_prior())
+        nm.fuse(nm.encode(0, points, sphere.face_normals[face], np.eye(4)))
+        meshes.append(nm.extract_mesh(chunks_per_batch=chunks_per_batch))
+        rows.append(sum(decoded))
+    assert nm._mesher.num_chunks > 32 and len(meshes[0].faces) > 100
+    assert rows[1] == int((nm._store.weights64() >= nm.cfg.min_weight_to_decode).sum())
+    assert rows[0] > rows[1]
+    np.testing.assert_array_equal(meshes[0].faces, meshes[1].faces)
+    np.testing.assert_array_equal(meshes[0].vertices, meshes[1].vertices)
+
+
 def test_failed_marching_cubes_is_reported(monkeypatch, caplog) -> None:
     import skimage.measure
 
@@ -225,9 +254,10 @@ def test_no_surface_in_observed_cells_is_an_empty_chunk_not_a_failure() -> None:
     mesher = ChunkMesher(V, 2, 4, max_sigma_vu=1.0, min_weight=1.0)
     n = 9
     sdf = np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None] - 4.5, (n, n, n)).copy()
-    valid = np.ones((n, n, n), dtype=bool)
-    valid[4:6] = False  # the sign change lies only in cells with unobserved corners
-    out = mesher._march(sdf, np.full((n, n, n), 0.1, np.float32), valid)
+    sdf[4:6] = 1.0  # nodes 4 and 5 unobserved: the sign change lies only in their cells ...
+    mask = np.zeros((n, n, n), dtype=bool)
+    mask[1:4, 1:, 1:] = mask[7:, 1:, 1:] = True  # ... which are not marched (upper corners)
+    out = mesher._march(sdf, np.full((n, n, n), 0.1, np.float32), mask)
     assert out is None and mesher.failed_chunks == 0
 
 
