@@ -25,6 +25,7 @@ temporaries leave in glibc's arenas go back to the OS every few batches and afte
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -88,14 +89,25 @@ class ChunkMesher:
         if dirty_voxel_keys.numel() == 0:
             return dirty_voxel_keys
         grid = unpack_keys(dirty_voxel_keys)
-        # one shift at a time: a (D, 27, 3) array of a whole map is hundreds of MB
-        found = [
-            torch.unique(
-                pack_keys(torch.div(grid + shift, self.chunk_voxels, rounding_mode="floor"))
-            )
-            for shift in _NEIGHBOUR_SHIFTS.to(grid.device)
-        ]
+        found = [torch.unique(chunk) for _, chunk in self._reached_chunks(grid)]
         return torch.unique(torch.cat(found))
+
+    def _reached_chunks(self, grid: torch.Tensor) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        """``(voxel index, packed chunk)`` per neighbour shift: the chunks each voxel's ``2V``
+        cube reaches, its own and, on a chunk face, the neighbours across it (memory O(D) a
+        shift, not O(27 D)): a shift of -1 along an axis only for local == 0, +1 only for
+        local == cs - 1."""
+        cs = self.chunk_voxels
+        own = torch.div(grid, cs, rounding_mode="floor")
+        local = grid - own * cs
+        low, high = local == 0, local == cs - 1
+        for shift in _NEIGHBOUR_SHIFTS.tolist():
+            ok = torch.ones(grid.shape[0], dtype=torch.bool, device=grid.device)
+            for axis, step in enumerate(shift):
+                if step:
+                    ok &= (low if step < 0 else high)[:, axis]
+            voxel = ok.nonzero().squeeze(1)
+            yield voxel, pack_keys(own[voxel] + torch.tensor(shift, device=grid.device))
 
     @torch.no_grad()
     def update(
@@ -178,20 +190,8 @@ class ChunkMesher:
         self, grid: torch.Tensor, chunks: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(voxel index, packed chunk) pairs for the dirty chunks, sorted by (chunk, voxel)."""
-        cs = self.chunk_voxels
-        own = torch.div(grid, cs, rounding_mode="floor")
-        local = grid - own * cs
-        low, high = local == 0, local == cs - 1
         voxels, chunk_keys = [], []
-        # one shift at a time (memory O(D), not O(27 D)): shift -1 along an axis only for
-        # local == 0, +1 only for local == cs - 1
-        for shift in _NEIGHBOUR_SHIFTS.tolist():
-            ok = torch.ones(grid.shape[0], dtype=torch.bool, device=grid.device)
-            for axis, step in enumerate(shift):
-                if step:
-                    ok &= (low if step < 0 else high)[:, axis]
-            voxel = ok.nonzero().squeeze(1)
-            chunk = pack_keys(own[voxel] + torch.tensor(shift, device=grid.device))
+        for voxel, chunk in self._reached_chunks(grid):
             pos = torch.searchsorted(chunks, chunk).clamp_(max=chunks.shape[0] - 1)
             wanted = chunks[pos] == chunk
             voxels.append(voxel[wanted])
