@@ -354,7 +354,10 @@ class ChunkMesher:
         faces = faces[keep]
         if faces.shape[0] == 0:
             return None
-        used, faces = np.unique(faces, return_inverse=True)
+        is_used = np.zeros(len(verts), dtype=bool)
+        is_used[faces] = True
+        used = np.flatnonzero(is_used)
+        faces = (np.cumsum(is_used) - 1)[faces]  # the kept vertices renumbered in their order
         local = verts[used]
         # marching cubes puts a vertex on a lattice edge, so the coordinate across a chunk face
         # is exactly the face's node index
