@@ -139,6 +139,7 @@ class Decoder(nn.Module):
         rows, cols = _triu_indices(c)
         self.register_buffer("_rows", rows, persistent=False)
         self.register_buffer("_cols", cols, persistent=False)
+        self.register_buffer("_upper", rows * c + cols, persistent=False)  # in the flat c x c
         h = cfg.decoder_hidden
         self.gram_in = nn.Linear(len(rows), h)
         self.query_in = nn.Linear(c + 1, h, bias=False)
@@ -153,7 +154,7 @@ class Decoder(nn.Module):
     def voxel_code(self, F: torch.Tensor) -> torch.Tensor:
         """Per-voxel part of the first layer: ``(..., C, 3) -> (..., H)``."""
         gram = F @ F.transpose(-1, -2)
-        return self.gram_in(gram[..., self._rows, self._cols])
+        return self.gram_in(gram.flatten(-2).index_select(-1, self._upper))
 
     def decode(
         self, code: torch.Tensor, F: torch.Tensor, q: torch.Tensor
