@@ -363,7 +363,7 @@ def run_cases(code: Path, cases: list[Case], work: Path) -> list[Outcome]:
     return outcomes
 
 
-CELL_MAX_CHARS = 220
+CELL_MAX_CHARS = 200
 """A table cell's message is cut here (the whole line is in the JSON results)."""
 _WORK_PATH = re.compile(r"/\S*/bench-reliability-[^/\s]+/work-(?:before|after)/case\d+/")
 """The temporary case folder in a message: the same in every row, so it is left out."""
@@ -420,8 +420,11 @@ def main(argv: list[str] | None = None) -> int:
         after = run_cases(REPO, cases, tmp_path / "work-after")
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
                           text=True).stdout.strip()  # fmt: skip
+    # without a before run its column would only hold dashes
+    runs = [before, after] if args.before else [after]
+    run_names = [f"before ({args.before})", "after"] if args.before else ["outcome"]
     lines = [
-        "# Reliability cases, before and after",
+        "# Reliability cases" + (", before and after" if args.before else ""),
         "",
         f"`python benchmarks/bench_reliability.py{' --quick' if args.quick else ''}"
         f"{f' --only {args.only}' if args.only else ''}"
@@ -432,10 +435,10 @@ def main(argv: list[str] | None = None) -> int:
         "data in a temporary folder, whose path is left out of the messages.",
         "",
         *table(
-            f"# | case | command | before ({args.before or '-'}) | after",
+            " | ".join(["#", "case", "command", *run_names]),
             (
-                [c.number, c.title, f"`{c.command}`", cell(b), cell(a)]
-                for c, b, a in zip(cases, before, after, strict=True)
+                [c.number, c.title, f"`{c.command}`", *(cell(o[i]) for o in runs)]
+                for i, c in enumerate(cases)
             ),
         ),
         "",
@@ -443,9 +446,9 @@ def main(argv: list[str] | None = None) -> int:
     names = dict.fromkeys(c.group for c in cases)
     groups = [[i for i, c in enumerate(cases) if c.group == name] for name in names]
     lines += table(
-        "class | before | after",
+        " | ".join(["class", *run_names]),
         (
-            [cases[pick[0]].group, *(class_summary([o[i] for i in pick]) for o in (before, after))]
+            [cases[pick[0]].group, *(class_summary([o[i] for i in pick]) for o in runs)]
             for pick in groups
         ),
     )
