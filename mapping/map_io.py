@@ -33,9 +33,9 @@ latent scales); :func:`load_session` reads the session section of versions 4 and
 the older ones.
 
 Files are written to a temporary file in the target folder and moved into place. The per-voxel
-arrays are written submap by submap (:class:`_Stacked`): the file is the one ``np.savez_compressed``
-writes of their concatenation, without the concatenation in memory (that copy of every submap's
-encoding used to set a run's peak RSS).
+arrays are written submap by submap (:class:`~mapping.npz_members.Stacked`): the file is the one
+``np.savez_compressed`` writes of their concatenation, without the concatenation in memory (that
+copy of every submap's encoding used to set a run's peak RSS).
 
 A map file may come from elsewhere: :func:`read_map_file` checks every member's declared size
 against what the header implies before reading any (:mod:`mapping.map_schema`), validates the
@@ -72,7 +72,14 @@ from mapping.map_schema import (
 )
 from mapping.networks import PriorModel
 from mapping.neural_map import NeuralMap, Submap
-from mapping.npz_members import Member, MemberError, list_members, read_member
+from mapping.npz_members import (
+    Member,
+    MemberError,
+    Stacked,
+    list_members,
+    read_member,
+    write_npz,
+)
 from mapping.transform import check_rigid
 
 FORMAT = "neural-remap-slam/map"
@@ -100,39 +107,6 @@ def _from_numpy(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
     if t.dtype != dtype:
         raise ValueError(f"coefficients are {t.dtype}, the header says {dtype}")
     return t
-
-
-class _Stacked(NamedTuple):
-    """An array stored as the concatenation of ``parts`` along the first axis (never built)."""
-
-    parts: list[np.ndarray]
-
-
-def _write_stacked(fid, parts: list[np.ndarray]) -> None:
-    """The ``.npy`` bytes ``np.lib.format.write_array`` writes of ``np.concatenate(parts)``: the
-    same header (dtype promoted as ``concatenate`` does, C order), then each part's data."""
-    dtype = np.result_type(*parts)
-    tail = parts[0].shape[1:]
-    if any(p.shape[1:] != tail for p in parts):
-        raise ValueError(f"save: parts of shapes {[p.shape for p in parts]} do not stack")
-    header = np.lib.format.header_data_from_array_1_0(np.empty((0, *tail), dtype))
-    header["shape"] = (sum(p.shape[0] for p in parts), *tail)
-    np.lib.format.write_array_header_1_0(fid, header)
-    for part in parts:
-        if part.size:
-            fid.write(memoryview(np.ascontiguousarray(part, dtype=dtype)).cast("B"))
-
-
-def _write_npz(f, arrays: dict[str, np.ndarray | _Stacked]) -> None:
-    """``np.savez_compressed(f, **arrays)`` (the same entries in the same order, each written
-    as ``np.save`` would), where a :class:`_Stacked` entry is written part by part."""
-    with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zipf:
-        for name, value in arrays.items():
-            with zipf.open(f"{name}.npy", "w", force_zip64=True) as fid:  # zip64 as numpy does
-                if isinstance(value, _Stacked):
-                    _write_stacked(fid, value.parts)
-                else:
-                    np.lib.format.write_array(fid, np.asanyarray(value), allow_pickle=False)
 
 
 def save_map(
@@ -164,7 +138,7 @@ def save_map(
             f"{cfg.jacobian_storage} Jacobians"
         )
     counts = [o.num_voxels for o in originals]
-    arrays: dict[str, np.ndarray | _Stacked] = {
+    arrays: dict[str, np.ndarray | Stacked] = {
         "submap_ids": np.asarray(ids, dtype=np.int64),
         "submap_fused": np.asarray([s.fused for s in submaps], dtype=bool),
         "submap_T_W_A_encoded": np.asarray(
@@ -196,7 +170,7 @@ def save_map(
     for name in _PER_VOXEL[1:]:  # views of the submaps' tensors, written one after the other
         per_voxel[name] = [_to_numpy(getattr(o, name)) for o in originals]
     for name, parts in per_voxel.items():
-        arrays[name] = _Stacked([empty[name], *parts])
+        arrays[name] = Stacked([empty[name], *parts])
     header = {
         "format": FORMAT,
         "version": VERSION,
@@ -214,7 +188,7 @@ def save_map(
             arrays[SESSION_PREFIX + name] = np.asarray(value)
     arrays["header"] = np.array(json.dumps(header))
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        _write_npz(f, arrays)
+        write_npz(f, arrays)
 
 
 class MapFileData(NamedTuple):

@@ -1,4 +1,7 @@
-"""The members of an ``.npz`` file, sized before any is read.
+"""The members of an ``.npz`` file: written part by part, and sized before any is read.
+
+:func:`write_npz` writes what ``np.savez_compressed`` writes, where an array given as
+:class:`Stacked` parts is written part by part, never concatenated in memory.
 
 A map file may come from elsewhere, so nothing in it is trusted before it is checked:
 :func:`list_members` reads only the zip directory and each member's ``.npy`` header (its shape
@@ -14,6 +17,7 @@ from __future__ import annotations
 import math
 import zipfile
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -97,3 +101,36 @@ def read_member(archive: zipfile.ZipFile, member: Member) -> np.ndarray:
     if array.shape != member.shape or array.dtype != member.dtype:
         raise MemberError(f"{member.info.filename}: changed while it was read")
     return array
+
+
+class Stacked(NamedTuple):
+    """An array stored as the concatenation of ``parts`` along the first axis (never built)."""
+
+    parts: list[np.ndarray]
+
+
+def _write_stacked(fid, parts: list[np.ndarray]) -> None:
+    """The ``.npy`` bytes ``np.lib.format.write_array`` writes of ``np.concatenate(parts)``: the
+    same header (dtype promoted as ``concatenate`` does, C order), then each part's data."""
+    dtype = np.result_type(*parts)
+    tail = parts[0].shape[1:]
+    if any(p.shape[1:] != tail for p in parts):
+        raise ValueError(f"save: parts of shapes {[p.shape for p in parts]} do not stack")
+    header = np.lib.format.header_data_from_array_1_0(np.empty((0, *tail), dtype))
+    header["shape"] = (sum(p.shape[0] for p in parts), *tail)
+    np.lib.format.write_array_header_1_0(fid, header)
+    for part in parts:
+        if part.size:
+            fid.write(memoryview(np.ascontiguousarray(part, dtype=dtype)).cast("B"))
+
+
+def write_npz(f, arrays: dict[str, np.ndarray | Stacked]) -> None:
+    """``np.savez_compressed(f, **arrays)`` (the same entries in the same order, each written
+    as ``np.save`` would), where a :class:`Stacked` entry is written part by part."""
+    with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zipf:
+        for name, value in arrays.items():
+            with zipf.open(f"{name}.npy", "w", force_zip64=True) as fid:  # zip64 as numpy does
+                if isinstance(value, Stacked):
+                    _write_stacked(fid, value.parts)
+                else:
+                    np.lib.format.write_array(fid, np.asanyarray(value), allow_pickle=False)

@@ -209,7 +209,7 @@ def test_stacked_arrays_are_written_as_savez_compressed_writes_their_concatenati
     ``np.savez_compressed`` writes of the concatenated arrays (dtype promotion included)."""
     import io
 
-    from mapping.map_io import _Stacked, _write_npz
+    from mapping.npz_members import Stacked, write_npz
 
     rng = np.random.default_rng(0)
     parts = {
@@ -220,8 +220,8 @@ def test_stacked_arrays_are_written_as_savez_compressed_writes_their_concatenati
     }
     plain = {"ids": np.arange(4), "header": np.array(json.dumps({"a": 1}))}
     ours, reference = io.BytesIO(), io.BytesIO()
-    _write_npz(ours, {**plain, **{name: _Stacked(p) for name, p in parts.items()}})
+    write_npz(ours, {**plain, **{name: Stacked(p) for name, p in parts.items()}})
     np.savez_compressed(reference, **plain, **{n: np.concatenate(p) for n, p in parts.items()})
     assert ours.getvalue() == reference.getvalue()
     with pytest.raises(ValueError, match="do not stack"):
-        _write_npz(io.BytesIO(), {"x": _Stacked([np.zeros((1, 2)), np.zeros((1, 3))])})
+        write_npz(io.BytesIO(), {"x": Stacked([np.zeros((1, 2)), np.zeros((1, 3))])})
