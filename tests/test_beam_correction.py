@@ -42,13 +42,20 @@ def _examined_scans(root: Path) -> list[np.ndarray]:
 
 
 def test_the_numpy_correction_is_kiss_icps():
+    """The source corrects scans in numpy: KISS-ICP's C++ values to a rounding (bit for bit on
+    x86_64 builds), points on the z axis and float32 scans included."""
     from kiss_icp.pybind import kiss_icp_pybind
 
-    points = np.random.default_rng(0).normal(0.0, 20.0, (1000, 3))
-    theirs = kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(points))
-    np.testing.assert_allclose(correct_vertical_angle(points), np.asarray(theirs), atol=1e-9)
-    lowered = correct_vertical_angle(points, -VERTICAL_ANGLE_OFFSET_DEG)
-    np.testing.assert_allclose(correct_vertical_angle(lowered), points, atol=1e-9)
+    points = np.random.default_rng(0).normal(0.0, 20.0, (20_000, 3)).astype(np.float32)
+    points[:3] = [[0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.5]]
+    theirs = kiss_icp_pybind._correct_kitti_scan(
+        kiss_icp_pybind._Vector3dVector(points.astype(np.float64))
+    )
+    ours = correct_vertical_angle(points)
+    assert ours.dtype == np.float64 and ours.flags.c_contiguous
+    np.testing.assert_allclose(ours, np.asarray(theirs), rtol=0.0, atol=1e-12)
+    lowered = correct_vertical_angle(points[3:], -VERTICAL_ANGLE_OFFSET_DEG)
+    np.testing.assert_allclose(correct_vertical_angle(lowered), points[3:], atol=1e-9)
 
 
 def test_auto_leaves_ideal_generated_scans_uncorrected(street_root, caplog):

@@ -121,6 +121,17 @@ def test_kitti_bad_inputs(tmp_path):
         source[2]
     assert_one_line_error(exc, "000002.bin", "empty")
 
+    # a non-finite reflectance is no coordinate: the scan is read; a NaN coordinate is refused
+    scan = np.ones((10, 4), np.float32)
+    scan[3, 3] = np.nan
+    scan.tofile(velodyne / "000000.bin")
+    assert np.isnan(read_kitti_bin(velodyne / "000000.bin")[3, 3])
+    scan[7, 2] = -np.inf
+    scan.tofile(velodyne / "000000.bin")
+    with pytest.raises(DatasetError) as exc:
+        source[0]
+    assert_one_line_error(exc, "000000.bin", "NaN/inf coordinates")
+
     (tmp_path / "sequences" / "03" / "times.txt").write_text("0.0\n0.1\n")
     with pytest.raises(DatasetError) as exc:
         make_source("kitti", root=tmp_path, sequence="03")
