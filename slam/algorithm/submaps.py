@@ -236,26 +236,25 @@ class SubmapPoints:
         self._surface_keys = np.zeros(0, dtype=np.int64)
         self._view_surface = 0
 
-    def _frame_points(self, frame: Frame) -> tuple[np.ndarray, np.ndarray | None]:
-        points = np.asarray(frame.points, dtype=np.float64)
-        ranges = point_ranges_m(points)
-        keep = (ranges >= self.cfg.min_range_m) & (ranges <= self.cfg.max_range_m)
-        points = np.compress(keep, points, axis=0)
-        normals = frame.normals
-        if normals is not None:
-            normals = np.compress(keep, np.asarray(normals, dtype=np.float64), axis=0)
-        return points, normals
-
     def _accumulate(self, frame: Frame, T_A_S: np.ndarray) -> None:
-        points_S, normals_S = self._frame_points(frame)
+        """Add a frame's points within the range limits: those within ``loop_max_range_m`` and
+        those beyond it each averaged on their grid (gathered straight from the frame's points,
+        with one range per point)."""
+        points_S = np.asarray(frame.points, dtype=np.float64)
+        ranges = point_ranges_m(points_S)
+        keep = (ranges >= self.cfg.min_range_m) & (ranges <= self.cfg.max_range_m)
         split_m = self.cfg.loop_max_range_m
         if split_m is None or split_m >= self.cfg.max_range_m:
-            self._add(self._near, points_S, normals_S, T_A_S)
-            return
-        near = point_ranges_m(points_S) <= split_m
-        for chunks, rows in ((self._near, near), (self._far, ~near)):
-            normals = None if normals_S is None else normals_S[rows]
-            self._add(chunks, points_S[rows], normals, T_A_S)
+            parts = [(self._near, keep)]
+        else:
+            near = ranges <= split_m
+            parts = [(self._near, keep & near), (self._far, keep & ~near)]
+        normals_S = frame.normals
+        if normals_S is not None:
+            normals_S = np.asarray(normals_S, dtype=np.float64)
+        for chunks, rows in parts:
+            normals = None if normals_S is None else np.compress(rows, normals_S, axis=0)
+            self._add(chunks, np.compress(rows, points_S, axis=0), normals, T_A_S)
 
     def _add(
         self, chunks: PointChunks, points_S: np.ndarray, normals_S: np.ndarray | None, T_A_S
