@@ -1,21 +1,23 @@
-"""Rerun recording size and logging overhead of whole runs -> ``benchmarks/results/rerun.md``.
+"""Rerun recording size, logging overhead and the pipeline rate a recording leaves ->
+``benchmarks/results/rerun.md``.
 
-    python -m benchmarks.bench_rerun [--quick] [--frames A:B]
+    python -m benchmarks.bench_rerun [--quick] [--frames A:B] [--repeats 3]
     python -m benchmarks.bench_rerun --rates [--before DIR] [--repeats 3]
 
-Each case runs twice in this process with ``slam.app.runner``'s ``execute`` (after its sequence
-is generated): with ``--no-viz`` and writing an ``.rrd`` file. Measured: both wall times and
-their difference (noisy on a shared machine); the time inside the logger's methods (the logger
-wrapped by a timer); the pipeline's ``map_logging`` stage (it also meshes for the viewer); the
-recording's size and largest entities; whether both runs wrote identical poses.
+Rates: the pipeline rate (``timing.frames_per_s``) of ``python -m slam.run`` child processes with
+the default recording and with ``--no-viz``, on the demo and the first 120 frames of the
+generated street, ``--repeats`` times interleaved. ``--rates`` measures only these; ``--before
+DIR`` (another checkout) adds its rows (``benchmarks/results/rerun_rates.md``).
 
-``--rates`` measures instead the pipeline rate (``timing.frames_per_s``) of ``python -m slam.run``
-child processes with the default recording and with ``--no-viz``, on the demo and the first 120
-frames of the generated street, ``--repeats`` times interleaved; ``--before DIR`` (another
-checkout) adds its rows (``benchmarks/results/rerun_rates.md``).
+Overhead: each case runs twice in this process with ``slam.app.runner``'s ``execute`` (after its
+sequence is generated): with ``--no-viz`` and writing an ``.rrd`` file. Measured: both wall times
+and their difference (noisy on a shared machine); the time inside the logger's methods (the
+logger wrapped by a timer); the pipeline's ``map_logging`` stage (it also meshes for the viewer);
+the recording's size and largest entities; whether both runs wrote identical poses.
 
-Quick mode: the first 30 demo frames. Full mode: the whole demo and, when
-``../shared/data/kitti`` is present, 1,500 LiDAR frames generated along KITTI 00's trajectory.
+Quick mode: the overhead of the first 30 demo frames, without the per-method and per-entity
+tables. Full mode: the whole demo and, when ``../shared/data/kitti`` is present, 1,500 LiDAR
+frames generated along KITTI 00's trajectory.
 """
 
 from __future__ import annotations
@@ -248,7 +250,15 @@ def _case_row(r: dict) -> list:
     ]
 
 
-def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str) -> str:
+def markdown(
+    results: list[dict[str, Any]],
+    alone: dict[str, Any],
+    rates: list[str],
+    command: str,
+    details: bool,
+) -> str:
+    """The report: ``rates`` (from :func:`rates_table`), the overhead of each case and of the
+    logger alone; with ``details``, each case's time per logger method and largest entities."""
     header = (
         "case | frames | wall no-viz [s] | wall rrd [s] | wall diff | time in logger [s] "
         "| logger / wall rrd | map_logging stage no-viz / rrd [s] | recording [MB] "
@@ -257,7 +267,11 @@ def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str)
     lines = [
         *section_header("rerun", command),
         "",
-        "Rerun recording size and logging overhead of whole runs (`benchmarks/bench_rerun.py`).",
+        "### The pipeline's rate with the default recording",
+        "",
+        *rates,
+        "",
+        "### Recording size and logging overhead",
         "",
         "- Each case ran twice in one process (slam.app.runner's `execute`): "
         "`--no-viz` (NullLogger) "
@@ -285,7 +299,7 @@ def markdown(results: list[dict[str, Any]], alone: dict[str, Any], command: str)
         "",
         *_method_table(alone),
     ]
-    for r in results:
+    for r in results if details else []:
         top = sorted(r["entities"].items(), key=lambda kv: -kv[1].arrow_bytes)[:8]
         lines += [
             "",
@@ -336,7 +350,9 @@ def measure_rates(trees: dict[str, Path], repeats: int) -> dict[tuple[str, str, 
     return rates
 
 
-def rates_markdown(rates: dict, trees: dict[str, Path], repeats: int, command: str) -> str:
+def rates_table(rates: dict, trees: dict[str, Path], repeats: int) -> list[str]:
+    """The rates measured by :func:`measure_rates` as Markdown lines."""
+
     def cell(values: list[float]) -> str:
         return f"{statistics.median(values):.1f} ({min(values):.1f}-{max(values):.1f})"
 
@@ -347,16 +363,14 @@ def rates_markdown(rates: dict, trees: dict[str, Path], repeats: int, command: s
             ratio = statistics.median(logged) / statistics.median(plain)
             rows.append([tree, case, cell(logged), cell(plain), f"{ratio:.2f}"])
     header = "code | case | recording [frames/s] | --no-viz [frames/s] | recording / --no-viz"
-    lines = [
-        *section_header("rerun rates", command),
-        "",
+    return [
         "Pipeline rate (frames/s from the first frame read to the end of the final optimisation,"
         f" `timing.frames_per_s`) of `python -m slam.run`: median of {repeats} runs (min-max), "
-        "with the default recording (`recording.rrd`) and with `--no-viz`.",
+        "interleaved, each in its own process, with the default recording (`recording.rrd`) and "
+        "with `--no-viz`.",
         "",
         *table(header, rows, "llrrr"),
     ]
-    return "\n".join(lines) + "\n"
 
 
 def say(message: str) -> None:
@@ -369,20 +383,26 @@ def build_parser():
     parser.add_argument("--skip-lidar", action="store_true", help="no 1,500-frame LiDAR case")
     parser.add_argument("--rates", action="store_true", help="recording vs --no-viz rates instead")
     parser.add_argument("--before", type=Path, help="--rates: also measure this checkout")
-    parser.add_argument("--repeats", type=int, default=3, help="--rates: runs of each case")
+    parser.add_argument("--repeats", type=int, default=3, help="runs of each rate case")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     command = command_line("bench_rerun", argv)
+    here = {"this checkout": Path(__file__).resolve().parents[1]}
     if args.rates:
-        trees = {"before": args.before.resolve()} if args.before else {}
-        trees["this checkout"] = Path(__file__).resolve().parents[1]
+        trees = {"before": args.before.resolve(), **here} if args.before else here
         rates = measure_rates(trees, args.repeats)
-        write_text_atomic(RATES, rates_markdown(rates, trees, args.repeats, command))
+        lines = [
+            *section_header("rerun rates", command),
+            "",
+            *rates_table(rates, trees, args.repeats),
+        ]
+        write_text_atomic(RATES, "\n".join(lines) + "\n")
         say(f"wrote {RATES}")
         return 0
+    rates = rates_table(measure_rates(here, args.repeats), here, args.repeats)
     frames = args.frames or ("0:30" if args.quick else None)
     demo = ["demo", *(["--frames", frames] if frames else [])]
     cases = {"demo" + (f" [{frames}]" if frames else ""): demo}
@@ -404,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, case_argv in cases.items():
         say(name)
         results.append(measure(name, case_argv))
-    write_text_atomic(RESULTS, markdown(results, alone, command))
+    write_text_atomic(RESULTS, markdown(results, alone, rates, command, details=not args.quick))
     say(f"wrote {RESULTS}")
     return 0
 
