@@ -122,42 +122,21 @@ def room_scene(*, seed: int = 0) -> Scene:
     def colour() -> np.ndarray:
         return rng.uniform(0.25, 0.95, 3)
 
-    b.add(
-        _box((sx, sy, t), _pose_xy_yaw(0, 0, -t / 2, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.3,
-    )
-    b.add(
-        _box((sx, sy, t), _pose_xy_yaw(0, 0, sz + t / 2, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.6,
-    )
-    b.add(
-        _box((sx + 2 * t, t, sz), _pose_xy_yaw(0, sy / 2 + t / 2, sz / 2, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.25,
-    )
-    b.add(
-        _box((sx + 2 * t, t, sz), _pose_xy_yaw(0, -sy / 2 - t / 2, sz / 2, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.25,
-    )
-    b.add(
-        _box((t, sy, sz), _pose_xy_yaw(sx / 2 + t / 2, 0, sz / 2, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.25,
-    )
-    b.add(
-        _box((t, sy, sz), _pose_xy_yaw(-sx / 2 - t / 2, 0, sz / 2, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.25,
-    )
+    def box(extents, x: float, y: float, z: float, yaw: float, reflectance: float, texture_m):
+        """A box with its own random colour (drawn in the order the boxes are added)."""
+        mesh = _box(extents, _pose_xy_yaw(x, y, z, yaw))
+        b.add(mesh, reflectance=reflectance, albedo=colour(), texture_m=texture_m)
+
+    # Floor, ceiling and the four walls: (extents, x, y, z, texture cell).
+    for extents, x, y, z, texture_m in (
+        ((sx, sy, t), 0, 0, -t / 2, 0.3),
+        ((sx, sy, t), 0, 0, sz + t / 2, 0.6),
+        ((sx + 2 * t, t, sz), 0, sy / 2 + t / 2, sz / 2, 0.25),
+        ((sx + 2 * t, t, sz), 0, -sy / 2 - t / 2, sz / 2, 0.25),
+        ((t, sy, sz), sx / 2 + t / 2, 0, sz / 2, 0.25),
+        ((t, sy, sz), -sx / 2 - t / 2, 0, sz / 2, 0.25),
+    ):
+        box(extents, x, y, z, 0, 0.3, texture_m)
 
     # Posters: thin slabs 1 cm off the walls with a fine, high-contrast texture.
     walls = [
@@ -181,68 +160,32 @@ def room_scene(*, seed: int = 0) -> Scene:
                 texture_m=rng.uniform(0.04, 0.1),
             )
 
-    # Cabinet, shelf and sofa against the walls.
-    b.add(
-        _box((1.2, 0.5, 1.8), _pose_xy_yaw(-1.6, sy / 2 - 0.25, 0.9, 0)),
-        reflectance=0.4,
-        albedo=colour(),
-        texture_m=0.15,
-    )
-    b.add(
-        _box((0.4, 1.6, 1.2), _pose_xy_yaw(sx / 2 - 0.2, -1.0, 0.6, 0)),
-        reflectance=0.4,
-        albedo=colour(),
-        texture_m=0.12,
-    )
-    for d in range(3):
-        b.add(
-            _box((0.42, 1.62, 0.03), _pose_xy_yaw(sx / 2 - 0.2, -1.0, 0.3 + 0.35 * d, 0)),
-            reflectance=0.5,
-            albedo=colour(),
-            texture_m=0.05,
-        )
-    b.add(
-        _box((2.0, 0.9, 0.45), _pose_xy_yaw(0.6, -sy / 2 + 0.45, 0.225, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.1,
-    )
-    b.add(
-        _box((2.0, 0.25, 0.85), _pose_xy_yaw(0.6, -sy / 2 + 0.125, 0.425, 0)),
-        reflectance=0.3,
-        albedo=colour(),
-        texture_m=0.1,
-    )
-
-    # Desk with four legs.
+    # Cabinet, shelf (three boards), sofa (seat and back) and the desk's top.
     dx, dy = -sx / 2 + 0.8, -1.2
-    b.add(
-        _box((1.4, 0.8, 0.04), _pose_xy_yaw(dx, dy, 0.74, np.pi / 2)),
-        reflectance=0.4,
-        albedo=colour(),
-        texture_m=0.08,
-    )
+    box((1.2, 0.5, 1.8), -1.6, sy / 2 - 0.25, 0.9, 0, 0.4, 0.15)
+    box((0.4, 1.6, 1.2), sx / 2 - 0.2, -1.0, 0.6, 0, 0.4, 0.12)
+    for d in range(3):
+        box((0.42, 1.62, 0.03), sx / 2 - 0.2, -1.0, 0.3 + 0.35 * d, 0, 0.5, 0.05)
+    box((2.0, 0.9, 0.45), 0.6, -sy / 2 + 0.45, 0.225, 0, 0.3, 0.1)
+    box((2.0, 0.25, 0.85), 0.6, -sy / 2 + 0.125, 0.425, 0, 0.3, 0.1)
+    box((1.4, 0.8, 0.04), dx, dy, 0.74, np.pi / 2, 0.4, 0.08)
+
+    # The desk's four legs and a box on it.
     for ox in (-0.62, 0.62):
         for oy in (-0.32, 0.32):
             leg = _box((0.05, 0.05, 0.72), _pose_xy_yaw(dx + oy, dy + ox, 0.36, 0))
             b.add(leg, reflectance=0.4, albedo=(0.2, 0.2, 0.2))
-    box_on_desk = _box((0.3, 0.25, 0.2), _pose_xy_yaw(dx, dy + 0.2, 0.86, 0.3))
-    b.add(box_on_desk, reflectance=0.4, albedo=colour(), texture_m=0.05)
+    box((0.3, 0.25, 0.2), dx, dy + 0.2, 0.86, 0.3, 0.4, 0.05)
 
     # Round side table at the centre with a sphere on it, a bin, a pillar, a big ball.
-    table = trimesh.creation.cylinder(radius=0.3, height=0.6, sections=32)
-    table.apply_translation([0, 0, 0.3])
-    b.add(table, reflectance=0.4, albedo=colour(), texture_m=0.07)
-    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.15)
-    ball.apply_translation([0.05, 0.0, 0.75])
-    b.add(ball, reflectance=0.4, albedo=colour(), texture_m=0.04)
-    bin_ = trimesh.creation.cylinder(radius=0.2, height=0.5, sections=24)
-    bin_.apply_translation([1.8, 1.6, 0.25])
-    b.add(bin_, reflectance=0.4, albedo=colour(), texture_m=0.06)
-    pillar = trimesh.creation.cylinder(radius=0.18, height=sz, sections=24)
-    pillar.apply_translation([2.0, -0.2, sz / 2])
-    b.add(pillar, reflectance=0.4, albedo=colour(), texture_m=0.1)
-    big_ball = trimesh.creation.icosphere(subdivisions=3, radius=0.35)
-    big_ball.apply_translation([-2.2, 1.4, 0.35])
-    b.add(big_ball, reflectance=0.4, albedo=colour(), texture_m=0.08)
+    cylinder, sphere = trimesh.creation.cylinder, trimesh.creation.icosphere
+    for mesh, centre, texture_m in (
+        (cylinder(radius=0.3, height=0.6, sections=32), [0, 0, 0.3], 0.07),
+        (sphere(subdivisions=3, radius=0.15), [0.05, 0.0, 0.75], 0.04),
+        (cylinder(radius=0.2, height=0.5, sections=24), [1.8, 1.6, 0.25], 0.06),
+        (cylinder(radius=0.18, height=sz, sections=24), [2.0, -0.2, sz / 2], 0.1),
+        (sphere(subdivisions=3, radius=0.35), [-2.2, 1.4, 0.35], 0.08),
+    ):
+        mesh.apply_translation(centre)
+        b.add(mesh, reflectance=0.4, albedo=colour(), texture_m=texture_m)
     return b.build()
