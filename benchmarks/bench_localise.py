@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,10 +27,11 @@ from typing import Any
 import numpy as np
 
 from benchmarks.harness.child import in_child_measured, run_module
+from benchmarks.harness.cli import command_line
 from benchmarks.harness.kitti import FULL, KITTI_CALIB, KITTI_POSES, have_kitti
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA
-from benchmarks.harness.results import cm, run_scenarios, table, write_results
+from benchmarks.harness.results import cm, run_scenarios, scenario_arguments, table, write_results
 
 NO_VIZ = ["--no-viz", "--no-progress", "--set", "output.mesh_samples=0"]
 STREET = ["kitti", "00", "--set", "source.kitti.correct_vertical_angle=false"]
@@ -134,18 +134,8 @@ def _second_part(spec: Split, work: Path, name: str, *, continuous: bool, locali
     continuing it; with or without the continuous map constraints."""
     out = work / name
     sets = [] if continuous else ["--set", "relocalise.continuous=false"]
-    args = [
-        *spec.run_args,
-        "--frames",
-        spec.localised_frames,
-        *NO_VIZ,
-        *sets,
-        "--map",
-        str(work / "map"),
-        *(["--localise"] if localise else []),
-        "--out",
-        str(out),
-    ]
+    args = [*spec.run_args, "--frames", spec.localised_frames, *NO_VIZ, *sets]
+    args += ["--map", str(work / "map"), *(["--localise"] if localise else []), "--out", str(out)]
     wall, rss = run_module("slam.run", args, work / f"{name}.log")
     metrics = json.loads((out / "metrics.json").read_text())
     if not localise:
@@ -274,13 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true", help="the short street split, the kitchen")
     mode.add_argument("--full", action="store_true", help="the whole street in halves (hours)")
-    parser.add_argument(
-        "--scenario",
-        nargs="+",
-        choices=SCENARIOS,
-        help="default: street kitchen (--full: all three)",
-    )
-    parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
+    scenario_arguments(parser, SCENARIOS, "street kitchen (--full: all three)")
     return parser
 
 
@@ -290,8 +274,7 @@ def main(argv: list[str] | None = None) -> None:
     results = run_scenarios(
         names, lambda name, work: scenario(name, args.full, work), "localise", args.work
     )
-    command = "python -m benchmarks.bench_localise " + " ".join(argv or sys.argv[1:])
-    write_results("localise", results, report(results, command.strip()))
+    write_results("localise", results, report(results, command_line("bench_localise", argv)))
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,12 +26,12 @@ from typing import Any
 import numpy as np
 
 from benchmarks.harness.child import run_module
-from benchmarks.harness.cli import bench_parser
+from benchmarks.harness.cli import bench_parser, command_line
 from benchmarks.harness.kitti import FULL, QUICK, have_kitti, kitti_root, kitti_source
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line
-from benchmarks.harness.results import cm, run_scenarios, write_results
+from benchmarks.harness.results import cm, run_scenarios, scenario_arguments, write_results
 
 SEVEN_SCENES = DATA / "7scenes_redkitchen"
 
@@ -295,13 +294,7 @@ def _continued_rows(c: dict[str, Any]) -> list[str]:
 
 def build_parser():
     parser = bench_parser(__doc__, "shorter sequences")
-    parser.add_argument(
-        "--scenario",
-        nargs="+",
-        choices=sorted(SCENARIOS),
-        help="default: demo kitti00 7scenes (--quick: demo 7scenes)",
-    )
-    parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
+    scenario_arguments(parser, sorted(SCENARIOS), "demo kitti00 7scenes (--quick: demo 7scenes)")
     return parser
 
 
@@ -311,8 +304,7 @@ def main(argv: list[str] | None = None) -> None:
     results = run_scenarios(
         names, lambda name, work: scenario(name, args.quick, work), "merge", args.work
     )
-    command = "python -m benchmarks.bench_merge " + " ".join(argv or sys.argv[1:])
-    write_results("merge", results, report(results, command.strip()))
+    write_results("merge", results, report(results, command_line("bench_merge", argv)))
 
 
 if __name__ == "__main__":

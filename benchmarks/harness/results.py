@@ -33,6 +33,12 @@ def run_scenarios(
     return results
 
 
+def scenario_arguments(parser, choices: Iterable[str], default: str) -> None:
+    """``--scenario NAME...`` (help: the ``default`` choice) and ``--work DIR``."""
+    parser.add_argument("--scenario", nargs="+", choices=choices, help=f"default: {default}")
+    parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
+
+
 def write_results(stem: str, results: dict[str, Any], markdown: str) -> None:
     """``benchmarks/results/<stem>.json`` (the numbers) and ``<stem>.md`` (the section)."""
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
