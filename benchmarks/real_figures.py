@@ -103,14 +103,13 @@ def write_real_figures(out: Path, *, mulran: dict, kitti_raw: dict) -> list[Path
     trajectories[diagnosis] = reference[0] @ mulran["diagnosis"]
     poses = mulran["mesh_poses"]
     centre = poses[min(CLOSE_UP_FRAME, len(poses) - 1), :3, 3]
+    title = "MulRan Riverside02 keyframes: KISS-ICP (ours) vs reference"
+    figure = plots.trajectories_figure(trajectories, title=title, size_in=(7.0, 5.0), dpi=110)
+    title = "KITTI raw, 22 scans: KISS-ICP (no ground truth)"
+    raw = {"ours: KISS-ICP odometry": kitti_raw["poses"]}
+    raw_figure = plots.trajectories_figure(raw, title=title, size_in=(6.0, 4.0), dpi=110)
     return [
-        plots.plot_trajectories_top_down(
-            mulran_dir / "trajectory.png",
-            trajectories,
-            title="MulRan Riverside02 keyframes: KISS-ICP (ours) vs reference",
-            size_in=(7.0, 5.0),
-            dpi=110,
-        ),
+        plots.save_png(figure, mulran_dir / "trajectory.png"),
         *_mesh_figures(
             mulran_dir,
             mulran["mesh"],
@@ -119,13 +118,7 @@ def write_real_figures(out: Path, *, mulran: dict, kitti_raw: dict) -> list[Path
             centre,
             "MulRan, reference poses",
         ),
-        plots.plot_trajectories_top_down(
-            raw_dir / "trajectory.png",
-            {"ours: KISS-ICP odometry": kitti_raw["poses"]},
-            title="KITTI raw, 22 scans: KISS-ICP (no ground truth)",
-            size_in=(6.0, 4.0),
-            dpi=110,
-        ),
+        plots.save_png(raw_figure, raw_dir / "trajectory.png"),
         *_mesh_figures(
             raw_dir,
             kitti_raw["mesh"],

@@ -64,7 +64,7 @@ def test_trajectory_plot_draws_each_trajectory_and_loop_edge_in_its_style(tmp_pa
     for angle in np.radians([30.0, 120.0, 250.0]):
         assert near(10.1 * np.cos(angle), 10.1 * np.sin(angle), 2).any(), angle
     assert not near(0.0, 0.0, 20).any()
-    path = plots.plot_trajectories_top_down(tmp_path / "traj.png", trajectories, loop_edges=edges)
+    path = plots.save_png(figure, tmp_path / "traj.png")
     assert_png_shows(path, plots.trajectories_figure(trajectories, loop_edges=edges))
     assert not list(tmp_path.glob(".*.tmp"))
 

@@ -56,22 +56,6 @@ def top_down_axes(positions: np.ndarray) -> tuple[int, int]:
     return int(first), int(second)
 
 
-def plot_trajectories_top_down(
-    path: Path,
-    trajectories: Mapping[str, np.ndarray],
-    *,
-    loop_edges: np.ndarray | None = None,
-    title: str = "",
-    size_in: tuple[float, float] = (7.0, 6.0),
-    dpi: int = 120,
-) -> Path:
-    """:func:`trajectories_figure` saved as a PNG at ``path``."""
-    figure = trajectories_figure(
-        trajectories, loop_edges=loop_edges, title=title, size_in=size_in, dpi=dpi
-    )
-    return save_png(figure, path)
-
-
 def trajectories_figure(
     trajectories: Mapping[str, np.ndarray],
     *,

@@ -74,11 +74,8 @@ def draw_plots(
             named["odometry"] = odometry
         edges = edges_W
     title = f"{Path(run_dir).name}: trajectories (top-down)"
-    written.append(
-        plots.plot_trajectories_top_down(
-            out / "trajectories.png", named, loop_edges=edges, title=title
-        )
-    )
+    figure = plots.trajectories_figure(named, loop_edges=edges, title=title)
+    written.append(plots.save_png(figure, out / "trajectories.png"))
     if gt.poses is not None:
         times = (trajectories.timestamps - trajectories.timestamps[0])[scored]
         errors = {
@@ -151,16 +148,11 @@ def write_figures(
     (shaded snapshot) and ``mesh_error.png`` (mesh coloured by distance to ground truth)."""
     from slam.evaluation import plots
 
-    written = [
-        plots.plot_trajectories_top_down(
-            out / "trajectory.png",
-            trajectories,
-            loop_edges=loop_edges_gt,
-            title=f"{name}: trajectories and loop closures",
-            size_in=(5.0, 4.2),
-            dpi=100,
-        )
-    ]
+    title = f"{name}: trajectories and loop closures"
+    figure = plots.trajectories_figure(
+        trajectories, loop_edges=loop_edges_gt, title=title, size_in=(5.0, 4.2), dpi=100
+    )
+    written = [plots.save_png(figure, out / "trajectory.png")]
     if mesh is None:
         return written
     up = up_axis_of(trajectories.get("slam", next(iter(trajectories.values()))), sensor)
