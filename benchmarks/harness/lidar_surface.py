@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from slam.algorithm.voxel_grid import voxel_downsample
+
 THRESHOLDS_M = (0.1, 0.2)
 """Distance thresholds of precision, recall and F-score."""
 POINT_THRESHOLDS_M = (0.1, 0.2, 0.5)
@@ -70,15 +72,6 @@ def scan_set(scans: list[np.ndarray], poses: np.ndarray, max_range_m: float) -> 
     return ScanSet(np.concatenate(points), np.concatenate(ranges))
 
 
-def _voxel_means(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    from common.voxel_keys import point_voxel_keys
-
-    keys = point_voxel_keys(points, voxel_m)
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    sums = [np.bincount(inverse.ravel(), weights=points[:, k]) for k in range(3)]
-    return np.stack(sums, axis=1) / counts[:, None]
-
-
 def crop_to_region(gt: trimesh.Trimesh, positions_W: np.ndarray, radius_m: float):
     """The faces of ``gt`` that come within ``radius_m`` of a sensor position."""
     from scipy.spatial import cKDTree
@@ -104,7 +97,7 @@ def observed_mask(samples: np.ndarray, scans: ScanSet, range_m: float) -> np.nda
     use = scans.ranges_m < range_m
     if not use.any():
         return np.zeros(len(samples), dtype=bool)
-    points = _voxel_means(scans.points_W[use], OBSERVED_POINT_VOXEL_M)
+    (points,) = voxel_downsample(OBSERVED_POINT_VOXEL_M, scans.points_W[use])
     tree = cKDTree(points)
     return np.isfinite(tree.query(samples, distance_upper_bound=OBSERVED_DISTANCE_M, workers=-1)[0])
 
