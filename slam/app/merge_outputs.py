@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from pathlib import Path
 
 import numpy as np
 
 from slam.algorithm.merge.merge import MergeResult
-from slam.run_folder.outputs import pose_columns
+from slam.run_folder.outputs import LOOP_FIELDS, loop_fields
 
 LOOP_COLUMNS = (
     "kind",
@@ -19,14 +18,7 @@ LOOP_COLUMNS = (
     "query_session",
     "reference_submap",
     "query_submap",
-    "status",
-    "reason",
-    "graph_inlier",
-    "tx",
-    "ty",
-    "tz",
-    "rotation_deg",
-    "scores",
+    *LOOP_FIELDS,
 )
 
 SESSION_COLOURS = np.array(
@@ -54,24 +46,10 @@ def merge_loops_csv(result: MergeResult) -> str:
     writer.writerow(LOOP_COLUMNS)
     for k, i, j in result.intra_loops:
         T = np.linalg.inv(result.T_W_A[i]) @ result.T_W_A[j]
-        writer.writerow(["intra", k, k, i, j, "accepted", "stored", "true", *pose_columns(T), "{}"])
+        writer.writerow(["intra", k, k, i, j, *loop_fields(True, "stored", True, T, {})])
     for c in result.loops:
-        inlier = "" if c.graph_inlier is None else str(bool(c.graph_inlier)).lower()
-        scores = json.dumps({key: round(float(v), 4) for key, v in c.scores.items()})
-        writer.writerow(
-            [
-                "inter",
-                c.session_i,
-                c.session_j,
-                c.i,
-                c.j,
-                "accepted" if c.accepted else "rejected",
-                c.reason,
-                inlier,
-                *pose_columns(c.T_Ai_Aj),
-                scores,
-            ]
-        )
+        fields = loop_fields(c.accepted, c.reason, c.graph_inlier, c.T_Ai_Aj, c.scores)
+        writer.writerow(["inter", c.session_i, c.session_j, c.i, c.j, *fields])
     return buffer.getvalue()
 
 

@@ -37,19 +37,10 @@ from slam.run_folder.trajectory_io import write_kitti, write_tum
 
 logger = logging.getLogger(__name__)
 
-LOOP_COLUMNS = (
-    "reference_submap",
-    "query_submap",
-    "detector",
-    "status",
-    "reason",
-    "graph_inlier",
-    "tx",
-    "ty",
-    "tz",
-    "rotation_deg",
-    "scores",
-)
+LOOP_FIELDS = ("status", "reason", "graph_inlier", "tx", "ty", "tz", "rotation_deg", "scores")
+"""The columns every loop row ends with, in ``loops.csv`` of a run and of a merge
+(:func:`loop_fields`)."""
+LOOP_COLUMNS = ("reference_submap", "query_submap", "detector", *LOOP_FIELDS)
 
 
 def json_safe(value: Any) -> Any:
@@ -71,12 +62,18 @@ def json_safe(value: Any) -> Any:
     return value
 
 
-def pose_columns(T: np.ndarray | None) -> list[str]:
-    """The ``tx, ty, tz, rotation_deg`` CSV fields of a relative pose (empty without one)."""
-    if T is None:
-        return ["", "", "", ""]
-    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return [f"{v:.4f}" for v in T[:3, 3]] + [f"{np.degrees(np.arccos(cos)):.3f}"]
+def loop_fields(
+    accepted: bool, reason: str, graph_inlier: bool | None, T: np.ndarray | None, scores: dict
+) -> list[str]:
+    """The :data:`LOOP_FIELDS` of a loop: its relative pose ``T`` as ``tx, ty, tz,
+    rotation_deg`` (empty without one), its scores as JSON."""
+    inlier = "" if graph_inlier is None else str(bool(graph_inlier)).lower()
+    pose = ["", "", "", ""]
+    if T is not None:
+        cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        pose = [f"{v:.4f}" for v in T[:3, 3]] + [f"{np.degrees(np.arccos(cos)):.3f}"]
+    text = json.dumps({k: round(float(v), 4) for k, v in scores.items()})
+    return ["accepted" if accepted else "rejected", reason, inlier, *pose, text]
 
 
 def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
@@ -85,13 +82,8 @@ def loops_csv(candidates: Sequence[LoopCandidate]) -> str:
     writer = csv.writer(buffer)
     writer.writerow(LOOP_COLUMNS)
     for c in candidates:
-        pose = pose_columns(c.T_Ai_Aj)
-        inlier = "" if c.graph_inlier is None else str(bool(c.graph_inlier)).lower()
-        scores = json.dumps({k: round(float(v), 4) for k, v in c.scores.items()})
-        status = "accepted" if c.accepted else "rejected"
-        writer.writerow(
-            [c.reference_id, c.query_id, c.detector, status, c.reason, inlier, *pose, scores]
-        )
+        fields = loop_fields(c.accepted, c.reason, c.graph_inlier, c.T_Ai_Aj, c.scores)
+        writer.writerow([c.reference_id, c.query_id, c.detector, *fields])
     return buffer.getvalue()
 
 
