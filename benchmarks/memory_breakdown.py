@@ -13,13 +13,13 @@ state.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import sys
 from typing import Any
 
 import numpy as np
 
 from benchmarks.harness.machine import proc_memory_kib
+from common.memory import c_library
 
 MB = 1e6
 
@@ -47,14 +47,9 @@ class _Mallinfo2(ctypes.Structure):
     ]
 
 
-def _libc():
-    name = ctypes.util.find_library("c")
-    return None if name is None else ctypes.CDLL(name)
-
-
 def allocator_free_mb() -> float | None:
     """Bytes glibc holds free in its arenas (``mallinfo2().fordblks``), MB; None elsewhere."""
-    libc = _libc()
+    libc = c_library()
     if libc is None or not hasattr(libc, "mallinfo2"):
         return None
     libc.mallinfo2.restype = _Mallinfo2
@@ -63,7 +58,7 @@ def allocator_free_mb() -> float | None:
 
 def trim_mb() -> float | None:
     """RSS that ``malloc_trim(0)`` gives back now, MB (None without glibc)."""
-    libc = _libc()
+    libc = c_library()
     if libc is None or not hasattr(libc, "malloc_trim"):
         return None
     before = rss_mb()

@@ -19,19 +19,21 @@ import functools
 
 
 @functools.cache
-def _malloc_trim():
+def c_library() -> ctypes.CDLL | None:
+    """The C library, None where it cannot be loaded; glibc's functions (``malloc_trim``,
+    ``mallopt``) are missing from others (musl, macOS, Windows): look them up with ``getattr``."""
     name = ctypes.util.find_library("c")
     if name is None:
         return None
     try:
-        return ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError):  # not glibc (musl, macOS, Windows)
+        return ctypes.CDLL(name)
+    except OSError:
         return None
 
 
 def release_freed_memory() -> None:
     """Return free heap pages to the OS where the C library supports it."""
-    trim = _malloc_trim()
+    trim = getattr(c_library(), "malloc_trim", None)
     if trim is not None:
         trim(0)
 
@@ -55,12 +57,8 @@ def keep_large_allocations_apart() -> bool:
     large blocks back the moment they are freed; the trim threshold is fixed with it, well above
     the scan-sized blocks that are reused every frame.
     """
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return False
-    try:
-        mallopt = ctypes.CDLL(name).mallopt
-    except (OSError, AttributeError):
+    mallopt = getattr(c_library(), "mallopt", None)
+    if mallopt is None:
         return False
     applied = mallopt(M_MMAP_THRESHOLD, LARGE_ALLOCATION_BYTES)
     applied &= mallopt(M_TRIM_THRESHOLD, 4 * LARGE_ALLOCATION_BYTES)
