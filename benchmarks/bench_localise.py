@@ -254,23 +254,21 @@ def report(results: dict[str, Any], command: str) -> str:
 
 
 SCENARIOS = ("street", "room", "kitchen")
-QUICK_SCENARIOS = ("street", "kitchen")
-"""The quick mode's default (about 2 + 4 minutes on two cores); ``--scenario room`` adds the
-room."""
+"""Every mode runs all three by default (quick: about 2 + 1 + 4 minutes on two cores)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     mode = parser.add_mutually_exclusive_group()
-    mode.add_argument("--quick", action="store_true", help="the short street split, the kitchen")
+    mode.add_argument("--quick", action="store_true", help="the short street split")
     mode.add_argument("--full", action="store_true", help="the whole street in halves (hours)")
-    scenario_arguments(parser, SCENARIOS, "street kitchen (--full: all three)")
+    scenario_arguments(parser, SCENARIOS, "all three")
     return parser
 
 
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
-    names = args.scenario or (SCENARIOS if args.full else QUICK_SCENARIOS)
+    names = args.scenario or SCENARIOS
     results = run_scenarios(
         names, lambda name, work: scenario(name, args.full, work), "localise", args.work
     )

@@ -391,7 +391,7 @@ def test_localise_kitchen_without_the_data_is_skipped_with_its_reason(tmp_path, 
     that says where they belong, not a failed benchmark."""
     from benchmarks import bench_localise
 
-    assert "kitchen" in bench_localise.QUICK_SCENARIOS
+    assert "kitchen" in bench_localise.SCENARIOS
     absent = tmp_path / "7scenes_redkitchen"
     monkeypatch.setattr(bench_localise, "KITCHEN_ROOT", absent)
     with pytest.raises(FileNotFoundError) as missing:
