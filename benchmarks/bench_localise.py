@@ -217,18 +217,17 @@ def _rows(r: dict[str, Any]) -> list[list]:
 def report(results: dict[str, Any], command: str) -> str:
     lines = [
         *section_header("Localisation in a stored map", command),
-        "- The map: the first part run on its own; then the second part with `--map map "
-        "--localise` (poses only) and `--map map` (continuing the map, merged at the end), each "
-        "with the continuous map constraints (default) and with the first placement only. Error: "
-        "position error against the truth carried into the map's frame by the alignment of the "
-        "map's own truth onto its poses (the map's ATE is its own, aligned on itself), frames "
-        "from the placing submap on. frames/s: the pipeline's rate of the run (the stored "
-        "surfaces are decoded before the first frame: `decode` column); odometry alone: the "
-        "same config's odometry on the same frames, in its own process, timed as the run is (its "
-        "thread budget, frames read and the odometry closed within). CPU: the process's and the "
-        "odometry child's CPU time over those frames (`timing.pipeline_cpu_s`), decode "
-        "excluded: two shared cores cannot run the localisation faster than the odometry once "
-        "the run needs more CPU a frame than the cores left the odometry idle.",
+        "- The map: the first part run on its own. The second part runs with `--map map "
+        "--localise` (poses only) and with `--map map` (continuing the map, merged at the end), "
+        "each with the continuous map constraints (default) and with the first placement only. "
+        "Error: against the truth carried into the map's frame by aligning the map's own truth "
+        "onto its poses, from the placing submap on (the map's ATE is aligned on itself). "
+        "frames/s: the run's pipeline rate; the stored surfaces are decoded before the first "
+        "frame (`decode`). Odometry alone: the same config's odometry on the same frames in its "
+        "own process, timed as the run is. CPU: the process's and the odometry child's CPU time "
+        "over those frames (`timing.pipeline_cpu_s`), decode excluded; on two shared cores the "
+        "localisation cannot outrun the odometry once it needs more CPU a frame than the "
+        "odometry leaves idle.",
         "",
     ]
     for name, r in results.items():

@@ -86,8 +86,7 @@ def machine_line() -> str:
 
 def section_header(title: str, command: str) -> list[str]:
     """The first lines of a benchmark's section: its title, exact command and machine."""
-    machine = f"- Machine: {machine_line()} (a shared machine: other jobs inflate wall times)"
-    return [f"## {title}", "", f"- Command: `{command}`", machine]
+    return [f"## {title}", "", f"- Command: `{command}`", f"- Machine: {machine_line()}"]
 
 
 def proc_memory_kib(pid: int | str = "self") -> dict[str, int]:
