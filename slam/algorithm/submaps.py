@@ -273,7 +273,10 @@ class SubmapPoints:
             points_A = transform_points(T_A_S, points_S)
             normals_A = normals_S @ T_A_S[:3, :3].T
             points_A, normals_A = voxel_downsample(chunks.voxel_m, points_A, normals_A)
-        viewpoint_A = np.repeat(T_A_S[None, :3, 3], len(points_A), axis=0)
+        if self.for_map:
+            viewpoint_A = np.repeat(T_A_S[None, :3, 3], len(points_A), axis=0)
+        else:  # only the map's normal estimation looks at viewpoints: none are averaged
+            viewpoint_A = np.broadcast_to(np.zeros(3), points_A.shape)
         if self.cfg.max_surface_views is not None:
             self._track_surface(points_A)
         chunks.add((points_A, normals_A, viewpoint_A))
