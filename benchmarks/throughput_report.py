@@ -57,12 +57,14 @@ def write_report(saved: dict) -> None:
         "varies less between runs than the wall time.",
         "",
     ]
-    rows = []
+    rows, skipped = [], []
     for key in sorted(results):
         run = results[key]
         icp, kslam = run.get("kiss_icp") or {}, run.get("kiss_slam") or {}
         for name in ("kiss_icp", "kiss_slam", "ours"):
             r = run.get(name)
+            if r and "skipped" in r:
+                skipped.append(f"- {key}, {name}: skipped ({r['skipped']})")
             if not r or "skipped" in r or "frames" not in r:
                 continue
             vs_icp = r["wall_s"] / icp["wall_s"] if icp.get("wall_s") else None
@@ -89,6 +91,7 @@ def write_report(saved: dict) -> None:
         "vs KISS-SLAM | peak RSS [MB] | ATE odometry [m] | ATE SLAM [m] | load"
     )
     lines += table(header, rows)
+    lines += ["", *skipped] if skipped else []
     lines += _cpu_floor_lines(saved)
     lines += _per_axis_lines(results)
     lines += [
@@ -108,7 +111,7 @@ def write_report(saved: dict) -> None:
     rows = []
     for key in sorted(results):
         r = results[key].get("ours")
-        if not r:
+        if not r or "skipped" in r:
             continue
         rss = ", ".join(f"{k}: {v:.0f}" for k, v in r["rss_mb"].items())
         threads, cpu = r.get("cpu_threads_s"), "n/a"

@@ -340,6 +340,22 @@ def test_throughput_report_states_ours_cpu_floor_against_kiss_slam():
     assert _cpu_floor_lines({"runs": runs}) == []  # no core count recorded: no claim
 
 
+def test_throughput_report_names_a_before_run_the_harness_cannot_measure(tmp_path, monkeypatch):
+    """A ``--before`` revision older than the harness is a skipped row with its reason, not a
+    report that fails on the runs that were measured."""
+    from benchmarks import throughput_report
+    from benchmarks.harness.paths import RESULTS_DIR
+    from benchmarks.harness.repeat import restore_all
+
+    saved = restore_all(json.loads((RESULTS_DIR / "throughput.json").read_text()))
+    saved["runs"]["before abc"] = {"code": "abc", "ours": {"skipped": "too old for the harness"}}
+    monkeypatch.setattr(throughput_report, "REPORT", tmp_path / "throughput.md")
+    throughput_report.write_report(saved)
+    text = (tmp_path / "throughput.md").read_text()
+    assert "- before abc, ours: skipped (too old for the harness)" in text
+    assert "| after |" in text
+
+
 def _slam_run(frames: int, loop_errors: list) -> dict:
     return {
         "frames": frames,
