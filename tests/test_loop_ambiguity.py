@@ -20,6 +20,7 @@ from frontends.generate.street import PERIOD_M, street_scene
 from slam.algorithm.graph.config import PoseGraphConfig
 from slam.algorithm.graph.gtsam_poses import mahalanobis_distance2
 from slam.algorithm.graph.pose_graph import PoseGraph
+from slam.algorithm.loops.ambiguity import find_ambiguity
 from slam.algorithm.loops.config import LidarLoopConfig
 from slam.algorithm.loops.lidar_verify import IcpVerifier
 
@@ -223,3 +224,33 @@ def test_thinned_coarse_passes_reach_the_full_density_pose(periodic_pair):
     assert distance_m < 0.02 and distance_deg < 0.05
     error_m, _ = relative_motion(T_true, thinned.T_ref_query)
     assert error_m < 0.2
+
+
+def test_a_quarter_of_the_query_profiles_the_same_alternative(periodic_pair):
+    """The score profile counted on a random quarter of the query (as localisation counts its
+    coarse subset) seeds the same re-registration one period along the street, and the returned
+    scores still count every query point."""
+    reference, query, T_true = periodic_pair
+    verifier = IcpVerifier(LidarLoopConfig(**LOOP_CONFIG, ambiguity_check=False))
+
+    def align(guess: np.ndarray) -> np.ndarray:
+        return verifier.align(reference, query, guess, scales=[1.0, 0.5])
+
+    pick = np.random.default_rng(0).choice(len(query), len(query) // 4, replace=False)
+    kwargs = {
+        "inlier_distance_m": 0.5,
+        "step_m": 1.0,
+        "max_offset_m": 20.0,
+        "min_separation_m": 2.0,
+        "min_separation_deg": 2.0,
+        "max_realignments": 2,
+    }
+    full = find_ambiguity(reference, query, T_true, None, align, **kwargs)
+    quarter = find_ambiguity(
+        reference, query, T_true, None, align, **kwargs, profile_query=query[pick]
+    )
+    assert quarter[0] == full[0]
+    assert full[1] is not None and quarter[1] is not None
+    assert abs(full[1].separation_m - PERIOD_M) < 1.0
+    assert quarter[1].separation_m == pytest.approx(full[1].separation_m, abs=0.1)
+    assert quarter[1].score == pytest.approx(full[1].score, abs=0.02)

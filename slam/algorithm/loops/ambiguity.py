@@ -103,6 +103,7 @@ def find_ambiguity(
     max_realignments: int,
     seed_ratio: float = 0.5,
     tree: cKDTree | None = None,
+    profile_query: np.ndarray | None = None,
 ) -> tuple[float, Ambiguity | None]:
     """The chosen solution's inlier score and the best-scoring alternative solution, if any.
 
@@ -113,22 +114,30 @@ def find_ambiguity(
     ``min_separation_m`` away and score at least ``seed_ratio`` of the unshifted pose are
     re-registered with ``align``. An alternative counts when it converges at least
     ``min_separation_m`` or ``min_separation_deg`` from ``T_ref_query``. ``tree``: a KD-tree of
-    ``reference`` already built (else one is).
+    ``reference`` already built (else one is). ``profile_query``: the points the profile and its
+    seed threshold count (a subsample of ``query``, for a cheaper profile), else ``query``; the
+    returned scores always count all of ``query``.
     """
     if tree is None:
         tree = cKDTree(reference)
     score = inlier_score(tree, query, T_ref_query, inlier_distance_m)
+    if profile_query is None:
+        profile_query, profile_score = query, score
+    else:
+        profile_score = inlier_score(tree, profile_query, T_ref_query, inlier_distance_m)
     offsets = np.arange(-max_offset_m, max_offset_m + 1e-9, step_m)
     seeds: list[tuple[float, np.ndarray]] = []
     for direction in search_directions(reference, covariance):
         profile = np.array(
             [
-                inlier_score(tree, query, _shifted(T_ref_query, direction, o), inlier_distance_m)
+                inlier_score(
+                    tree, profile_query, _shifted(T_ref_query, direction, o), inlier_distance_m
+                )
                 for o in offsets
             ]
         )
         for k in _peaks(offsets, profile, min_separation_m):
-            if profile[k] >= seed_ratio * score:
+            if profile[k] >= seed_ratio * profile_score:
                 seeds.append((float(profile[k]), _shifted(T_ref_query, direction, offsets[k])))
     best: Ambiguity | None = None
     for _, guess in sorted(seeds, key=lambda s: -s[0])[:max_realignments]:

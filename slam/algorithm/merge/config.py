@@ -174,7 +174,8 @@ class LocaliseConfig(Strict):
         "align (a random subset; the finer gates align them all): the coarse gates only bring "
         "the pose into the fine ones' reach (measured on the generated street: a quarter of "
         "the points there cut the registrations' CPU by a third and moved the registered poses "
-        "by at most 2.5 mm, the kitchen's by 0.5 mm); 0: all; at most 10,000,000",
+        "by at most 2.5 mm, the kitchen's by 0.5 mm); the ambiguity search's score profile "
+        "counts them alone too; 0: all; at most 10,000,000",
     )
     graph_consistency_probability: float = Field(
         0.9999,

@@ -237,6 +237,7 @@ class MapConstraints:
             min_separation_deg=c.ambiguity_min_separation_deg,
             max_realignments=c.ambiguity_max_realignments,
             tree=tree,
+            profile_query=coarse,
         )
         constraint.scores["ambiguity_score"] = score
         if alternative is not None and alternative.score >= c.ambiguity_score_ratio * score:
