@@ -121,6 +121,53 @@ def test_gravity_removes_the_curvature_that_a_loop_cannot_see(online_gnc):
     assert results[True] < 0.01 * results[False], results
 
 
+def test_an_attitude_step_between_the_first_anchors_does_not_tilt_the_rest():
+    """The odometry rolls by 0.3 deg between the first two anchors of a straight, level drive
+    and is exact after that. The first anchor's scan sees the true up: the gravity frame keeps
+    it, so the factors of the later anchors take the step back out (a free gravity frame
+    followed the later anchors and kept about half of the step in every one of them)."""
+    step_rad, num = np.deg2rad(0.3), 12
+    gt = np.tile(np.eye(4), (num, 1, 1))
+    gt[:, 0, 3] = 30.0 * np.arange(num)
+    odometry = gt.copy()
+    odometry[1:, :3, :3] = tilted([step_rad, 0.0, 0.0])
+    cfg = PoseGraphConfig(
+        odometry_rotation_sigma_rad=0.002,
+        odometry_rotation_sigma_rad_per_m=0.0003,
+        gravity=GravityConfig(enabled=True, sigma_rad=0.01),
+    )
+    graph = PoseGraph(cfg)
+    for k in range(num):
+        graph.add_anchor(k, odometry[k])
+        graph.add_gravity(k, level_measurement(gt[k, :3, :3], sigma_rad=cfg.gravity.sigma_rad))
+    poses = graph.optimize_batch()
+    tilts = [np.arccos(np.clip(poses[k][2, 2], -1.0, 1.0)) for k in range(1, num)]
+    assert np.mean(tilts) < 0.2 * step_rad, np.degrees(tilts)
+
+
+@pytest.mark.parametrize("measured_before_reframe", [True, False])
+def test_a_reframe_onto_map_priors_frees_the_gravity_frame(measured_before_reframe):
+    """Priors from a stored map place the graph after a reframe with ``prior_sigmas``: the
+    gravity frame's tilt then follows them instead of holding the first measurement, whether
+    that measurement came before the reframe or after it."""
+    gt, odometry = curved_circle(8, bias_rad=0.0)
+    graph = PoseGraph(PoseGraphConfig())
+    for k, T in enumerate(odometry):
+        graph.add_anchor(k, T)
+        if measured_before_reframe:
+            graph.add_gravity(k, level_measurement(gt[k, :3, :3]))
+    T_Map_W = np.eye(4)
+    T_Map_W[:3, :3] = tilted([0.02, 0.0, 0.0])  # the stored map is rolled by 20 mrad
+    graph.reframe(np.eye(4), prior_sigmas=(1.0, 10.0))
+    if not measured_before_reframe:
+        for k in range(len(gt)):
+            graph.add_gravity(k, level_measurement(gt[k, :3, :3]))
+    for k in range(len(gt)):
+        graph.add_map_prior(k, T_Map_W @ gt[k], np.eye(6) * 1e-6)
+    up_W = T_Map_W[:3, :3] @ [0.0, 0.0, 1.0]
+    assert np.allclose(graph.pose(3)[:3, :3] @ graph.up_in(3), up_W, atol=1e-3)
+
+
 def test_up_follows_the_graph_through_a_reframe():
     gt, odometry = curved_circle(8, bias_rad=0.0)
     graph = PoseGraph(PoseGraphConfig())
