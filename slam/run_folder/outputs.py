@@ -30,6 +30,7 @@ import numpy as np
 import trimesh
 
 from common.atomic_io import atomic_path, write_text_atomic
+from common.geometry import rotation_angle_rad
 from mapping.map_io import save_map
 from slam.algorithm.loops.base import LoopCandidate
 from slam.assembly.config import RunConfig, dump_run_config
@@ -70,8 +71,7 @@ def loop_fields(
     inlier = "" if graph_inlier is None else str(bool(graph_inlier)).lower()
     pose = ["", "", "", ""]
     if T is not None:
-        cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-        pose = [f"{v:.4f}" for v in T[:3, 3]] + [f"{np.degrees(np.arccos(cos)):.3f}"]
+        pose = [f"{v:.4f}" for v in T[:3, 3]] + [f"{np.degrees(rotation_angle_rad(T[:3, :3])):.3f}"]
     text = json.dumps({k: round(float(v), 4) for k, v in scores.items()})
     return ["accepted" if accepted else "rejected", reason, inlier, *pose, text]
 
