@@ -273,10 +273,14 @@ def test_disk_full_marks_the_run_failed_and_ends_with_the_error_line(tmp_path: P
     finally:
         umount(folder)
     assert result.returncode == 1, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
     # Rerun's own logger reports its file sink's failure too, as the process ends
     rerun_log = re.compile(r"re_[a-z_]+::")
     ours = [line for line in result.stderr.strip().splitlines() if not rerun_log.search(line)]
-    assert ours[-1].startswith("error: "), result.stderr
+    errors = [line for line in ours if line.startswith("error: ")]
+    assert errors == [ours[-1]], result.stderr
+    assert str(out) in errors[0]
+    assert "No space left on device" in errors[0] and "free some space" in errors[0]
     assert status["state"] == "failed" and "No space left" in status["reason"]
 
 
