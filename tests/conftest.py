@@ -33,6 +33,26 @@ from tests.helpers import (
 )
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _one_thread_per_pool() -> None:
+    """Every native pool (torch's OpenMP, OpenCV, BLAS) on one thread in each test process.
+
+    Their idle threads spin: next to the other pytest worker, a pool of two threads on two cores
+    waits a time slice whenever one of its threads is descheduled. A short room run through the
+    pipeline took 5 s alone and 95 s beside one busy process with torch on two threads, against
+    7 s on one. Commands run in a test set their own pools (``slam.assembly.threads``)."""
+    from slam.assembly.threads import apply_plan, plan_thread_budget
+
+    apply_plan(plan_thread_budget(1, map_worker=False))
+
+
+@pytest.fixture(autouse=True)
+def _torch_on_one_thread() -> None:
+    """Back to one torch thread before each test: a command a test ran in this process (whose
+    runner sets torch's threads from its budget) must not leave its setting to the next test."""
+    torch.set_num_threads(1)
+
+
 @pytest.fixture(scope="session")
 def shared_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder shared by every pytest-xdist worker of this session (the worker's own base
@@ -196,14 +216,9 @@ def saved_map(tmp_path: Path):
     cfg = MapConfig(min_points_per_voxel=1, min_weight_to_decode=1.0, device="cpu")
     nm = NeuralMap(cfg, seeded_prior())
     subs = []
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: more threads only contend with the other worker
-    try:
-        for i, centre in enumerate([(0, 0, 0), (0.25, 0.1, 0), (0.5, 0.0, 0.1)]):
-            p, n = sphere_points(1500, centre, i)
-            subs.append(nm.encode(10 + i, p, n, np.eye(4)))
-    finally:
-        torch.set_num_threads(threads)
+    for i, centre in enumerate([(0, 0, 0), (0.25, 0.1, 0), (0.5, 0.0, 0.1)]):
+        p, n = sphere_points(1500, centre, i)
+        subs.append(nm.encode(10 + i, p, n, np.eye(4)))
     nm.fuse(subs[0])
     nm.fuse(subs[1])
     T = np.eye(4)

@@ -60,12 +60,11 @@ def call_main(main: Callable[[list[str]], int], argv: list[str]) -> CommandResul
     imports.
 
     stdout and stderr are captured; the root logger starts without handlers, as in a new process
-    (so the command's own logging set-up decides what reaches stderr), and its handlers, level
-    and torch's thread count are put back afterwards (a run opens ``run.log`` on the root logger
-    and sets torch's threads)."""
+    (so the command's own logging set-up decides what reaches stderr), and its handlers and level
+    are put back afterwards (a run opens ``run.log`` on the root logger). A run also sets torch's
+    threads: the tests' fixtures put those back before the next test."""
     root = logging.getLogger()
     handlers, level = list(root.handlers), root.level
-    threads = torch.get_num_threads()
     for handler in handlers:
         root.removeHandler(handler)
     out, err = io.StringIO(), io.StringIO()
@@ -79,7 +78,6 @@ def call_main(main: Callable[[list[str]], int], argv: list[str]) -> CommandResul
         for handler in handlers:
             root.addHandler(handler)
         root.setLevel(level)
-        torch.set_num_threads(threads)
     return CommandResult(status, out.getvalue(), err.getvalue())
 
 

@@ -14,7 +14,6 @@ from mapping.encoding import encode_points
 from mapping.networks import load_default_prior
 from mapping.voxel_block import VoxelBlock
 
-torch.set_num_threads(1)
 V = 0.1
 # unit round-off of the storage formats (relative rounding error of a normal number)
 UNIT_ROUNDOFF = {"float16": 2.0**-11, "bfloat16": 2.0**-8, "float32": 2.0**-24}

@@ -16,7 +16,6 @@ from mapping.mesh_lattice import lattice_offsets
 from mapping.networks import DEFAULT_WEIGHTS, PriorModel
 from mapping.neural_map import NeuralMap
 
-torch.set_num_threads(1)
 V = 0.1
 
 

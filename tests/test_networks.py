@@ -10,8 +10,6 @@ from mapping.field import decode_lattice, decode_pairs
 from mapping.networks import ModelConfig, PriorModel
 from mapping.span_encoder import point_latents
 
-torch.set_num_threads(1)
-
 
 def _rotations(n: int, seed: int) -> torch.Tensor:
     return torch.tensor(Rotation.random(n, random_state=seed).as_matrix(), dtype=torch.float32)

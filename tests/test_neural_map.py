@@ -15,7 +15,6 @@ from mapping.networks import PriorModel
 from mapping.neural_map import NeuralMap
 from mapping.transform import transform_block
 
-torch.set_num_threads(1)
 V = 0.1
 
 

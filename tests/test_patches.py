@@ -12,16 +12,6 @@ import trimesh
 from mapping.training.patches import PatchConfig, generate_patches, generate_patches_with_scenes
 from mapping.training.scenes import BOX, CYLINDER, PATCH_KINDS, WEDGE, primitive_scene
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: one thread is faster, and much faster on a loaded machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 SMALL = PatchConfig(n_queries=512, shell_candidates=2048, surface_pool=256)
 
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from frontends.frame import Frame
 from frontends.odometry.ground_truth import GroundTruthOdometry
@@ -28,15 +27,6 @@ from tests.pipeline_setups import (
     run,
     street_config,
 )
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """As the runner does: with other work on the cores, more OpenMP threads only thrash."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="module")

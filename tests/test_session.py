@@ -21,8 +21,6 @@ from slam.algorithm.loops.place import PlaceDescriptor
 from slam.algorithm.merge.session import Edge, SessionRecord
 from tests.helpers import written_before_version_5
 
-torch.set_num_threads(1)
-
 
 def _random_pose(rng: np.random.Generator, reach_m: float) -> np.ndarray:
     from scipy.spatial.transform import Rotation

@@ -19,15 +19,6 @@ from mapping.training.train import (
 TINY_PATCHES = PatchConfig(n_queries=128, shell_candidates=1024, surface_pool=64)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: one thread is faster, and much faster on a loaded machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _tiny_config(**update) -> TrainConfig:
     base = TrainConfig(
         steps=2,

@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from benchmarks.harness.child import MeasuredCommand
 from benchmarks.harness.crafted_maps import CRAFTED, header_edit, rewritten
@@ -39,8 +38,6 @@ from slam.algorithm.merge.session import Edge, SessionRecord
 from slam.app.merge_cli import load_run
 from slam.evaluation.cli import evaluate_run, summary_lines
 from slam.run_folder.trajectory_io import write_kitti, write_tum
-
-torch.set_num_threads(1)
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_SECONDS = 30.0
