@@ -6,7 +6,9 @@ rerun-sdk 0.41's ``rr.serve_web_viewer`` takes no bind address and listens on ev
 serves only the page, which connects to that URL. :class:`WebViewerServer` runs it as a child
 process for the life of the run, so the page listens only on the configured address. On Linux the
 child gets SIGTERM when the run's process dies, even by SIGKILL or the OOM killer
-(``PR_SET_PDEATHSIG``), so no orphaned server keeps the port.
+(``PR_SET_PDEATHSIG``), so no orphaned server keeps the port. A short Python program sets that and
+then becomes the server (``exec``): Python code run between ``fork`` and ``exec`` (``preexec_fn``)
+can deadlock in a process with other threads, and the run's has Rerun's, torch's and the workers'.
 
 :func:`check_bindable` probes both ports before either server starts: a taken port or an address
 that is not this machine's is one line naming the setting to change.
@@ -15,7 +17,6 @@ that is not this machine's is one line naming the setting to change.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import errno
 import os
 import shutil
@@ -89,23 +90,22 @@ def check_serve_ports(bind_ip: str, grpc_port: int, web_port: int) -> None:
     check_bindable(bind_ip, web_port, "viz.serve_web_port")
 
 
-_PR_SET_PDEATHSIG = 1
+_DIE_WITH_PARENT = """
+import ctypes, os, signal, sys
+ctypes.CDLL(None).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+if os.getppid() != int(sys.argv[1]):  # the parent died before that
+    os._exit(1)
+os.execv(sys.argv[2], sys.argv[2:])
+"""
+"""Run as ``python -c _DIE_WITH_PARENT PARENT_PID COMMAND...``: COMMAND, in this process, gets
+SIGTERM when PARENT_PID dies (the setting outlives ``exec``)."""
 
 
-def _die_with_parent(parent_pid: int):
-    """``preexec_fn`` of the server: SIGTERM it when the process that started it dies (Linux;
-    elsewhere nothing). Also ends it at once when that parent is already gone."""
-
-    def preexec() -> None:
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-        except (OSError, AttributeError):
-            return
-        if os.getppid() != parent_pid:  # died between fork and prctl
-            os._exit(1)
-
-    return preexec if sys.platform.startswith("linux") else None
+def _dying_with_this_process(command: list[str]) -> list[str]:
+    """``command``, set to get SIGTERM when this process dies (Linux; elsewhere unchanged)."""
+    if not sys.platform.startswith("linux"):
+        return command
+    return [sys.executable, "-I", "-S", "-c", _DIE_WITH_PARENT, str(os.getpid()), *command]
 
 
 class WebViewerServer:
@@ -117,21 +117,14 @@ class WebViewerServer:
             raise RuntimeError("the 'rerun' command of rerun-sdk is not installed; reinstall it")
         check_bindable(bind_ip, web_port, "viz.serve_web_port")
         self.url = f"http://{bind_ip}:{web_port}/?url={quote(grpc_uri, safe='')}"
+        command = [executable, "--serve-web", "--bind", bind_ip]
+        command += ["--web-viewer-port", str(web_port), grpc_uri]
         self._process = subprocess.Popen(
-            [
-                executable,
-                "--serve-web",
-                "--bind",
-                bind_ip,
-                "--web-viewer-port",
-                str(web_port),
-                grpc_uri,
-            ],
+            _dying_with_this_process(command),
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             start_new_session=True,  # its own process group: close() stops all of it
-            preexec_fn=_die_with_parent(os.getpid()),
         )
         deadline = time.monotonic() + timeout_s
         while not _listening(bind_ip, web_port):
