@@ -8,6 +8,8 @@ import json
 import os
 import stat
 import struct
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
@@ -295,22 +297,30 @@ def test_serve_binds_both_servers_to_the_configured_loopback_address(tmp_path: P
     assert listening_addresses(web_port) == set()
 
 
+FORK_AFTER_HANDLING_SIGTERM = """
+import os, signal, sys
+from slam.app.signals import handle_sigterm
+handle_sigterm()
+pid = os.fork()
+if pid == 0:  # the forked child: is SIGTERM's default back?
+    os._exit(0 if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL else 1)
+_, status = os.waitpid(pid, 0)
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
 def test_sigterm_handler_is_scoped_to_main_and_not_inherited_by_forks(capsys) -> None:
     """A forked worker must keep SIGTERM's default (a stuck worker could not run the Python
-    handler, and a pool's terminate() would then hang), and main() restores the handler."""
+    handler, and a pool's terminate() would then hang), and main() restores the handler. The
+    fork happens in a new interpreter: forking this one, with the threads of earlier tests,
+    could deadlock the child."""
     import signal
-
-    from slam.app.signals import handle_sigterm, restore_sigterm
 
     before = signal.getsignal(signal.SIGTERM)
     run_cli(["demo", "--frames", "-1:2"], capsys)
     assert signal.getsignal(signal.SIGTERM) is before
-    previous = handle_sigterm()
-    try:
-        pid = os.fork()
-        if pid == 0:  # child: report whether SIGTERM is back to default
-            os._exit(0 if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL else 1)
-        _, status = os.waitpid(pid, 0)
-        assert os.waitstatus_to_exitcode(status) == 0
-    finally:
-        restore_sigterm(previous)
+    forked = subprocess.run(
+        [sys.executable, "-c", FORK_AFTER_HANDLING_SIGTERM],
+        capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=60,
+    )  # fmt: skip
+    assert forked.returncode == 0, forked.stderr
