@@ -129,8 +129,17 @@ def _run_frames(job, items: list, workers: int | None) -> list[int]:
     import multiprocessing
 
     context = multiprocessing.get_context("fork" if os.name == "posix" else "spawn")
-    with context.Pool(workers, initializer=_init_worker, initargs=(job,)) as pool:
-        return pool.map(_call_worker, list(enumerate(items)), chunksize=4)
+    pool = context.Pool(workers, initializer=_init_worker, initargs=(job,))
+    try:
+        counts = pool.map(_call_worker, list(enumerate(items)), chunksize=4)
+        # each worker leaves on its end-of-work message; leaving the pool with ``with`` would
+        # end them by SIGTERM, which a Python handler they inherited (Ray's driver installs
+        # one) can catch or lose, leaving the pool's join waiting for ever
+        pool.close()
+        pool.join()
+        return counts
+    finally:
+        pool.terminate()  # after a failure; a no-op once joined
 
 
 def generate_lidar_sequence(
