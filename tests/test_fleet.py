@@ -82,9 +82,15 @@ def _finished(folder: Path) -> bool:
 
 @pytest.fixture(scope="module")
 def ray_address():
+    """A local Ray the fleet commands join. ``ray.init`` installs a SIGTERM handler of its own
+    and ``ray.shutdown`` leaves it: put back this worker's, or every later test here would fork
+    children that survive SIGTERM."""
+    sigterm = signal.getsignal(signal.SIGTERM)
     ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR", log_to_driver=False)
+    signal.signal(signal.SIGTERM, sigterm)
     yield ray.get_runtime_context().gcs_address
     ray.shutdown()
+    signal.signal(signal.SIGTERM, sigterm)
 
 
 @pytest.fixture(scope="module")
