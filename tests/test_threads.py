@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 
 from slam.assembly.config import RunConfig
-from slam.assembly.threads import apply_thread_budget, machine_cores, plan_thread_budget
+from slam.assembly.threads import (
+    apply_thread_budget,
+    cgroup_cpu_quota,
+    machine_cores,
+    plan_thread_budget,
+)
 
 
 def test_plan_splits_the_budget() -> None:
@@ -44,3 +51,25 @@ def test_apply_sets_every_pool() -> None:
     finally:
         torch.set_num_threads(previous[0])
         cv2.setNumThreads(previous[1])
+
+
+def test_the_cgroup_cpu_quota_caps_the_cores(tmp_path: Path) -> None:
+    """A container's CPU limit (``docker --cpus``) in either cgroup version, whole CPUs."""
+    v2 = tmp_path / "v2"
+    v2.mkdir()
+    (v2 / "cpu.max").write_text("250000 100000\n")
+    assert cgroup_cpu_quota(v2) == 2
+    (v2 / "cpu.max").write_text("50000 100000\n")
+    assert cgroup_cpu_quota(v2) == 1  # half a CPU still gets one thread
+    (v2 / "cpu.max").write_text("max 100000\n")
+    assert cgroup_cpu_quota(v2) is None
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("300000\n")
+    assert cgroup_cpu_quota(v1) == 3
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")  # no limit
+    assert cgroup_cpu_quota(v1) is None
+    assert cgroup_cpu_quota(tmp_path / "missing") is None
+    quota = cgroup_cpu_quota()
+    assert 1 <= machine_cores() <= (quota or machine_cores())

@@ -174,9 +174,10 @@ class RunConfig(Strict):
         0,
         ge=0,
         le=1024,
-        description="CPU thread budget of the run (0 = the machine's cores): KISS-ICP and OpenCV "
-        "get all of it, torch all but one when map_worker is on, numpy/scipy BLAS one "
-        "(slam/threads.py; idle pool threads spin, so oversubscribed pools thrash); at most 1024",
+        description="CPU thread budget of the run (0 = the machine's cores, at most a "
+        "container's CPU limit): KISS-ICP and OpenCV get all of it, torch all but one when "
+        "map_worker is on, numpy/scipy BLAS one (slam/assembly/threads.py; idle pool threads "
+        "spin, so oversubscribed pools thrash); at most 1024",
     )
     map_worker: bool = Field(
         True,

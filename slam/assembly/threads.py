@@ -13,9 +13,11 @@ thread (:mod:`slam.algorithm.map_worker`), and BLAS gets one thread (its matrice
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 log = logging.getLogger(__name__)
 
@@ -44,11 +46,46 @@ class ThreadBudget:
         )
 
 
+def cgroup_cpu_quota(root: Path = Path("/sys/fs/cgroup")) -> int | None:
+    """Whole CPUs the cgroup's CPU quota allows this process (``docker --cpus``, a Kubernetes
+    CPU limit), None where there is none.
+
+    A container sees every core of its host in its affinity mask: with a quota of 2 on a
+    64-core host, pools sized to the mask would spin 64 threads on 2 CPUs' time. Read from this
+    process's cgroup (``/proc/self/cgroup``) and from the root that a container sees: cgroup v2
+    ``cpu.max``, v1 ``cpu.cfs_quota_us`` over ``cpu.cfs_period_us``."""
+    v2, v1 = [root], [root / "cpu"]
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/self/cgroup").read_text().splitlines():
+            _, controllers, path = line.strip().split(":", 2)
+            own = path.lstrip("/")
+            if own and not controllers:
+                v2.insert(0, root / own)
+            elif own and "cpu" in controllers.split(","):
+                v1.insert(0, root / "cpu" / own)
+    for folder in v2:
+        with contextlib.suppress(OSError, ValueError):
+            quota, period = (folder / "cpu.max").read_text().split()[:2]
+            if quota != "max":
+                return max(1, int(quota) // int(period))
+    for folder in v1:
+        with contextlib.suppress(OSError, ValueError):
+            quota_us = int((folder / "cpu.cfs_quota_us").read_text())
+            period_us = int((folder / "cpu.cfs_period_us").read_text())
+            if quota_us > 0 and period_us > 0:
+                return max(1, quota_us // period_us)
+    return None
+
+
 def machine_cores() -> int:
-    """Cores this process may run on (the affinity mask where the OS has one)."""
+    """Cores this process may run on: the affinity mask where the OS has one, capped by the
+    cgroup's CPU quota (:func:`cgroup_cpu_quota`)."""
     if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)
+        cores = max(1, len(os.sched_getaffinity(0)))
+    else:
+        cores = max(1, os.cpu_count() or 1)
+    quota = cgroup_cpu_quota()
+    return cores if quota is None else min(cores, quota)
 
 
 def plan_thread_budget(threads: int, map_worker: bool) -> ThreadBudget:
