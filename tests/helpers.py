@@ -13,11 +13,15 @@ import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from slam.run_folder.trajectory_io import read_kitti, read_tum
+
+if TYPE_CHECKING:
+    import trimesh
 
 # A short demo: one lap of the generated room in 60 frames with ground-truth odometry (so that a
 # 6-degree step per frame is no problem), small submaps so that the lap closes a loop and the map
@@ -229,3 +233,29 @@ def popen_interruptible(command: list[str], **kwargs) -> subprocess.Popen:
     (:func:`python_sigint`)."""
     with python_sigint():
         return subprocess.Popen(command, **kwargs)
+
+
+class MeshDistance:
+    """Exact point-to-mesh distance, searching the faces of the k nearest dense surface samples
+    (trimesh is imported here, not by every test process through conftest)."""
+
+    def __init__(self, mesh: trimesh.Trimesh, spacing_m: float = 0.25) -> None:
+        import trimesh
+        from scipy.spatial import cKDTree
+
+        count = int(min(mesh.area / spacing_m**2, 2_000_000))
+        samples, self._faces = trimesh.sample.sample_surface(mesh, count, seed=0)
+        self._tree = cKDTree(samples)
+        self._mesh = mesh
+        self._closest_point = trimesh.triangles.closest_point
+
+    def __call__(self, points: np.ndarray, k: int = 6) -> np.ndarray:
+        _, idx = self._tree.query(points, k=k)
+        triangles = self._mesh.triangles[self._faces[idx].ravel()]
+        repeated = np.repeat(points, k, axis=0)
+        closest = self._closest_point(triangles, repeated)
+        return np.linalg.norm(closest - repeated, axis=1).reshape(-1, k).min(axis=1)
+
+
+def mesh_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    return MeshDistance(mesh)(points)
