@@ -39,8 +39,8 @@ def _one_thread_per_pool() -> None:
 
     Their idle threads spin: next to the other pytest worker, a pool of two threads on two cores
     waits a time slice whenever one of its threads is descheduled. A short room run through the
-    pipeline took 5 s alone and 95 s beside one busy process with torch on two threads, against
-    7 s on one. Commands run in a test set their own pools (``slam.assembly.threads``)."""
+    pipeline took 5.4 s alone and 96.6 s beside one busy process with torch on two threads,
+    against 7.0 s on one. Commands run in a test set their own pools (``slam.assembly.threads``)."""
     from slam.assembly.threads import apply_plan, plan_thread_budget
 
     apply_plan(plan_thread_budget(1, map_worker=False))
