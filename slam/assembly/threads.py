@@ -55,7 +55,7 @@ def cgroup_cpu_quota(root: Path = Path("/sys/fs/cgroup")) -> int | None:
     process's cgroup (``/proc/self/cgroup``) and from the root that a container sees: cgroup v2
     ``cpu.max``, v1 ``cpu.cfs_quota_us`` over ``cpu.cfs_period_us``."""
     v2, v1 = [root], [root / "cpu"]
-    with contextlib.suppress(OSError):
+    with contextlib.suppress(OSError, ValueError):  # no /proc, or a line not id:controllers:path
         for line in Path("/proc/self/cgroup").read_text().splitlines():
             _, controllers, path = line.strip().split(":", 2)
             own = path.lstrip("/")
