@@ -125,16 +125,19 @@ def transform_block(
     t_vu = torch.as_tensor(T[:3, 3] / voxel_size_m, device=device)
     moved = (block.keys.to(torch.float64) + 0.5) @ R64.T + t_vu  # (M, 3) moved centres in vu
 
-    # Candidate (source, target) pairs: world voxels around every moved centre.
+    # Candidate (source, target) pairs: world voxels around every moved centre. Offsets count
+    # from the voxel holding the centre: small numbers that float32 holds to ~1e-7 vu, where the
+    # centres themselves (keys up to 2^20) need float64.
     support_sq = 1.0 if weighting == "gaussian" else 3.0625  # (1.75 vu)^2 holds the 8 nearest
     reach = 1 if weighting == "gaussian" else 2
     nearest = torch.round(moved - 0.5).to(torch.int64)
-    cand = nearest.unsqueeze(1) + _offsets(reach, device)  # (M, O, 3)
-    v = (cand.to(torch.float64) + 0.5) - moved.unsqueeze(1)  # target minus moved source, vu
+    fraction = (moved - nearest).to(torch.float32)  # the centre within its voxel, [0, 1]
+    offsets = _offsets(reach, device)
+    v = (offsets.to(torch.float32) + 0.5) - fraction.unsqueeze(1)  # target minus moved source
     d_sq = (v * v).sum(-1)
     src, off = (d_sq < support_sq).nonzero(as_tuple=True)
-    cand, d_sq = cand[src, off], d_sq[src, off].to(torch.float32)
-    v_src = (v[src, off] @ R64).to(torch.float32)  # offsets in the source frame, R^T v
+    cand, d_sq = nearest[src] + offsets[off], d_sq[src, off]
+    v_src = v[src, off] @ R64.to(torch.float32)  # offsets in the source frame, R^T v
     tgt_keys, tgt = torch.unique(pack_keys(cand), return_inverse=True)
     n_tgt = tgt_keys.shape[0]
 
