@@ -1,22 +1,22 @@
 """LiDAR map quality: the neural map against a LiDAR TSDF, over the surface the scans observed.
 
     python -m benchmarks.bench_lidar_map [--quick | --full] [--set KEY=VALUE ...]
-        [--before-set KEY=VALUE ...] [--variant NAME KEY=VALUE ...] [--no-mulran] [--jobs N]
-        [--out FILE.md]
+        [--before-set KEY=VALUE ...] [--variant NAME KEY=VALUE ...] [--street NAME] [--no-mulran]
+        [--jobs N] [--out FILE.md]
 
 The generated street along KITTI 00 (``benchmarks.harness.kitti``) with configs/kitti.yaml, run
-with ground-truth poses (mapping only) and as SLAM (KISS-ICP, loops, remapping). Each final mesh
-is scored against the street's ground-truth mesh after the SE(3) alignment ``slam.eval`` uses:
-globally and, for SLAM, per stretch of scans with the stretch's own alignment. Beside each: a
-LiDAR TSDF (``benchmarks.harness.lidar_tsdf``) of the same scans at the same poses. Scores
-(``benchmarks.harness.lidar_surface``): precision, recall and F-score at 10 and 20 cm, accuracy
-and completion, over the ground-truth surface observed within 30 m and within
-:data:`SENSOR_RANGE_M`. Cost: pipeline wall time, mesh extraction, ``map.npz`` bytes, map memory
-and the run's own peak RSS. ``--before-set`` runs the neural map again with those overrides as
-the "before" rows (default :data:`BEFORE_SETS`); ``--variant`` adds rows of another
-configuration. Real scans: the MulRan Riverside02 keyframes with configs/lidar.yaml and their
-reference poses, scored by precision against the placed scan points only (recall would score
-their sparsity).
+with ground-truth poses (mapping only) and as SLAM (KISS-ICP, loops, remapping). Each final mesh is
+scored against the street's ground-truth mesh after the SE(3) alignment ``slam.eval`` uses:
+globally and, for SLAM, per stretch of scans with the stretch's own alignment. Beside each: a LiDAR
+TSDF (``benchmarks.harness.lidar_tsdf``) of the same scans at the same poses. Scores
+(``benchmarks.harness.lidar_surface``): precision, recall and F-score at 10 and 20 cm, accuracy and
+completion, over the ground-truth surface observed within 30 m and within :data:`SENSOR_RANGE_M`.
+Cost: pipeline wall time, mesh extraction, ``map.npz`` bytes, map memory and the run's own peak
+RSS. ``--before-set`` runs the neural map again with those overrides as the "before" rows (default
+:data:`BEFORE_SETS`); ``--variant`` adds rows of another configuration; ``--street`` takes another
+of the generated street's data variants. Real scans: the MulRan Riverside02 keyframes with
+configs/lidar.yaml and their reference poses, scored by precision against the placed scan points
+only (recall would score their sparsity).
 
 ``--quick``: the first :data:`QUICK_SCANS` scans of the quick window, :data:`QUICK_MULRAN`
 MulRan keyframes; ``--full`` (the default): all 4,541 scans, every keyframe. Writes
@@ -42,7 +42,7 @@ import numpy as np
 
 from benchmarks.harness.child import in_child_measured
 from benchmarks.harness.cli import command_line, start_logging
-from benchmarks.harness.kitti import KITTI_POSES, kitti_source
+from benchmarks.harness.kitti import KITTI_POSES, STANDARD_STREET, STREETS, kitti_source
 from benchmarks.harness.kitti import window as kitti_window
 from benchmarks.harness.machine import section_header
 from benchmarks.harness.paths import DATA, RESULTS_DIR
@@ -108,8 +108,10 @@ def street_config(odometry: str, sets: list[str]):
     return load_config("kitti", merge_overrides(street, set_overrides(sets)))
 
 
-def street_run(quick: bool, frames: int | None, odometry: str, sets: list[str]) -> dict:
-    return _neural_map(street_config(odometry, sets), kitti_source(quick, frames))
+def street_run(
+    quick: bool, frames: int | None, odometry: str, sets: list[str], street: dict[str, Any]
+) -> dict:
+    return _neural_map(street_config(odometry, sets), kitti_source(quick, frames, **street))
 
 
 def tsdf_map(scans, poses: np.ndarray) -> dict[str, Any]:
@@ -133,8 +135,8 @@ def tsdf_map(scans, poses: np.ndarray) -> dict[str, Any]:
     }
 
 
-def street_tsdf(quick: bool, frames: int | None, poses: np.ndarray) -> dict:
-    source = kitti_source(quick, frames)
+def street_tsdf(quick: bool, frames: int | None, poses: np.ndarray, street: dict[str, Any]) -> dict:
+    source = kitti_source(quick, frames, **street)
     return tsdf_map((frame.points for frame in source), poses)
 
 
@@ -196,7 +198,9 @@ def stretches(num_scans: int, length: int) -> list[tuple[int, int]]:
 class StreetScorer:
     """The street's ground truth and the surface its scans observed, per stretch and range."""
 
-    def __init__(self, quick: bool, frames: int | None, stretch_scans: int) -> None:
+    def __init__(
+        self, quick: bool, frames: int | None, stretch_scans: int, street: dict[str, Any]
+    ) -> None:
         import trimesh
 
         from benchmarks.harness.lidar_surface import (
@@ -207,7 +211,7 @@ class StreetScorer:
             scan_set,
         )
 
-        source = kitti_source(quick, frames)
+        source = kitti_source(quick, frames, **street)
         self.gt_poses = np.asarray(source.gt_poses)
         positions = self.gt_poses[:, :3, 3]
         gt = trimesh.load(source.gt_mesh_path, force="mesh", process=False)
@@ -310,6 +314,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar=("NAME", "KEY=VALUE"),
         help="also run the neural map with these overrides, as rows 'neural map, NAME'",
     )
+    parser.add_argument(
+        "--street",
+        choices=list(STREETS),
+        default=STANDARD_STREET,
+        help="the generated street (benchmarks/bench_variants.py's data variants)",
+    )
     parser.add_argument("--no-mulran", action="store_true", help="skip the MulRan keyframes")
     parser.add_argument("--jobs", type=int, default=2, help="child processes at a time")
     parser.add_argument("--out", type=Path, default=RESULTS_DIR / "lidar_map.md")
@@ -340,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     do_mulran = not args.no_mulran and (MULRAN / "scans").is_dir()
     command = command_line("bench_lidar_map", argv)
     variants = _variants(args)
+    street = STREETS[args.street]
     started = time.perf_counter()
     context = multiprocessing.get_context("spawn")
     runs: dict[str, dict] = {}
@@ -348,18 +359,20 @@ def main(argv: list[str] | None = None) -> int:
         for name, sets in variants.items():
             for odometry in ("gt", "kiss-icp"):
                 futures[(name, odometry)] = pool.submit(
-                    measured, street_run, quick, frames, odometry, sets
+                    measured, street_run, quick, frames, odometry, sets, street
                 )
             if do_mulran:
                 futures[(name, "mulran")] = pool.submit(measured, mulran_run, mulran_frames, sets)
-        scorer_future = pool.submit(StreetScorer, quick, frames, stretch_scans)
-        gt_poses = np.asarray(kitti_source(quick, frames).gt_poses)
-        futures[("TSDF", "gt")] = pool.submit(measured, street_tsdf, quick, frames, gt_poses)
+        scorer_future = pool.submit(StreetScorer, quick, frames, stretch_scans, street)
+        gt_poses = np.asarray(kitti_source(quick, frames, **street).gt_poses)
+        futures[("TSDF", "gt")] = pool.submit(
+            measured, street_tsdf, quick, frames, gt_poses, street
+        )
         if do_mulran:
             futures[("TSDF", "mulran")] = pool.submit(measured, mulran_tsdf, mulran_frames)
         slam = futures[("neural map", "kiss-icp")].result()
         futures[("TSDF", "kiss-icp")] = pool.submit(
-            measured, street_tsdf, quick, frames, slam["poses"]
+            measured, street_tsdf, quick, frames, slam["poses"], street
         )
         for (name, kind), future in futures.items():
             runs.setdefault(kind, {})[name] = future.result()
@@ -391,7 +404,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = section_header("LiDAR map quality (neural map vs TSDF)", command)
     lines += report_lines(
         results,
-        window=kitti_window(quick).describe(frames),
+        window=kitti_window(quick).describe(frames)
+        + ("" if args.street == STANDARD_STREET else f", street variant '{args.street}'"),
         mulran_frames=mulran_frames,
         stretch_scans=stretch_scans,
         variants=variants,

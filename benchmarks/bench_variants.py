@@ -2,21 +2,19 @@
 
     python -m benchmarks.bench_variants [--quick] [--variants NAME ...] [--set KEY=VALUE ...]
 
-Each variant is a generated street along the real KITTI 00 trajectory (:data:`VARIANTS`: seeds,
-sparse and periodic streets, firings, range noise with dropouts, and the standard street read
-with KISS-ICP's KITTI vertical-angle correction), run with configs/kitti.yaml and KISS-ICP
-odometry; the odometry columns are KISS-ICP alone on the same scans, and KISS-SLAM
-(``benchmarks.harness.reference.kiss_slam``; ``--no-kiss-slam`` skips it) runs on the same scans
-read as ours reads them. ``--before-set KEY=VALUE`` runs every variant again with those
-overrides, as a "before" row; ``--set`` overrides the run config. Default: the full 4,541 scans;
-``--quick``: the quick window of benchmarks.bench_slam (550 scans, 1,024 firings). One table
-with per-axis ATE, SLAM's unaligned errors, loops kept, the worst kept loop vs the truth, and
-the worst variant per column; accuracy from one run of the window (deterministic), wall time the
-median of ``REPEATS`` runs on the first ``TIMING_SCANS`` scans. Writes
-benchmarks/results/variants.md (and .json) unless ``--out`` says otherwise.
-``--combine A.json B.json ...`` runs nothing: one table from the results of several invocations,
-naming each invocation's command, date and machine.
-"""
+Each variant is a generated street along the real KITTI 00 trajectory (``STREETS`` of
+benchmarks/harness/kitti.py: seeds, sparse and periodic streets, firings, range noise with
+dropouts, and the standard street read with KISS-ICP's KITTI vertical-angle correction), run with
+configs/kitti.yaml and KISS-ICP odometry; the odometry columns are KISS-ICP alone on the same
+scans, and KISS-SLAM (``benchmarks.harness.reference.kiss_slam``; ``--no-kiss-slam`` skips it) runs
+on the same scans read as ours reads them. ``--before-set KEY=VALUE`` runs every variant again with
+those overrides, as a "before" row; ``--set`` overrides the run config. Default: the full 4,541
+scans; ``--quick``: the quick window of benchmarks.bench_slam (550 scans, 1,024 firings). One table
+with per-axis ATE, SLAM's unaligned errors, loops kept, the worst kept loop vs the truth, and the
+worst variant per column; accuracy from one run of the window (deterministic), wall time the median
+of ``REPEATS`` runs on the first ``TIMING_SCANS`` scans. Writes benchmarks/results/variants.md (and
+.json) unless ``--out`` says otherwise. ``--combine A.json B.json ...`` runs nothing: one table
+from the results of several invocations, naming each invocation's command, date and machine."""
 
 from __future__ import annotations
 
@@ -28,12 +26,11 @@ import logging
 import multiprocessing
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from benchmarks.harness.cli import bench_parser, start_logging
-from benchmarks.harness.kitti import KITTI_POSES, kitti_source
+from benchmarks.harness.kitti import KITTI_POSES, STREETS, kitti_source
 from benchmarks.harness.kitti import window as kitti_window
 from benchmarks.harness.machine import machine_line
 from benchmarks.harness.paths import RESULTS_DIR
@@ -46,19 +43,6 @@ from benchmarks.harness.pipeline import (
 from benchmarks.harness.repeat import REPEATS, Timing, repeats_line
 from benchmarks.harness.results import table
 from common.atomic_io import write_text_atomic
-
-VARIANTS: dict[str, dict[str, Any]] = {
-    "standard, seed 0": {},
-    "standard, seed 1": {"seed": 1},
-    "standard, seed 2": {"seed": 2},
-    "sparse": {"street_style": "sparse"},
-    "periodic": {"street_style": "periodic"},
-    "1024 firings": {"azimuth_steps": 1024},
-    "2048 firings": {"azimuth_steps": 2048},
-    "noise 5 cm + 2 % dropout": {"range_noise_m": 0.05, "dropout": 0.02},
-    "KITTI angle correction, ideal scans": {"loader_options": {"correct_vertical_angle": True}},
-}
-"""Generated-source keyword arguments per variant, on top of :func:`window`."""
 
 log = logging.getLogger("benchmarks.bench_variants")
 
@@ -100,7 +84,7 @@ def _variant_run(quick: bool, name: str, sets: list[str], num_frames: int | None
     """configs/kitti.yaml on the first ``num_frames`` scans of one variant (all by default)."""
     from slam.assembly.config import merge_overrides, set_overrides
 
-    source = kitti_source(quick, num_frames, **VARIANTS[name])
+    source = kitti_source(quick, num_frames, **STREETS[name])
     overrides = merge_overrides({"source": {"dataset": "generated"}}, set_overrides(sets))
     return (source, *run_pipeline(load_config("kitti", overrides), source))
 
@@ -137,7 +121,7 @@ def run_kiss_slam(quick: bool, name: str) -> dict:
     """KISS-SLAM on one variant's scans (its own process, see the module docstring)."""
     from benchmarks.harness.reference import kiss_slam
 
-    return kiss_slam(kitti_source(quick, **VARIANTS[name]))
+    return kiss_slam(kitti_source(quick, **STREETS[name]))
 
 
 def _fmt_xyz(v: list[float]) -> str:
@@ -315,7 +299,7 @@ def write_report(path: Path, results: dict) -> None:
 def build_parser():
     quick = f"550 scans (every 3rd), 1024 firings; variants {', '.join(QUICK_VARIANTS)}"
     parser = bench_parser(__doc__, quick, out=RESULTS_DIR / "variants.md")
-    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS))
+    parser.add_argument("--variants", nargs="+", choices=list(STREETS))
     add_override_arguments(parser, "'before' row of every variant")
     parser.add_argument("--no-kiss-slam", action="store_true", help="do not run KISS-SLAM")
     parser.add_argument("--jobs", type=int, default=2, help="variants run at a time")
@@ -341,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
         write_report(args.out, results)
         return 0
     if args.variants is None:
-        args.variants = list(QUICK_VARIANTS) if args.quick else list(VARIANTS)
+        args.variants = list(QUICK_VARIANTS) if args.quick else list(STREETS)
     start_logging("%(asctime)s %(name)s: %(message)s")
     if not KITTI_POSES.is_file():
         print(f"{KITTI_POSES}: missing; the variants follow KITTI 00's poses", file=sys.stderr)
@@ -350,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     command += "".join(f" --set {s}" for s in args.sets)
     command += "".join(f" --before-set {s}" for s in args.before_sets)
     command += " --no-kiss-slam" if args.no_kiss_slam else ""
-    if args.variants != list(QUICK_VARIANTS if args.quick else VARIANTS):
+    if args.variants != list(QUICK_VARIANTS if args.quick else STREETS):
         command += " --variants " + " ".join(f"'{v}'" for v in args.variants)
     results = new_results(args.quick, command, args.before_sets)
     context = multiprocessing.get_context("spawn")

@@ -11,6 +11,7 @@ import trimesh
 
 from benchmarks.bench_lidar_map import build_parser, stretches
 from benchmarks.harness import lidar_surface
+from benchmarks.harness.kitti import STANDARD_STREET, STREETS
 from benchmarks.harness.lidar_surface import (
     OBSERVED_DISTANCE_M,
     ScanSet,
@@ -135,6 +136,16 @@ def test_quick_and_full_are_exclusive() -> None:
     assert build_parser().parse_args(["--full"]).quick is False
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--quick", "--full"])
+
+
+def test_street_picks_one_of_the_variant_benchmarks_streets() -> None:
+    assert build_parser().parse_args([]).street == STANDARD_STREET
+    assert STREETS[STANDARD_STREET] == {}  # the standard street: the generator's defaults
+    assert STREETS[build_parser().parse_args(["--street", "sparse"]).street] == {
+        "street_style": "sparse"
+    }
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--street", "no such street"])
 
 
 def _poses_along(*points: tuple[float, float]) -> np.ndarray:

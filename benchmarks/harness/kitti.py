@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from benchmarks.harness.paths import DATA
 
@@ -34,6 +35,22 @@ class Window:
 
 FULL = Window(num_frames=4541, step=1, azimuth_steps=2048)
 QUICK = Window(num_frames=550, step=3, azimuth_steps=1024)
+
+
+STREETS: dict[str, dict[str, Any]] = {
+    "standard, seed 0": {},
+    "standard, seed 1": {"seed": 1},
+    "standard, seed 2": {"seed": 2},
+    "sparse": {"street_style": "sparse"},
+    "periodic": {"street_style": "periodic"},
+    "1024 firings": {"azimuth_steps": 1024},
+    "2048 firings": {"azimuth_steps": 2048},
+    "noise 5 cm + 2 % dropout": {"range_noise_m": 0.05, "dropout": 0.02},
+    "KITTI angle correction, ideal scans": {"loader_options": {"correct_vertical_angle": True}},
+}
+"""The data variants of the generated street: generator keyword arguments on top of the
+window's (:func:`kitti_source`)."""
+STANDARD_STREET = "standard, seed 0"
 
 
 def window(quick: bool) -> Window:
