@@ -47,10 +47,14 @@ def _one_thread_per_pool() -> None:
 
 
 @pytest.fixture(autouse=True)
-def _torch_on_one_thread() -> None:
-    """Back to one torch thread before each test: a command a test ran in this process (whose
-    runner sets torch's threads from its budget) must not leave its setting to the next test."""
+def _pools_on_one_thread() -> None:
+    """Torch and OpenCV back to one thread before each test: a command a test ran in this
+    process sets both from its budget (``slam.assembly.threads``) and must not leave its setting
+    to the next test. BLAS needs no reset: every budget gives it one thread."""
+    import cv2
+
     torch.set_num_threads(1)
+    cv2.setNumThreads(1)
 
 
 @pytest.fixture(scope="session")
