@@ -14,6 +14,7 @@ from frontends.frame import Frame
 from frontends.odometry.ground_truth import GroundTruthOdometry
 from frontends.sources import make_source
 from slam.algorithm.loops.registry import make_loop_detector
+from slam.algorithm.merge.session import session_from_pipeline
 from slam.assembly.builders import build_map
 from slam.evaluation.metrics.mesh import mesh_metrics
 from slam.evaluation.metrics.trajectory import ate_per_axis_rmse, ate_rmse
@@ -57,6 +58,24 @@ def test_rgbd_loop_is_closed_and_lowers_ate(room, room_run):
     # The loop moved the map: submaps were remapped from their original encodings.
     assert any(e.num_moved for e in pipeline.remapper.events)
     assert all(s.fused for s in pipeline.submaps.values())
+
+
+def test_frames_follow_the_graphs_odometry_between_anchors(room_run):
+    """The track's odometry between consecutive anchors is the pose graph's odometry factor,
+    and the run's session places every frame as the run did; after the loop moved the anchors
+    the frames in between moved with both of their anchors, not only with their own."""
+    _, pipeline = room_run
+    successors = pipeline.frames.successors()
+    edges = pipeline.graph.odometry_edges()
+    assert len(edges) == len(successors) >= 5
+    for i, j, T_Ai_Aj, _ in edges:
+        assert successors[i][0] == j
+        np.testing.assert_allclose(successors[i][1], T_Ai_Aj, atol=1e-9)
+    session = session_from_pipeline(pipeline, {"sensor": "rgbd"}, None)
+    np.testing.assert_allclose(session.frame_poses(), pipeline.slam_poses(), atol=1e-9)
+    rigid = pipeline.frames.slam_poses(pipeline.view.poses(), follow_next_anchor=False)
+    moved = np.linalg.norm(pipeline.slam_poses()[:, :3, 3] - rigid[:, :3, 3], axis=1)
+    assert moved.max() > 1e-4, moved.max()
 
 
 def test_finish_releases_the_kept_keyframes_but_not_the_descriptors(room_run):

@@ -147,3 +147,17 @@ def test_older_session_layout_loads_as_a_map_but_is_refused(tmp_path: Path):
     with pytest.raises(MapFileError, match=r"v3\.npz: map format version 3 .*slam\.run") as info:
         load_session(old)
     assert "\n" not in str(info.value)
+
+
+def test_frame_poses_follow_the_run_setting():
+    """A run that kept its frames rigid on their anchors is merged the same way; others spread
+    the gap to the next anchor over the frames (the last submap has none and stays rigid)."""
+    session = _session(np.random.default_rng(5))
+    rigid = session.anchor_poses()
+    rigid = np.array([rigid[int(s)] for s in session.frame_submap]) @ session.frame_T_A_S
+    followed = session.frame_poses()
+    assert np.abs(followed[1:40] - rigid[1:40]).max() > 1e-3
+    np.testing.assert_allclose(followed[[0, 20]], rigid[[0, 20]], atol=1e-12)
+    np.testing.assert_allclose(followed[40:], rigid[40:], atol=1e-12)
+    session.setup["frames_follow_next_anchor"] = False
+    np.testing.assert_allclose(session.frame_poses(), rigid, atol=1e-12)

@@ -355,7 +355,9 @@ class SlamPipeline:
     def slam_poses(self) -> np.ndarray:
         """(N, 4, 4) current SLAM estimates of the frames processed so far (the main thread's
         :attr:`view` of the anchors: exact after :meth:`drain` and :meth:`finish`)."""
-        return self.frames.slam_poses(self.view.poses())
+        return self.frames.slam_poses(
+            self.view.poses(), self.cfg.pose_graph.frames_follow_next_anchor
+        )
 
     def drain(self) -> None:
         """Wait for both workers: the graph view, the loop candidates and the map then reflect

@@ -72,6 +72,12 @@ class PoseGraphConfig(Strict):
     odometry_rotation_sigma_per_rad: float = Field(
         0.02, ge=0, description="odometry edge rotation sigma per radian turned"
     )
+    frames_follow_next_anchor: bool = Field(
+        True,
+        description="a frame's pose also follows the next submap's anchor, in proportion to the "
+        "path travelled from its own (the odometry's drift between two anchors is spread over the "
+        "frames in between); off: every frame rigid on its own anchor, as the map fuses it",
+    )
     loop_translation_sigma_m: float = Field(0.05, gt=0, description="loop edge translation sigma")
     loop_rotation_sigma_rad: float = Field(0.01, gt=0, description="loop edge rotation sigma")
     use_edge_covariances: bool = Field(

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mapping.map_schema import Spec
+from slam.algorithm.frame_track import frame_poses
 from slam.algorithm.graph.gravity import UpMeasurement
 from slam.algorithm.loops.place import PlaceDescriptor
 from slam.algorithm.merge.session_checks import check_session
@@ -160,11 +161,16 @@ class SessionRecord:
         return {int(n): T for n, T in zip(self.node_ids, self.T_W_A, strict=True)}
 
     def frame_poses(self, T_W_A: dict[int, np.ndarray] | None = None) -> np.ndarray:
-        """(N, 4, 4) frame poses under anchor poses ``T_W_A`` (default: the stored ones)."""
+        """(N, 4, 4) frame poses under anchor poses ``T_W_A`` (default: the stored ones), placed
+        as the run placed them (:func:`~slam.algorithm.frame_track.frame_poses`; a run with
+        ``pose_graph.frames_follow_next_anchor`` off says so in its setup)."""
         anchors = self.anchor_poses() if T_W_A is None else T_W_A
-        if len(self.frame_submap) == 0:
-            return np.zeros((0, 4, 4))
-        return np.array([anchors[int(s)] for s in self.frame_submap]) @ self.frame_T_A_S
+        successors = (
+            {e.i: (e.j, e.T_Ai_Aj) for e in self.odometry}
+            if self.setup.get("frames_follow_next_anchor", True)
+            else {}
+        )
+        return frame_poses(self.frame_submap, self.frame_T_A_S, anchors, successors)
 
     def to_dataset_frame(self, poses: np.ndarray) -> np.ndarray:
         M = self.dataset_mirror
@@ -292,8 +298,12 @@ def session_from_pipeline(
     frame_submap, frame_T_A_S = pipeline.frames.anchors()
     detector = pipeline.loop_detector
     descriptors = {} if detector is None else dict(detector.descriptors)
+    setup = {
+        **setup,
+        "frames_follow_next_anchor": pipeline.cfg.pose_graph.frames_follow_next_anchor,
+    }
     return SessionRecord(
-        setup=dict(setup),
+        setup=setup,
         node_ids=node_ids,
         T_W_A=np.array([poses[int(n)] for n in node_ids]).reshape(-1, 4, 4),
         odometry=odometry,
