@@ -69,6 +69,18 @@ def test_frames_follow_both_anchors_where_the_graph_corrected_the_odometry():
     assert position_followed.max() < 0.3 * position_rigid.max()
 
 
+def test_submaps_registered_to_a_stored_map_keep_their_frames_rigid():
+    """A registration places a submap's frames rigidly at their best fit: they stay there."""
+    truth, odometry = _drive()
+    track = _track(odometry)
+    anchors = {s: truth[20 * s] for s in range(3)}
+    rigid = track.slam_poses(anchors, follow_next_anchor=False)
+    kept = track.slam_poses(anchors, rigid={0})
+    np.testing.assert_allclose(kept[:20], rigid[:20], atol=1e-12)
+    np.testing.assert_allclose(kept[20:], track.slam_poses(anchors)[20:], atol=1e-12)
+    assert np.abs(kept[21:40] - rigid[21:40]).max() > 1e-4
+
+
 def test_nothing_moves_where_the_graph_agrees_with_the_odometry():
     _, odometry = _drive()
     track = _track(odometry)

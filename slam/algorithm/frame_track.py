@@ -11,7 +11,7 @@ track belongs to the pipeline's main thread.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from itertools import pairwise
 
 import numpy as np
@@ -100,12 +100,19 @@ class FrameTrack:
         return np.array(self._odometry).reshape(-1, 4, 4)
 
     def slam_poses(
-        self, T_W_A: Mapping[int, np.ndarray], follow_next_anchor: bool = True
+        self,
+        T_W_A: Mapping[int, np.ndarray],
+        follow_next_anchor: bool = True,
+        rigid: Collection[int] = (),
     ) -> np.ndarray:
         """(N, 4, 4) poses under the anchor estimates ``T_W_A`` (``{submap_id: pose}``), each
-        frame rigid on its anchor or, with ``follow_next_anchor``, as :func:`frame_poses`."""
+        frame rigid on its anchor or, with ``follow_next_anchor``, as :func:`frame_poses`; the
+        frames of the submaps in ``rigid`` stay rigid on their anchor either way."""
         submaps, T_A_S = self.anchors()
-        return frame_poses(submaps, T_A_S, T_W_A, self.successors() if follow_next_anchor else {})
+        successors = self.successors() if follow_next_anchor else {}
+        for submap_id in rigid:
+            successors.pop(submap_id, None)
+        return frame_poses(submaps, T_A_S, T_W_A, successors)
 
     def successors(self) -> dict[int, tuple[int, np.ndarray]]:
         """``{i: (j, T_Ai_Aj)}``: each submap's next one and the odometry between their anchors

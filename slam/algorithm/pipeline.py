@@ -356,7 +356,9 @@ class SlamPipeline:
         """(N, 4, 4) current SLAM estimates of the frames processed so far (the main thread's
         :attr:`view` of the anchors: exact after :meth:`drain` and :meth:`finish`)."""
         return self.frames.slam_poses(
-            self.view.poses(), self.cfg.pose_graph.frames_follow_next_anchor
+            self.view.poses(),
+            self.cfg.pose_graph.frames_follow_next_anchor,
+            rigid=self.view.map_anchored,
         )
 
     def drain(self) -> None:

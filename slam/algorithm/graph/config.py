@@ -76,7 +76,8 @@ class PoseGraphConfig(Strict):
         True,
         description="a frame's pose also follows the next submap's anchor, in proportion to the "
         "path travelled from its own (the odometry's drift between two anchors is spread over the "
-        "frames in between); off: every frame rigid on its own anchor, as the map fuses it",
+        "frames in between), except in submaps registered to a stored map, whose registration "
+        "fits their frames rigidly; off: every frame rigid on its own anchor, as the map fuses it",
     )
     loop_translation_sigma_m: float = Field(0.05, gt=0, description="loop edge translation sigma")
     loop_rotation_sigma_rad: float = Field(0.01, gt=0, description="loop edge rotation sigma")
