@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from slam.app import fleet_cli
+from slam.app import fleet_cli, fleet_ray
 from slam.app.fleet_manifest import FleetRun, Sweep, load_manifest
 from slam.app.fleet_plan import merge_levels, run_argv, run_memory_mb, thread_share
 from slam.app.fleet_sweep import metric_row, sweep_csv
@@ -48,8 +48,9 @@ SETTINGS = {
 WINDOWS = {"a": "0:24", "b": "16:40", "c": "32:56"}
 
 
-def _set_args() -> list[str]:
-    return [arg for key, value in SETTINGS.items() for arg in ("--set", f"{key}={value}")]
+def _set_args(**overrides) -> list[str]:
+    settings = {**SETTINGS, **overrides}
+    return [arg for key, value in settings.items() for arg in ("--set", f"{key}={value}")]
 
 
 def _serial(base: Path) -> None:
@@ -165,7 +166,7 @@ def test_a_broken_recording_is_reported_and_the_others_merged(fleet):
 
 def test_an_interrupted_fleet_stops_cleanly_and_resumes_without_recomputing(fleet):
     code, stderr = fleet["interrupted"]
-    assert code == 130
+    assert code == 130, stderr[-4000:]
     lines = [line for line in stderr.splitlines() if line.strip()]
     assert lines[-1].startswith("error: interrupted; finished runs are kept in "), stderr
     done_before, states = fleet["done_before"], fleet["after_interrupt"]
@@ -219,6 +220,35 @@ def test_sweep_rows_read_each_runs_metrics(fleet):
     assert header.startswith("run,threads,x.y,state,ate_rmse_m,ate_x_rmse_m")
     assert first.startswith("s-0,1,True,finished,")
     assert failed == "s-1,2,True,failed" + "," * (len(header.split(",")) - 4)
+
+
+def test_a_task_interrupts_itself_when_the_stop_file_appears(tmp_path: Path):
+    """The fleet stops its tasks through a file (a ``ray.cancel``-ed task that then returns can
+    abort the driver inside Ray): a run in a task stops as on Ctrl-C once the file appears, and
+    a task that has not started yet returns at once without a run folder."""
+    stop, out = tmp_path / ".stop", tmp_path / "run"
+    argv = ["demo", "--odometry", "gt", "--no-viz", "--no-progress", "--out", str(out),
+            *_set_args(**{"generated.num_frames": 400})]  # fmt: skip
+    snippet = (
+        "import sys\nfrom slam.app.fleet_ray import call_logged\n"
+        f"sys.exit(call_logged('slam.app.cli', {argv!r}, {str(tmp_path / 'log')!r}, "
+        f"{str(stop)!r})[0])"
+    )
+    child = _python("-c", snippet)
+    deadline = time.monotonic() + 120
+    while ((read_run_status(out) if out.is_dir() else None) or {}).get("frames_done", 0) < 1:
+        assert child.poll() is None, child.communicate()
+        assert time.monotonic() < deadline, "no frame done within 120 s"
+        time.sleep(0.1)
+    stop.touch()
+    child.communicate(timeout=120)
+    assert child.returncode == 130, (tmp_path / "log").read_text()[-2000:]
+    assert read_run_status(out)["state"] == "interrupted"
+    assert fleet_ray.call_logged("slam.app.cli", argv, str(tmp_path / "log2"), str(stop)) == (
+        130,
+        "stopped before it started",
+    )
+    assert not (tmp_path / "log2").exists()
 
 
 def test_a_bad_manifest_is_one_line_naming_the_file_and_entry(tmp_path: Path):

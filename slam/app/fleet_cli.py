@@ -133,6 +133,7 @@ def _main(argv: list[str], debug: bool) -> int:
         if (args.manifest is None) == (args.sweep is None):
             raise UsageError("give a MANIFEST or --sweep FILE (one of them)")
         out = args.out.expanduser().resolve()
+        pool.stop_file = out / fleet_ray.STOP_FILE
         source = args.manifest if args.sweep is None else args.sweep
         sweep: Sweep | None = None
         if args.sweep is not None:
@@ -142,6 +143,7 @@ def _main(argv: list[str], debug: bool) -> int:
             runs = load_manifest(args.manifest)
         runs = [_resolved(run, source.parent.resolve()) for run in runs]
         check_fleet_folder(out)
+        pool.stop_file.unlink(missing_ok=True)  # left by a fleet that was killed while stopping
         fleet_ray.import_ray()
         connected = fleet_ray.connect(args.address, args.num_cpus)
         _catch_sigterm()  # ray.init installs its own SIGTERM handler, which aborts the driver
@@ -159,7 +161,7 @@ def _main(argv: list[str], debug: bool) -> int:
         finally:
             progress.close()
     except KeyboardInterrupt as exc:
-        pool.cancel_all(lambda key: _stopped(out, key))
+        pool.stop_all()
         if out is not None:
             for leftover in out.glob("**/*.partial"):
                 discard(leftover)
@@ -183,16 +185,6 @@ def _main(argv: list[str], debug: bool) -> int:
         + (f"; merged map in {out / 'merged'}" if merged_ok else "")
     )
     return 0 if failed == 0 and merged_ok else 1
-
-
-def _stopped(out: Path | None, key: str) -> bool:
-    """Whether the task ``key`` has stopped writing: a run whose status no longer says
-    ``running`` (or that made no folder yet); a merge at once (its partial output is removed)."""
-    folder = None if out is None or key.startswith(MERGE_KEY) else out / "runs" / key
-    if folder is None or not folder.is_dir():
-        return True
-    status = read_run_status(folder)
-    return status is None or status.get("state") != "running"
 
 
 def _finished(task: RunTask) -> bool:
