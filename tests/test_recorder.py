@@ -104,7 +104,8 @@ def test_recorder_grows_trajectories_by_one_and_recomputes_them_after_a_loop(str
             np.testing.assert_array_equal(optimized[-1], result.T_W_S[:3, 3])
     assert loop_frames == 1
     pipeline.finish()
-    recorder.finish()
+    mesh = pipeline.map.extract_mesh()
+    recorder.finish(mesh)
     np.testing.assert_allclose(
         viz.trajectories["optimized"][-1], pipeline.slam_poses()[:, :3, 3], atol=1e-12
     )
@@ -112,7 +113,8 @@ def test_recorder_grows_trajectories_by_one_and_recomputes_them_after_a_loop(str
     assert len(accepted) + len(viz.loops[-1][1]) == len(pipeline.loop_candidates) >= 1
     # a mesh every second closed submap and at the end; voxel centres at every close
     assert [m[2] is not None for m in viz.maps][:3] == [False, True, False]
-    assert viz.maps[-1][2] is not None and len(viz.maps[-1][0]) == pipeline.map.num_voxels
+    # the final map: the mesh the run extracted for its outputs, not one more extraction
+    assert viz.maps[-1][2] is mesh and len(viz.maps[-1][0]) == pipeline.map.num_voxels
     final = viz.metrics[-1]
     assert final["map_voxels"] == pipeline.map.num_voxels
     assert final["ate_slam_m"] > 0 and final["ate_odometry_m"] > 0
@@ -144,7 +146,7 @@ def test_recorder_logs_the_published_map_without_waiting_for_the_map_worker(stre
     assert pipeline.num_closed_submaps == 2 and viz.maps == []
     released.set()
     pipeline.finish()
-    recorder.finish()
+    recorder.finish(None)
     assert len(viz.maps) == 1 and len(viz.maps[0][0]) == pipeline.map.num_voxels
 
 
@@ -155,6 +157,6 @@ def test_null_logger_gets_a_recorder_that_computes_nothing(stretch):
     for frame in list(stretch)[:12]:
         recorder.frame(frame, pipeline.process(frame))
     pipeline.finish()
-    recorder.finish()
+    recorder.finish(None)
     assert pipeline.num_closed_submaps >= 2
     assert pipeline.timings_s["map_logging"] == []  # no snapshot, so no mesh, was taken

@@ -7,7 +7,7 @@ anchor's current estimate composed with the frame's odometry pose relative to th
 whole trajectory follows every optimisation. The world frame is the first anchor (frame 0).
 
 The pipeline neither logs nor scores: each :meth:`SlamPipeline.process` returns a
-:class:`FrameResult` (what happened at that frame), :meth:`SlamPipeline.map_snapshot` gives what a
+:class:`FrameResult` (what happened at that frame), :meth:`SlamPipeline.map_voxels` gives what a
 viewer shows of the map, and :meth:`SlamPipeline.report` what metrics need at the end.
 
 Only the odometry and the keyframing *decision* (poses only) run in :meth:`SlamPipeline.process`'s
@@ -412,15 +412,14 @@ class SlamPipeline:
         never waits for the workers."""
         return self.executor.latest_map()
 
-    def map_snapshot(self, with_mesh: bool) -> tuple[np.ndarray, np.ndarray, object | None]:
-        """What a viewer shows of the map now, exactly: voxel centres, their weights and, when
-        asked, a mesh (waits for the workers; booked as the ``map_logging`` stage)."""
+    def map_voxels(self) -> tuple[np.ndarray, np.ndarray]:
+        """What a viewer shows of the map's voxels now, exactly: their centres and weights
+        (waits for the workers; booked as the ``map_logging`` stage)."""
         self.drain()
         start = clock()
         centers, weights = self.map.voxel_centers()
-        mesh = self.map.extract_mesh() if with_mesh else None
         self.executor.main_timings.book("map_logging", start)
-        return np.asarray(centers), np.asarray(weights, dtype=np.float64), mesh
+        return np.asarray(centers), np.asarray(weights, dtype=np.float64)
 
     @property
     def timings_s(self) -> dict[str, list[float]]:

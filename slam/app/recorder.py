@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 
 from common.geometry import transform_points
 from frontends.frame import Frame
@@ -61,8 +62,9 @@ class Recorder:
     def frame(self, frame: Frame, result: FrameResult) -> None:
         """Report one processed frame."""
 
-    def finish(self) -> None:
-        """Report the end of the run (after the pipeline's final optimisation)."""
+    def finish(self, mesh: trimesh.Trimesh | None) -> None:
+        """Report the end of the run (after the pipeline's final optimisation), with the final
+        mesh the run extracted for its outputs (None when it keeps no map)."""
 
 
 class RunRecorder(Recorder):
@@ -127,13 +129,13 @@ class RunRecorder(Recorder):
         if self._map_anchor_poses is not None:
             viz.log_metrics(map_anchored=float(self._registered in self.pipeline.map_anchored))
 
-    def finish(self) -> None:
+    def finish(self, mesh: trimesh.Trimesh | None) -> None:
         self._log_loops()
         if self._map_anchor_poses is not None:
             self._log_map_anchoring()
         self._tracks["optimized"].replace(self.pipeline.slam_poses()[:, :3, 3])
         self._log_trajectories()
-        self.viz.log_map_from(lambda: self.pipeline.map_snapshot(with_mesh=True))
+        self.viz.log_map_from(lambda: (*self.pipeline.map_voxels(), mesh))
         self.viz.log_metrics_from(self._errors_so_far)
 
     def _track(self, frame: Frame, result: FrameResult) -> None:

@@ -266,7 +266,6 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
         # the rate ends with the final optimisation: the recording's exact final map is after it
         pipeline_s = time.perf_counter() - loop_start
         pipeline_cpu_s = run_cpu_s(None) - cpu_start  # the odometry's child was waited for
-        recorder.finish()
     except BaseException:  # Ctrl-C, SIGTERM, a failed job: stop the workers, skip their queue
         pipeline.abort()
         writes.abandon()  # before the failure's status is written
@@ -278,6 +277,7 @@ def _run(entry, cfg, folder, progress, announce, outputs, source, state: _RunSta
     outputs.write_poses(*poses())
     outputs.write_loops(pipeline.loop_candidates)
     mesh = None if localise_only else neural_map.extract_mesh(threads=threads.mesh_threads)
+    recorder.finish(mesh)  # the recording's exact final map: the same mesh, extracted once
     if mesh is not None and cfg.output.write_mesh:
         outputs.write_mesh(mesh)
     gt = pipeline.frames.gt_poses()
