@@ -126,14 +126,14 @@ def _main(argv: list[str], debug: bool) -> int:
     from slam.app import fleet_ray
 
     connected = False
-    pool = fleet_ray.TaskPool()
+    pool: fleet_ray.TaskPool | None = None
     out: Path | None = None
     try:
         args = build_parser().parse_args(argv)
         if (args.manifest is None) == (args.sweep is None):
             raise UsageError("give a MANIFEST or --sweep FILE (one of them)")
         out = args.out.expanduser().resolve()
-        pool.stop_file = out / fleet_ray.STOP_FILE
+        pool = fleet_ray.TaskPool(out / fleet_ray.STOP_FILE)
         source = args.manifest if args.sweep is None else args.sweep
         sweep: Sweep | None = None
         if args.sweep is not None:
@@ -161,7 +161,8 @@ def _main(argv: list[str], debug: bool) -> int:
         finally:
             progress.close()
     except KeyboardInterrupt as exc:
-        pool.stop_all()
+        if pool is not None:
+            pool.stop_all()
         if out is not None:
             for leftover in out.glob("**/*.partial"):
                 discard(leftover)

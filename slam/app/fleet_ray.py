@@ -120,14 +120,15 @@ def call_logged(module: str, argv: list[str], log: str, stop_file: str) -> tuple
     import threading
     import traceback
 
-    if Path(stop_file).exists():
+    stop = Path(stop_file)
+    if stop.exists():
         return 130, "stopped before it started"
     # the stop file interrupts with SIGINT: a driver started in the background (``cmd &``,
     # nohup) passes SIGINT ignored down to its workers, and the run could not be stopped cleanly
     with contextlib.suppress(ValueError):
         signal.signal(signal.SIGINT, signal.default_int_handler)
     done = threading.Event()
-    watcher = threading.Thread(target=_interrupt_when, args=(Path(stop_file), done), daemon=True)
+    watcher = threading.Thread(target=_interrupt_when, args=(stop, done), daemon=True)
     path = Path(log)
     path.parent.mkdir(parents=True, exist_ok=True)
     start = path.stat().st_size if path.exists() else 0
@@ -173,9 +174,9 @@ class Outcome:
 @dataclass
 class TaskPool:
     """Submitted tasks, keyed by the caller's names; :meth:`stop_all` stops them through
-    ``stop_file`` (set it before the first :meth:`submit`)."""
+    ``stop_file`` (on storage every node sees)."""
 
-    stop_file: Path | None = None
+    stop_file: Path
     pending: dict[Any, str] = field(default_factory=dict)
     """Ray object reference -> the task's key."""
     _task: Any = None
@@ -212,7 +213,7 @@ class TaskPool:
     def stop_all(self) -> None:
         """Stop every task as Ctrl-C stops a run: create the stop file, wait up to
         :data:`STOP_GRACE_S` for the tasks to return, kill what is left, remove the file."""
-        if not self.pending or self.stop_file is None:
+        if not self.pending:
             return
         ray = import_ray()
         self.stop_file.touch()
