@@ -84,13 +84,46 @@ def test_scans_with_the_hdl64e_error_get_the_correction(street_root, caplog):
         correct_vertical_angle(scan, -VERTICAL_ANGLE_OFFSET_DEG)
         for scan in _examined_scans(street_root)
     ]
-    choice = choose_correction("auto", lowered, "lowered street")
+    choice = choose_correction("auto", lowered.__getitem__, len(lowered), "lowered street")
     assert (choice.apply, choice.needed) == (True, True)
     assert abs(choice.cone_angle_deg + VERTICAL_ANGLE_OFFSET_DEG) < 0.05
     with caplog.at_level(logging.WARNING, logger="frontends.sources.beam_correction"):
-        kept = choose_correction(False, lowered, "lowered street")
+        kept = choose_correction(False, lowered.__getitem__, len(lowered), "lowered street")
     assert kept.apply is False
     assert "set it to auto or true" in caplog.text
+
+
+def _lane(cone_angle_deg: float, seed: int) -> np.ndarray:
+    """The road ahead of and behind a sensor 1.73 m above it, bent into a cone of this angle."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(4.5, 11.5, 1500) * rng.choice([-1.0, 1.0], 1500)
+    z = -1.73 + np.tan(np.radians(cone_angle_deg)) * np.abs(x)
+    return np.column_stack([x, rng.uniform(-2.4, 2.4, 1500), z])
+
+
+@pytest.mark.parametrize("offset_deg, needed", [(0.0, False), (-VERTICAL_ANGLE_OFFSET_DEG, True)])
+def test_a_drive_whose_first_scans_do_not_tell_is_examined_further(offset_deg, needed, caplog):
+    """Roads that bend differently from place to place (one scan's cone angle spread by
+    0.45 deg): the first 40 scans of a 2,000-scan drive leave it undecided, and alone would be
+    corrected, with a warning where their median leans to 0; the 200 examined after them
+    decide, without a warning."""
+    angles = np.random.default_rng(3).normal(offset_deg, 0.45, 2000)
+    first = examined_indices(len(angles))
+    with caplog.at_level(logging.INFO, logger="frontends.sources.beam_correction"):
+        undecided = choose_correction(
+            "auto", lambda i: _lane(angles[first[i]], i), len(first), "first scans"
+        )
+    assert (undecided.apply, undecided.needed) == (True, None)
+    assert len(undecided.per_scan_deg) == len(first)
+    warned = caplog.records[-1].levelno == logging.WARNING
+    assert warned == (not needed)
+    assert ("leans to scans without the error" in caplog.records[-1].getMessage()) == warned
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="frontends.sources.beam_correction"):
+        choice = choose_correction("auto", lambda i: _lane(angles[i], i), len(angles), "drive")
+    assert (choice.apply, choice.needed) == (needed, needed)
+    assert len(first) < len(choice.per_scan_deg) <= len(first) + 200
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
 
 
 @pytest.mark.skipif(not REAL_KITTI.is_dir(), reason=f"real KITTI scans not found at {REAL_KITTI}")
@@ -98,14 +131,14 @@ def test_real_hdl64e_odometry_scans_are_not_refused_the_correction():
     scans = [
         read_kitti_bin(path)[:, :3].astype(np.float64) for path in sorted(REAL_KITTI.rglob("*.bin"))
     ]
-    choice = choose_correction("auto", scans, str(REAL_KITTI))
+    choice = choose_correction("auto", scans.__getitem__, len(scans), str(REAL_KITTI))
     assert choice.apply is True and choice.needed is not False
 
 
 @pytest.mark.skipif(not KITTI_RAW.is_dir(), reason=f"KITTI raw scans not found at {KITTI_RAW}")
 def test_real_hdl64e_raw_scans_need_the_correction():
     scans = [read_pcd_points(path) for path in sorted(KITTI_RAW.glob("*.pcd"))]
-    choice = choose_correction("auto", scans, str(KITTI_RAW))
+    choice = choose_correction("auto", scans.__getitem__, len(scans), str(KITTI_RAW))
     assert (choice.apply, choice.needed) == (True, True)
 
 

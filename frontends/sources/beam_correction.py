@@ -11,14 +11,15 @@ and sidewalks), fitted by ``z = a + b x + c y + k |x|``: the cone angle ``atan(k
 -0.205 deg where the correction is needed and about 0 where it is not. The road's own shape (a
 sag, a crest, a turn) bends one place's fit by more, so the decision takes the median over scans
 spread over the whole selection, and decides nothing where that median is near neither value or
-not a standard error nearer one of them.
+not a standard error nearer one of them. Where a first set of scans does not tell, more are
+examined: a long drive's roads vary more than a short one's.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -34,6 +35,12 @@ SCANS_EXAMINED = 40
 """Scans whose road is fitted, spread evenly over the selected frames (the first among them):
 one scan's cone angle spreads over an interquartile range of about 0.5 deg on the generated
 KITTI 00 street, so it takes tens of them to tell 0 from -0.205."""
+MORE_SCANS_EXAMINED = 200
+"""Where the first :data:`SCANS_EXAMINED` do not tell, the road of this many scans spread evenly
+over the selection is fitted too (those already fitted are kept). On the 4,541 scans of the
+generated KITTI 00 street (2048 firings, no beam error), the first 40 put the median at
+-0.001 +- 0.053 deg, 1.9 standard errors from the middle (-0.1025), short of the 2 that turn the
+correction off; all 238 put it at +0.033 +- 0.024, 5.6 away."""
 MIN_SCANS_TO_TURN_OFF = 30
 """Fewer scans with road than this never turn the correction off. Over windows of the generated
 street's 550-scan quick window, scans lowered by 0.205 deg were judged 'not needed' in 3 of 103
@@ -124,9 +131,10 @@ def road_cone_angle_deg(points: np.ndarray) -> float | None:
     return float(np.degrees(np.arctan(coefficients[3])))
 
 
-def examined_indices(num_frames: int) -> np.ndarray:
-    """Positions (into the selected frames) of the scans :func:`choose_correction` is given."""
-    return np.unique(np.linspace(0, num_frames - 1, min(SCANS_EXAMINED, num_frames)).astype(int))
+def examined_indices(num_frames: int, count: int = SCANS_EXAMINED) -> np.ndarray:
+    """Positions (into the selected frames) of ``count`` scans spread evenly over them, the
+    first included (all of them when there are fewer)."""
+    return np.unique(np.linspace(0, num_frames - 1, min(count, num_frames)).astype(int))
 
 
 @dataclass(frozen=True)
@@ -187,26 +195,59 @@ def needed_by(cone_angle_deg: float | None, standard_error_deg: float, scans: in
     return None
 
 
-def choose_correction(
-    setting: CorrectionSetting, scans: Sequence[np.ndarray], where: str
-) -> CorrectionChoice:
-    """Decide from raw scans (sensor frame; :func:`examined_indices` says which) whether to
-    correct them. ``"auto"`` follows the road, and where it does not tell, corrects (what
-    KISS-ICP does for KITTI); an explicit True or False is kept, with one warning when the road
-    says otherwise. ``where`` names the scans in the log."""
-    angles = [road_cone_angle_deg(scan) for scan in scans]
+def _road_says(angles: Sequence[float | None]) -> tuple[bool | None, float | None, float | None]:
+    """What per-scan cone angles (None: no road) say: :func:`needed_by`, their median and its
+    standard error (both None without a measured scan)."""
     measured = [a for a in angles if a is not None]
-    median, error = median_and_error(measured) if measured else (None, None)
-    needed = needed_by(median, error or 0.0, len(measured))
+    if not measured:
+        return None, None, None
+    median, error = median_and_error(measured)
+    return needed_by(median, error, len(measured)), median, error
+
+
+def choose_correction(
+    setting: CorrectionSetting,
+    scan_at: Callable[[int], np.ndarray | None],
+    num_scans: int,
+    where: str,
+) -> CorrectionChoice:
+    """Decide from raw scans whether to correct them: ``scan_at(i)`` gives the points (N, 3) of
+    the i-th of ``num_scans`` in the sensor frame (None where it cannot be read);
+    :data:`SCANS_EXAMINED` of them, spread evenly, are examined, and :data:`MORE_SCANS_EXAMINED`
+    where those do not tell. ``"auto"`` follows the road, and where it does not tell, corrects
+    (what KISS-ICP does for KITTI), with a warning when the median of enough scans lies nearer 0
+    than -0.205 (the correction then looks more likely wrong than right); an explicit True or
+    False is kept, with one warning when the road says otherwise. ``where`` names the scans in
+    the log."""
+    angles: dict[int, float | None] = {}
+    for count in (SCANS_EXAMINED, MORE_SCANS_EXAMINED):
+        for i in examined_indices(num_scans, count).tolist():
+            if i not in angles:
+                scan = scan_at(i)
+                angles[i] = None if scan is None else road_cone_angle_deg(scan)
+        needed, median, error = _road_says(list(angles.values()))
+        if needed is not None:
+            break
+    per_scan = [angles[i] for i in sorted(angles)]
+    measured = sum(a is not None for a in per_scan)
     apply = (needed is not False) if setting == "auto" else bool(setting)
     evidence = (
         "too little road in the scans to tell"
         if median is None
-        else f"the road's median cone angle over {len(measured)} scans is {median:+.3f} "
+        else f"the road's median cone angle over {measured} scans is {median:+.3f} "
         f"+- {error:.3f} deg (-{VERTICAL_ANGLE_OFFSET_DEG} where the correction is needed, 0 "
         "where not" + ("; neither, so it does not tell)" if needed is None else ")")
     )
-    if setting == "auto":
+    leans_off = median is not None and median > -0.5 * VERTICAL_ANGLE_OFFSET_DEG
+    if setting == "auto" and needed is None and leans_off and measured >= MIN_SCANS_TO_TURN_OFF:
+        log.warning(
+            "%s: KITTI vertical-angle correction on, as KISS-ICP does for KITTI, though the "
+            "road leans to scans without the error: %s; if they are not from KITTI's HDL-64E, "
+            "set source.kitti.correct_vertical_angle=false",
+            where,
+            evidence,
+        )
+    elif setting == "auto":
         log.info(
             "%s: KITTI vertical-angle correction %s: %s", where, "on" if apply else "off", evidence
         )
@@ -219,4 +260,4 @@ def choose_correction(
             evidence,
             str(needed).lower(),
         )
-    return CorrectionChoice(setting, apply, needed, median, error, angles)
+    return CorrectionChoice(setting, apply, needed, median, error, per_scan)

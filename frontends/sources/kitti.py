@@ -27,7 +27,6 @@ from frontends.sources.beam_correction import (
     CorrectionSetting,
     choose_correction,
     correct_vertical_angle,
-    examined_indices,
 )
 
 BYTES_PER_POINT = 16  # four float32
@@ -147,23 +146,20 @@ class KittiSource(Source):
                 )
             self._gt = camera_to_lidar_poses(T_cam, self.T_cam_lidar)
         self.correction = choose_correction(
-            correct_vertical_angle, self._examined_scans(), str(velodyne)
+            correct_vertical_angle, self._raw_points, len(self.indices), str(velodyne)
         )
         self.correct_vertical_angle = self.correction.apply
 
     def _num_raw_frames(self) -> int:
         return len(self.scan_files)
 
-    def _examined_scans(self) -> list[np.ndarray]:
-        """The raw points of the scans the correction is chosen on; an unreadable one is left
-        out here and reported when its frame is read."""
-        scans = []
-        for i in examined_indices(len(self.indices)):
-            try:
-                scans.append(self._read(int(self.indices[i]))[:, :3])
-            except DatasetError:
-                continue
-        return scans
+    def _raw_points(self, i: int) -> np.ndarray | None:
+        """The raw points of selected frame ``i``, uncorrected, for choosing the correction;
+        None where the scan cannot be read (reported when its frame is)."""
+        try:
+            return self._read(int(self.indices[i]))[:, :3]
+        except DatasetError:
+            return None
 
     def _raw_gt_poses(self) -> np.ndarray | None:
         return self._gt
