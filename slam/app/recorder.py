@@ -137,6 +137,8 @@ class RunRecorder(Recorder):
         self._log_trajectories()
         self.viz.log_map_from(lambda: (*self.pipeline.map_voxels(), mesh))
         self.viz.log_metrics_from(self._errors_so_far)
+        # a logger on its own thread is done with the mesh before the run writes and scores it
+        self.viz.flush()
 
     def _track(self, frame: Frame, result: FrameResult) -> None:
         if result.relocalised is not None:
@@ -244,6 +246,7 @@ def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
     if viz.mode == "none":
         return NullLogger()
     from slam.app.rerun_logger import RerunLogger
+    from slam.app.threaded_logger import ThreadedLogger
 
     options: dict[str, Any] = {
         "voxel_size_m": cfg.mapping.voxel_size_m,
@@ -265,4 +268,4 @@ def build_logger(cfg: RunConfig, sensor: str, default_rrd: Path) -> Logger:
         if not viz.connect_url:
             raise ValueError("viz.mode 'connect' needs viz.connect_url")
         options["connect_url"] = viz.connect_url
-    return RerunLogger(**options)
+    return ThreadedLogger(RerunLogger(**options))
