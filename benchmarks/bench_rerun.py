@@ -2,12 +2,14 @@
 ``benchmarks/results/rerun.md``.
 
     python -m benchmarks.bench_rerun [--quick] [--frames A:B] [--repeats 3]
-    python -m benchmarks.bench_rerun --rates [--before DIR] [--repeats 3]
+    python -m benchmarks.bench_rerun --rates [--before DIR] [--repeats 3] [--kitti-root DIR]
 
 Rates: the pipeline rate (``timing.frames_per_s``) of ``python -m slam.run`` child processes with
 the default recording and with ``--no-viz``, on the demo and the first 120 frames of the
 generated street, ``--repeats`` times interleaved. ``--rates`` measures only these; ``--before
-DIR`` (another checkout) adds its rows (``benchmarks/results/rerun_rates.md``).
+DIR`` (another checkout) adds its rows, and ``--kitti-root DIR`` a case of every scan of the
+KITTI-layout sequence 00 in DIR, such as the full-length generated street
+(``benchmarks/results/rerun_rates.md``).
 
 Overhead: each case runs twice in this process with ``slam.app.runner``'s ``execute`` (after its
 sequence is generated): with ``--no-viz`` and writing an ``.rrd`` file. Measured: both wall times
@@ -336,11 +338,13 @@ def pipeline_rate(tree: Path, argv: list[str], folder: Path) -> float:
     return float(metrics["timing"]["frames_per_s"])
 
 
-def measure_rates(trees: dict[str, Path], repeats: int) -> dict[tuple[str, str, str], list]:
+def measure_rates(
+    trees: dict[str, Path], repeats: int, cases: dict[str, list[str]]
+) -> dict[tuple[str, str, str], list]:
     """``{(tree, case, mode): [frames/s per repeat]}``, the repeats interleaved."""
     rates: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     for repeat in range(repeats):
-        for case, argv in RATE_CASES.items():
+        for case, argv in cases.items():
             for tree, root in trees.items():
                 for mode, flags in RATE_MODES.items():
                     run = [*argv, *flags, *RATE_OUTPUTS]
@@ -350,7 +354,9 @@ def measure_rates(trees: dict[str, Path], repeats: int) -> dict[tuple[str, str, 
     return rates
 
 
-def rates_table(rates: dict, trees: dict[str, Path], repeats: int) -> list[str]:
+def rates_table(
+    rates: dict, trees: dict[str, Path], repeats: int, cases: dict[str, list[str]]
+) -> list[str]:
     """The rates measured by :func:`measure_rates` as Markdown lines."""
 
     def cell(values: list[float]) -> str:
@@ -358,7 +364,7 @@ def rates_table(rates: dict, trees: dict[str, Path], repeats: int) -> list[str]:
 
     rows = []
     for tree in trees:
-        for case in RATE_CASES:
+        for case in cases:
             logged, plain = rates[(tree, case, "recording")], rates[(tree, case, "--no-viz")]
             ratio = statistics.median(logged) / statistics.median(plain)
             rows.append([tree, case, cell(logged), cell(plain), f"{ratio:.2f}"])
@@ -384,6 +390,9 @@ def build_parser():
     parser.add_argument("--rates", action="store_true", help="recording vs --no-viz rates instead")
     parser.add_argument("--before", type=Path, help="--rates: also measure this checkout")
     parser.add_argument("--repeats", type=int, default=3, help="runs of each rate case")
+    parser.add_argument(
+        "--kitti-root", type=Path, help="--rates: also every scan of sequence 00 in this root"
+    )
     return parser
 
 
@@ -393,16 +402,22 @@ def main(argv: list[str] | None = None) -> int:
     here = {"this checkout": Path(__file__).resolve().parents[1]}
     if args.rates:
         trees = {"before": args.before.resolve(), **here} if args.before else here
-        rates = measure_rates(trees, args.repeats)
+        cases = dict(RATE_CASES)
+        if args.kitti_root is not None:
+            root = args.kitti_root.resolve()
+            cases[f"{root.name}, sequence 00, every scan"] = ["kitti", "00", "--root", str(root)]
+        rates = measure_rates(trees, args.repeats, cases)
         lines = [
             *section_header("rerun rates", command),
             "",
-            *rates_table(rates, trees, args.repeats),
+            *rates_table(rates, trees, args.repeats, cases),
         ]
         write_text_atomic(RATES, "\n".join(lines) + "\n")
         say(f"wrote {RATES}")
         return 0
-    rates = rates_table(measure_rates(here, args.repeats), here, args.repeats)
+    rates = rates_table(
+        measure_rates(here, args.repeats, RATE_CASES), here, args.repeats, RATE_CASES
+    )
     frames = args.frames or ("0:30" if args.quick else None)
     demo = ["demo", *(["--frames", frames] if frames else [])]
     cases = {"demo" + (f" [{frames}]" if frames else ""): demo}
