@@ -129,11 +129,14 @@ def odometry_alone(config_path: str) -> dict[str, float]:
     return {"frames": count, "wall_s": wall, "frames_per_s": count / wall, "cpu_s": cpu}
 
 
-def _second_part(spec: Split, work: Path, name: str, *, continuous: bool, localise: bool):
+def _second_part(
+    spec: Split, work: Path, name: str, *, continuous: bool, localise: bool, sets: tuple = ()
+):
     """The second part on the map in ``work``: localised in it, or (``localise`` False)
-    continuing it; with or without the continuous map constraints."""
+    continuing it; with or without the continuous map constraints; ``sets``: more
+    ``--set KEY=VALUE`` overrides."""
     out = work / name
-    sets = [] if continuous else ["--set", "relocalise.continuous=false"]
+    sets = [*(["--set", "relocalise.continuous=false"] if not continuous else []), *sets]
     args = [*spec.run_args, "--frames", spec.localised_frames, *NO_VIZ, *sets]
     args += ["--map", str(work / "map"), *(["--localise"] if localise else []), "--out", str(out)]
     wall, rss = run_module("slam.run", args, work / f"{name}.log")
@@ -176,6 +179,14 @@ def scenario(name: str, full: bool, work: Path) -> dict[str, Any]:
             spec, work, "localise-placement-only", continuous=False, localise=True
         ),
     }
+    from slam.assembly.config import load_run_config
+
+    config = load_run_config(Path(result["localise"]["config"]))
+    if config.submaps.localise_scan_spacing_m is not None:
+        result["localise_every_scan"] = _second_part(
+            spec, work, "localise-every-scan", continuous=True, localise=True,
+            sets=("--set", "submaps.localise_scan_spacing_m=null"),
+        )  # fmt: skip
     alone, usage = in_child_measured(odometry_alone, result["localise"]["config"])
     result["odometry_alone"] = {**alone, "peak_rss_mb": usage.peak_rss_mb}
     result["continue"] = _second_part(spec, work, "continue", continuous=True, localise=False)
@@ -192,10 +203,14 @@ def _cpu_ms(cpu_s: float | None, frames: int) -> str:
 def _rows(r: dict[str, Any]) -> list[list]:
     rows = []
     placement_only = "placement only (`relocalise.continuous=false`)"
+    every_scan = "continuous, every scan (`submaps.localise_scan_spacing_m=null`)"
     for key, label in (
         ("localise", "continuous (default)"),
+        ("localise_every_scan", every_scan),
         ("localise_placement_only", placement_only),
     ):
+        if key not in r:
+            continue
         run = r[key]
         e, loc = run["error_after_placement"], run["localisation"]
         gaps = ", ".join(f"{a}-{b}" for a, b in loc["coverage_gaps"][:4]) or "none"
@@ -219,7 +234,9 @@ def report(results: dict[str, Any], command: str) -> str:
         *section_header("Localisation in a stored map", command),
         "- The map: the first part run on its own. The second part runs with `--map map "
         "--localise` (poses only) and with `--map map` (continuing the map, merged at the end), "
-        "each with the continuous map constraints (default) and with the first placement only. "
+        "each with the continuous map constraints (default) and with the first placement only; "
+        "where the config spaces a placed run's scans (`submaps.localise_scan_spacing_m`), also "
+        "with every scan. "
         "Error: against the truth carried into the map's frame by aligning the map's own truth "
         "onto its poses, from the placing submap on (the map's ATE is aligned on itself). "
         "frames/s: the run's pipeline rate; the stored surfaces are decoded before the first "

@@ -63,6 +63,7 @@ def test_a_real_hdl64_scan_gives_the_hand_tuned_kitti_settings() -> None:
         ("submaps", "max_range_m"),
         ("submaps", "loop_max_range_m"),
         ("submaps", "max_distance_m"),
+        ("submaps", "localise_scan_spacing_m"),
         ("submaps", "map_voxel_m"),
         ("submaps", "loop_voxel_m"),
     ):

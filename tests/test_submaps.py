@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.geometry import transform_points
+from common.geometry import so3_exp, transform_points
 from common.voxel_keys import KEY_LIMIT
 from common.voxel_keys import point_voxel_keys as voxel_keys
 from frontends.frame import Frame, point_ranges_m
@@ -288,3 +288,32 @@ def test_a_localisation_only_submap_is_averaged_on_its_own_grid() -> None:
     assert np.linalg.norm(located.points_A, axis=1).max() > 2.6  # far points are kept
     assert 0 < len(located.points_A) < len(mapped.points_A) / 5
     np.testing.assert_allclose(located.normals_A, np.tile([0.0, 0.0, -1.0], (len(keys), 1)))
+
+
+def test_a_localisation_only_submap_takes_scans_where_the_sensor_moved_or_turned() -> None:
+    """With localise_scan_spacing_m, once the run is placed (spaced_scans), a localisation-only
+    submap takes a frame's points only once the sensor moved that far, or turned
+    localise_scan_turn_deg, since the last frame it took (its first frame always); otherwise
+    every frame. Each frame sees one point at its own depth, so the depths kept tell which
+    frames were taken."""
+    turned = np.eye(4)
+    turned[:3, :3] = so3_exp(np.radians([0.0, 0.0, 15.0]))
+    poses = [_pose(0.05 * i) for i in range(10)] + [_pose(0.45) @ turned]
+
+    def depths_kept(spaced: bool = True, **spacing) -> set[float]:
+        cfg = _cfg(map_voxel_m=0.01, localise_voxel_m=0.01, loop_voxel_m=0.1, **spacing)
+        decisions, points = KeyframeDecisions(cfg), SubmapPoints(cfg, for_map=False)
+        points.spaced_scans = spaced
+        for i, T_W_S in enumerate(poses):
+            frame = Frame(index=i, timestamp=0.1 * i, points=np.array([[0.0, 0.0, 1 + 0.1 * i]]))
+            points.absorb(decisions.decide(frame, T_W_S), frame)
+        final = decisions.decide_finish()
+        assert final is not None
+        return set(np.round(points.absorb(final, None).points_A[:, 2], 6).tolist())
+
+    every = {round(1 + 0.1 * i, 6) for i in range(11)}
+    spacing = {"localise_scan_spacing_m": 0.12, "localise_scan_turn_deg": 10.0}
+    assert depths_kept() == every
+    assert depths_kept(spaced=False, **spacing) == every  # not placed yet
+    spaced = depths_kept(**spacing)
+    assert spaced == {1.0, 1.3, 1.6, 1.9, 2.0}  # frames 0, 3, 6, 9 moved; frame 10 turned

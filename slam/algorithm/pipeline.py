@@ -232,6 +232,8 @@ class SlamPipeline:
                 record, self.graph, self.loop_detector.descriptors.get(record.submap_id)
             )
             added |= moved
+            placed = self.localisation.placement is not None
+            self.submap_points.spaced_scans = placed and not self.encode
             timings.book("relocalisation", start)
 
         # the keyframe's images were for loop detection; the map only needs the points

@@ -90,6 +90,20 @@ class SubmapConfig(Strict):
         "cut a frame's keyframing from 14 to 4 ms; on the generated street 0.5 instead of "
         "0.35 m saved little and cost 1.3 cm of worst error). None: map_voxel_m",
     )
+    localise_scan_spacing_m: float | None = Field(
+        None,
+        gt=0,
+        description="once a localisation-only run is placed in the stored map, it adds a "
+        "frame's points to its submap only once the sensor has moved this far, or turned "
+        "localise_scan_turn_deg, since the last frame it added (the submap's first frame "
+        "always): the submap is registered as a few thousand points and matched by loop "
+        "closure on a coarse grid, so nearly coincident scans only cost keyframing time. Until "
+        "placed, every frame (a submap is then matched against the whole map, and sparser "
+        "submaps were placed wrongly). None: every frame",
+    )
+    localise_scan_turn_deg: float = Field(
+        10.0, gt=0, description="see localise_scan_spacing_m (unused without it)"
+    )
     keep_points: bool = Field(
         False,
         description="keep each submap's points after encoding (for re-encoding experiments)",

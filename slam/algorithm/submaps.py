@@ -204,6 +204,10 @@ class SubmapPoints:
             self._far_voxel_m = cfg.far_map_voxel_m or cfg.map_voxel_m
         else:
             self._voxel_m = self._far_voxel_m = cfg.localise_voxel_m or cfg.map_voxel_m
+        self.spaced_scans = False
+        """Take frames ``localise_scan_spacing_m`` apart only (a localisation-only run once it is
+        placed: until then its submaps are matched to the whole map, and sparser ones were
+        measured to be placed wrongly)."""
         self._reset_points()
 
     @property
@@ -224,9 +228,23 @@ class SubmapPoints:
             closed = self._close(step.closing)
         if step.opened:
             self._reset_points()
-        if frame is not None and step.T_A_S is not None:
+        if frame is not None and step.T_A_S is not None and self._takes(step.T_A_S):
             self._accumulate(frame, step.T_A_S)
         return closed
+
+    def _takes(self, T_A_S: np.ndarray) -> bool:
+        """Whether a frame at ``T_A_S`` adds its points: always, but with :attr:`spaced_scans`
+        only once the sensor moved or turned enough since the last frame that did."""
+        spacing_m = self.cfg.localise_scan_spacing_m
+        last = self._last_taken_T_A_S
+        if self.spaced_scans and spacing_m is not None and last is not None:
+            moved_m = float(np.linalg.norm(T_A_S[:3, 3] - last[:3, 3]))
+            cos_turn = (np.trace(last[:3, :3].T @ T_A_S[:3, :3]) - 1.0) / 2.0
+            turned_deg = float(np.degrees(np.arccos(np.clip(cos_turn, -1.0, 1.0))))
+            if moved_m < spacing_m and turned_deg < self.cfg.localise_scan_turn_deg:
+                return False
+        self._last_taken_T_A_S = T_A_S
+        return True
 
     def _reset_points(self) -> None:
         """Empty the point buffers for a new submap."""
@@ -235,6 +253,7 @@ class SubmapPoints:
         self._has_normals = True
         self._surface_keys = np.zeros(0, dtype=np.int64)
         self._view_surface = 0
+        self._last_taken_T_A_S: np.ndarray | None = None
 
     def _accumulate(self, frame: Frame, T_A_S: np.ndarray) -> None:
         """Add a frame's points within the range limits: those within ``loop_max_range_m`` and

@@ -13,6 +13,7 @@ field                                                  value
 odometry.kiss_icp.data.max_range                       max point range (>= 2 R)
 submaps.max_range_m (the map's points)                 8 R / 3
 submaps.loop_max_range_m, submaps.max_distance_m       R
+submaps.localise_scan_spacing_m                        R / 10
 mapping.voxel_size_m                                   R / 30
 submaps.map_voxel_m                                    voxel / 3
 submaps.loop_voxel_m, overlap and inlier distances     voxel / 2
@@ -71,6 +72,7 @@ def scale_config(cfg: RunConfig, first_scan: np.ndarray) -> dict[str, float]:
         ("max_range_m", MAP_RANGE_FACTOR * extent),
         ("loop_max_range_m", extent),
         ("max_distance_m", extent),
+        ("localise_scan_spacing_m", extent / 10.0),
         ("map_voxel_m", voxel / 3.0),
         ("loop_voxel_m", voxel / 2.0),
         ("normal_radius_m", 1.5 * voxel),
