@@ -269,6 +269,23 @@ def test_mesh_decimation_keeps_the_surface_within_budget() -> None:
     assert same[1] is not None and len(same[1]) == len(sphere.faces)
 
 
+def test_mesh_decimation_sums_the_area_over_chunks_of_faces(monkeypatch) -> None:
+    """The area that sets the clustering cell is summed over chunks of faces (a bounded memory
+    peak on a whole map's mesh): chunks of 1,000 faces give trimesh's area and the same
+    decimated mesh as one chunk."""
+    from slam.app import mesh_decimation
+
+    sphere = trimesh.creation.icosphere(subdivisions=5)
+    decimated = []
+    for faces_per_chunk in (1000, 1 << 30):
+        monkeypatch.setattr(mesh_decimation, "FACES_PER_CHUNK", faces_per_chunk)
+        area = mesh_decimation._area(np.asarray(sphere.vertices), np.asarray(sphere.faces))
+        assert area == pytest.approx(sphere.area, rel=1e-9)
+        decimated.append(mesh_decimation.decimate_mesh(sphere.vertices, sphere.faces, 2000))
+    for chunked, whole in zip(*decimated, strict=True):
+        np.testing.assert_array_equal(chunked, whole)
+
+
 def test_stored_map_of_a_continued_run_is_shown_once(tmp_path: Path) -> None:
     import trimesh
 

@@ -8,7 +8,21 @@ import math
 import numpy as np
 import trimesh
 
-from common.voxel_keys import KEY_LIMIT, pack_keys
+from common.voxel_keys import KEY_BITS, KEY_LIMIT, pack_keys
+
+FACES_PER_CHUNK = 1 << 18
+"""Faces whose corners are gathered at once to sum the mesh area: the whole map's final mesh
+(about 2 million faces) gathered at once was a 400 MB peak of a recorded run."""
+
+
+def _area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Total area of the faces, gathered :data:`FACES_PER_CHUNK` at a time."""
+    total = 0.0
+    for start in range(0, len(faces), FACES_PER_CHUNK):
+        corners = vertices[faces[start : start + FACES_PER_CHUNK]]
+        edges = corners[:, 1:] - corners[:, :1]
+        total += 0.5 * np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1).sum()
+    return float(total)
 
 
 def decimate_mesh(
@@ -19,26 +33,21 @@ def decimate_mesh(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Vertex-clustering decimation for display: vertices are merged per cell of a grid (cell
     size from the mesh area, ``sqrt(2 area / max_faces)``, grown until the face budget holds),
-    collapsed and duplicate faces dropped. Meshes within budget are returned unchanged."""
+    collapsed and duplicate faces dropped. Meshes within budget are returned unchanged. Vertex
+    indices are held as int32 while faces are collapsed: a mesh of the whole map is decimated
+    in about a quarter of its size again."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     if len(faces) <= max_faces:
         return vertices, faces, vertex_colors
-    corners = vertices[faces]
-    area = (
-        0.5
-        * np.linalg.norm(
-            np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
-        ).sum()
-    )
-    cell = max(math.sqrt(1.2 * area / max(max_faces, 1)), 1e-9)
+    cell = max(math.sqrt(1.2 * _area(vertices, faces) / max(max_faces, 1)), 1e-9)
     extent = float(np.ptp(vertices, axis=0).max())
     cell = max(cell, extent / (KEY_LIMIT - 1))  # fewer than KEY_LIMIT cells per axis
+    origin = vertices.min(axis=0)
     while True:
-        grid = np.floor((vertices - vertices.min(axis=0)) / cell).astype(np.int64)
-        keys = pack_keys(grid)
+        keys = pack_keys(np.floor((vertices - origin) / cell).astype(np.int64))
         _, cluster, counts = np.unique(keys, return_inverse=True, return_counts=True)
-        cluster = cluster.ravel()
+        cluster = cluster.ravel().astype(np.int32)
         new_faces = cluster[faces]
         keep = (
             (new_faces[:, 0] != new_faces[:, 1])
@@ -47,8 +56,9 @@ def decimate_mesh(
         )
         new_faces = new_faces[keep]
         ordered = np.sort(new_faces, axis=1)
-        if len(counts) < KEY_LIMIT:  # vertex-index triples pack like voxel coordinates
-            ordered = pack_keys(ordered)
+        if len(counts) < KEY_LIMIT:  # vertex-index triples (>= 0) pack like voxel coordinates
+            a, b, c = (ordered[:, k].astype(np.int64) for k in range(3))
+            ordered = (a << (2 * KEY_BITS)) | (b << KEY_BITS) | c
         _, first = np.unique(ordered, axis=0 if ordered.ndim == 2 else None, return_index=True)
         new_faces = new_faces[np.sort(first)]
         if len(new_faces) <= max_faces:
