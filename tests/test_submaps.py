@@ -291,19 +291,18 @@ def test_a_localisation_only_submap_is_averaged_on_its_own_grid() -> None:
 
 
 def test_a_localisation_only_submap_takes_scans_where_the_sensor_moved_or_turned() -> None:
-    """With localise_scan_spacing_m, once the run is placed (spaced_scans), a localisation-only
-    submap takes a frame's points only once the sensor moved that far, or turned
-    localise_scan_turn_deg, since the last frame it took (its first frame always); otherwise
-    every frame. Each frame sees one point at its own depth, so the depths kept tell which
-    frames were taken."""
+    """With localise_scan_spacing_m, once the run is placed, a localisation-only submap takes
+    a frame's points only once the sensor moved that far, or turned localise_scan_turn_deg,
+    since the last frame it took (its first frame always); otherwise every frame. Each frame
+    sees one point at its own depth, so the depths kept tell which frames were taken."""
     turned = np.eye(4)
     turned[:3, :3] = so3_exp(np.radians([0.0, 0.0, 15.0]))
     poses = [_pose(0.05 * i) for i in range(10)] + [_pose(0.45) @ turned]
 
-    def depths_kept(spaced: bool = True, **spacing) -> set[float]:
+    def depths_kept(placed: bool = True, **spacing) -> set[float]:
         cfg = _cfg(map_voxel_m=0.01, localise_voxel_m=0.01, loop_voxel_m=0.1, **spacing)
         decisions, points = KeyframeDecisions(cfg), SubmapPoints(cfg, for_map=False)
-        points.spaced_scans = spaced
+        points.placed = placed
         for i, T_W_S in enumerate(poses):
             frame = Frame(index=i, timestamp=0.1 * i, points=np.array([[0.0, 0.0, 1 + 0.1 * i]]))
             points.absorb(decisions.decide(frame, T_W_S), frame)
@@ -314,6 +313,6 @@ def test_a_localisation_only_submap_takes_scans_where_the_sensor_moved_or_turned
     every = {round(1 + 0.1 * i, 6) for i in range(11)}
     spacing = {"localise_scan_spacing_m": 0.12, "localise_scan_turn_deg": 10.0}
     assert depths_kept() == every
-    assert depths_kept(spaced=False, **spacing) == every  # not placed yet
+    assert depths_kept(placed=False, **spacing) == every  # not placed yet
     spaced = depths_kept(**spacing)
     assert spaced == {1.0, 1.3, 1.6, 1.9, 2.0}  # frames 0, 3, 6, 9 moved; frame 10 turned

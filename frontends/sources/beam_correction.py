@@ -195,14 +195,16 @@ def needed_by(cone_angle_deg: float | None, standard_error_deg: float, scans: in
     return None
 
 
-def _road_says(angles: Sequence[float | None]) -> tuple[bool | None, float | None, float | None]:
+def _road_says(
+    angles: Sequence[float | None],
+) -> tuple[bool | None, float | None, float | None, int]:
     """What per-scan cone angles (None: no road) say: :func:`needed_by`, their median and its
-    standard error (both None without a measured scan)."""
+    standard error (both None without a measured scan), and how many scans had road."""
     measured = [a for a in angles if a is not None]
     if not measured:
-        return None, None, None
+        return None, None, None, 0
     median, error = median_and_error(measured)
-    return needed_by(median, error, len(measured)), median, error
+    return needed_by(median, error, len(measured)), median, error, len(measured)
 
 
 def choose_correction(
@@ -225,11 +227,10 @@ def choose_correction(
             if i not in angles:
                 scan = scan_at(i)
                 angles[i] = None if scan is None else road_cone_angle_deg(scan)
-        needed, median, error = _road_says(list(angles.values()))
+        needed, median, error, measured = _road_says(list(angles.values()))
         if needed is not None:
             break
     per_scan = [angles[i] for i in sorted(angles)]
-    measured = sum(a is not None for a in per_scan)
     apply = (needed is not False) if setting == "auto" else bool(setting)
     evidence = (
         "too little road in the scans to tell"

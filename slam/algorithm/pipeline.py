@@ -232,8 +232,7 @@ class SlamPipeline:
                 record, self.graph, self.loop_detector.descriptors.get(record.submap_id)
             )
             added |= moved
-            placed = self.localisation.placement is not None
-            self.submap_points.spaced_scans = placed and not self.encode
+            self.submap_points.placed = self.localisation.placement is not None
             timings.book("relocalisation", start)
 
         # the keyframe's images were for loop detection; the map only needs the points

@@ -204,10 +204,10 @@ class SubmapPoints:
             self._far_voxel_m = cfg.far_map_voxel_m or cfg.map_voxel_m
         else:
             self._voxel_m = self._far_voxel_m = cfg.localise_voxel_m or cfg.map_voxel_m
-        self.spaced_scans = False
-        """Take frames ``localise_scan_spacing_m`` apart only (a localisation-only run once it is
-        placed: until then its submaps are matched to the whole map, and sparser ones were
-        measured to be placed wrongly)."""
+        self.placed = False
+        """The run is placed in a stored map: a localisation-only submap then takes frames
+        ``localise_scan_spacing_m`` apart only (until then its submaps are matched to the whole
+        map, and sparser ones were measured to be placed wrongly)."""
         self._reset_points()
 
     @property
@@ -233,11 +233,13 @@ class SubmapPoints:
         return closed
 
     def _takes(self, T_A_S: np.ndarray) -> bool:
-        """Whether a frame at ``T_A_S`` adds its points: always, but with :attr:`spaced_scans`
-        only once the sensor moved or turned enough since the last frame that did."""
+        """Whether a frame at ``T_A_S`` adds its points: always, but in a placed
+        localisation-only run only once the sensor moved or turned enough since the last frame
+        that did."""
         spacing_m = self.cfg.localise_scan_spacing_m
         last = self._last_taken_T_A_S
-        if self.spaced_scans and spacing_m is not None and last is not None:
+        spaced = self.placed and not self.for_map and spacing_m is not None
+        if spaced and last is not None:
             moved_m = float(np.linalg.norm(T_A_S[:3, 3] - last[:3, 3]))
             cos_turn = (np.trace(last[:3, :3].T @ T_A_S[:3, :3]) - 1.0) / 2.0
             turned_deg = float(np.degrees(np.arccos(np.clip(cos_turn, -1.0, 1.0))))
